@@ -1,0 +1,41 @@
+# Two commands for a newcomer: `make demo` and `make test`. Both build .venv first.
+SHELL := /bin/bash
+VENV := .venv
+PY := $(VENV)/bin/python
+MPIRUN := $(VENV)/bin/mpirun
+export OMP_NUM_THREADS := 1
+
+# DOLFINx wheels need Python >= 3.12; the machine's default python3 may be older, and
+# pyenv shims refuse versions that are not selected, so look at real interpreters first.
+find_python = for p in $$(ls -d $$(pyenv root 2>/dev/null)/versions/3.12*/bin/python3 \
+	$$(pyenv root 2>/dev/null)/versions/3.13*/bin/python3 2>/dev/null) \
+	python3.12 python3.13 python3; do \
+	if command -v $$p >/dev/null 2>&1 && $$p -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; \
+	then echo $$p; break; fi; done
+
+.PHONY: demo test test-serial test-mpi venv clean
+
+venv: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml
+	@python=$$($(find_python)); \
+	if [ -z "$$python" ]; then echo "error: no Python >= 3.12 found (DOLFINx needs it); install one, e.g. 'pyenv install 3.12'" >&2; exit 1; fi; \
+	echo "using $$python ($$($$python --version))"; \
+	[ -x $(PY) ] || $$python -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[test]"
+	@touch $@
+
+demo: venv
+	$(PY) -m hyper.demo
+
+test: venv test-serial test-mpi
+
+test-serial: venv
+	$(PY) -m pytest -q
+
+test-mpi: venv
+	$(MPIRUN) -n 2 $(PY) -m pytest -q --with-mpi -m mpi -p no:cacheprovider
+
+clean:
+	rm -rf $(VENV)

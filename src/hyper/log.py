@@ -1,0 +1,47 @@
+"""Progress on rank 0 only: every other rank stays silent."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+
+def info(comm, *args) -> None:
+    if comm is None or comm.rank == 0:
+        print(*args, flush=True, file=sys.stdout)
+
+
+def hms(seconds: float) -> str:
+    seconds = int(round(max(seconds, 0.0)))
+    h, rem = divmod(seconds, 3600)
+    m, s = divmod(rem, 60)
+    return f"{h:d}:{m:02d}:{s:02d}"
+
+
+class Progress:
+    """Prints "label: done/total, elapsed, time left" on rank 0, at most every ``every`` s."""
+
+    def __init__(self, comm, total: float, label: str, every: float = 2.0):
+        self.comm = comm
+        self.total = float(total)
+        self.label = label
+        self.every = every
+        self.start = time.perf_counter()
+        self._last = -float("inf")
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.start
+
+    def update(self, done: float, detail: str = "", force: bool = False) -> None:
+        now = time.perf_counter()
+        if not force and now - self._last < self.every:
+            return
+        self._last = now
+        elapsed = now - self.start
+        frac = done / self.total if self.total > 0 else 1.0
+        left = elapsed * (1 - frac) / frac if frac > 0 else float("nan")
+        left_txt = hms(left) if frac > 0 else "?"
+        info(
+            self.comm,
+            f"{self.label}: {100 * frac:5.1f}% {detail} | elapsed {hms(elapsed)}, left {left_txt}",
+        )

@@ -1,0 +1,84 @@
+"""Parameters as frozen dataclasses: reading them from TOML and checking them.
+
+Every user-written input goes through here so that a mistake is reported once, with
+the file, the field and what was expected, before any heavy work starts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from pathlib import Path
+from typing import Any, Mapping
+
+
+class InputError(ValueError):
+    """A user input (file, field or option) is malformed; the message says where and why."""
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    try:
+        with path.open("rb") as f:
+            return tomllib.load(f)
+    except tomllib.TOMLDecodeError as err:
+        raise InputError(f"{path}: malformed TOML: {err}") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"{path}: cannot read: {err}") from None
+
+
+def as_float(value: Any, where: str) -> float:
+    """A finite real number from TOML (ints are accepted, booleans and strings are not)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(f"{where}: expected a number, got {value!r}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise InputError(f"{where}: expected a finite number, got {value!r}")
+    return value
+
+
+def replace_from_mapping(base, values: Mapping[str, Any], source: str):
+    """`base` with the fields named in `values` replaced; unknown keys are an error.
+
+    Numbers are checked here; the dataclass's own ``__post_init__`` checks ranges.
+    """
+    names = {f.name for f in dataclasses.fields(base)}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise InputError(
+            f"{source}: unknown parameter(s) {', '.join(unknown)}; "
+            f"known: {', '.join(sorted(names))}"
+        )
+    changes = {k: as_float(v, f"{source}: {k}") for k, v in values.items()}
+    try:
+        return dataclasses.replace(base, **changes)
+    except InputError as err:
+        raise InputError(f"{source}: {err}") from None
+
+
+def load_params(cls, path: str | Path | None = None, **overrides):
+    """Default parameters of ``cls``, overridden by a TOML file and then by keywords."""
+    params = cls()
+    if path is not None:
+        params = replace_from_mapping(params, read_toml(path), str(path))
+    if overrides:
+        params = replace_from_mapping(params, overrides, "overrides")
+    return params
+
+
+def check_positive(obj, *names: str) -> None:
+    """Raise InputError unless every named field is finite and > 0 (arrays: elementwise)."""
+    import numpy as np
+
+    for name in names:
+        v = np.asarray(getattr(obj, name), dtype=float)
+        if not (np.all(np.isfinite(v)) and np.all(v > 0)):
+            raise InputError(f"{name} must be a finite positive number, got {getattr(obj, name)!r}")
+
+
+def as_attributes(obj) -> dict[str, Any]:
+    """The fields of a parameter dataclass, for HDF5 attributes (scalars only)."""
+    return {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
