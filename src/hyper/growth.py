@@ -1,0 +1,171 @@
+"""Transverse volumetric growth: growth tensors, the cumulative update, feedback laws.
+
+Kinematics (MODEL.md §4). Over a growth step the signaling model adds dN to the
+myofibril population; with N = CSA/CSA0 the cross-section must grow by the area
+multiplier
+
+    ϑ = 1 + dN CSA0 / CSA,
+
+which the incremental tensor G = √ϑ I + (1 - √ϑ) a0⊗a0 applies across the fibres only.
+Increments act on the unloaded state (Goriely & Ben Amar 2007):
+
+    Ḡ_k = A_{k-1}⁻¹ G_k A_{k-1} Ḡ_{k-1},   A_k = F_k Ḡ_k⁻¹.
+
+The numpy kernels below work on stacks of 3×3 tensors (one per quadrature point);
+`GrowthField` owns the DOLFINx function that carries Ḡ into the mechanics forms.
+"""
+
+from __future__ import annotations
+
+import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
+
+import basix
+import basix.ufl
+import numpy as np
+import ufl
+from dolfinx import fem
+
+FEEDBACK_LAWS = ("hill", "linear", "none")
+
+
+def feedback(x, law: str = "hill", n: float = 4.0, K: float = 1.0):
+    """Synthesis factor h(CSA/CSA0): kM = kM0 h. Every law has h(1) = 1.
+
+    hill: 2Kⁿ/(Kⁿ + xⁿ) (the paper's); linear: 3 - 2x; none: 1.
+    """
+    x = np.asarray(x, dtype=float)
+    if law == "hill":
+        return 2.0 * K**n / (K**n + x**n)
+    if law == "linear":
+        return 3.0 - 2.0 * x
+    if law == "none":
+        return np.ones_like(x)
+    raise ValueError(f"unknown feedback law {law!r}; expected one of {', '.join(FEEDBACK_LAWS)}")
+
+
+def area_multiplier(dN, csa_ratio):
+    """ϑ = 1 + dN CSA0/CSA for a population change dN over one growth step."""
+    return 1.0 + np.asarray(dN, dtype=float) / csa_ratio
+
+
+def transverse_growth(theta, a0):
+    """G = √ϑ I + (1 - √ϑ) a0⊗a0 for a stack of unit fibres a0 (..., 3)."""
+    a0 = np.asarray(a0, dtype=float)
+    s = np.sqrt(np.asarray(theta, dtype=float))[..., None, None]
+    eye = np.broadcast_to(np.eye(3), a0.shape[:-1] + (3, 3))
+    return s * eye + (1.0 - s) * a0[..., :, None] * a0[..., None, :]
+
+
+def transverse_growth_ufl(theta, a0):
+    """The UFL form of `transverse_growth`, for expressions and tests."""
+    s = ufl.sqrt(theta)
+    return s * ufl.Identity(3) + (1 - s) * ufl.outer(a0, a0)
+
+
+def cumulative_update(Gbar, A, G):
+    """Ḡ_new = A⁻¹ G A Ḡ: unload by A, grow by G, reload (stacks of 3×3 tensors)."""
+    return np.linalg.solve(A, G @ A @ Gbar)
+
+
+def elastic_part(F, Gbar):
+    """A = F Ḡ⁻¹ (stacks of 3×3 tensors)."""
+    return np.linalg.solve(np.swapaxes(Gbar, -1, -2), np.swapaxes(F, -1, -2)).swapaxes(-1, -2)
+
+
+class GrowthField:
+    """Total growth Ḡ and elastic tensor A at the quadrature points of a mesh.
+
+    Ḡ lives in a DOLFINx quadrature space of the same degree as the forms, so the
+    mechanics sees exactly the tensors computed here; A is only needed here and stays
+    a numpy array. Both are kept for the owned cells; ghost values of Ḡ come from a
+    scatter. Arrays are laid out (owned cell, quadrature point, 3, 3).
+    """
+
+    def __init__(self, mesh, a0, degree: int):
+        self.mesh = mesh
+        cell = mesh.basix_cell()
+        element = basix.ufl.quadrature_element(cell, value_shape=(3, 3), degree=degree)
+        self.space = fem.functionspace(mesh, element)
+        self.points, self.weights = basix.make_quadrature(cell, degree)
+        self.cells = np.arange(mesh.topology.index_map(mesh.topology.dim).size_local, dtype=np.int32)
+        self._dofs = self.space.dofmap.list[self.cells]
+        nq = self.points.shape[0]
+        if self._dofs.shape[1] != nq:
+            raise RuntimeError("quadrature space and rule disagree on the number of points")
+
+        fib = fem.Expression(a0, self.points).eval(mesh, self.cells).reshape(-1, nq, 3)
+        self.a0 = fib / np.linalg.norm(fib, axis=-1, keepdims=True)
+        eye = np.broadcast_to(np.eye(3), (len(self.cells), nq, 3, 3))
+        self.Gbar = eye.copy()
+        self.A = eye.copy()
+        self._previous = self.Gbar
+        self.function = fem.Function(self.space, name="Gbar")
+        self._write(self.Gbar)
+        self._F_expr = None
+
+    def _write(self, Gbar) -> None:
+        values = self.function.x.array.reshape(-1, 9)
+        values[self._dofs.ravel()] = Gbar.reshape(-1, 9)
+        self.function.x.scatter_forward()
+
+    def set_deformation(self, F) -> None:
+        """Give the UFL deformation gradient whose values update A after each solve."""
+        self._F_expr = fem.Expression(F, self.points)
+
+    def grow(self, theta) -> None:
+        """Apply one increment with area multiplier ϑ (scalar, or one value per owned cell)."""
+        theta = np.asarray(theta, dtype=float)
+        if theta.ndim == 1:
+            theta = theta[:, None]
+        G = transverse_growth(theta, self.a0)
+        self._previous = self.Gbar
+        self.Gbar = cumulative_update(self.Gbar, self.A, G)
+        self._write(self.Gbar)
+
+    def revert(self) -> None:
+        """Undo the last `grow` (the solve for it failed)."""
+        self.Gbar = self._previous
+        self._write(self.Gbar)
+
+    def accept(self) -> None:
+        """Take the new equilibrium: A = F Ḡ⁻¹ at every quadrature point."""
+        nq = self.points.shape[0]
+        F = self._F_expr.eval(self.mesh, self.cells).reshape(-1, nq, 3, 3)
+        self.A = elastic_part(F, self.Gbar)
+        self._previous = self.Gbar
+
+    def cell_det(self) -> np.ndarray:
+        """det Ḡ averaged over each owned cell (the volume growth per cell)."""
+        det = np.linalg.det(self.Gbar)
+        return det @ self.weights / self.weights.sum()
+
+
+def nanson_area_density(F, N):
+    """J |F⁻ᵀ N|: the deformed area per reference area of a surface with normal N."""
+    return ufl.det(F) * ufl.sqrt(ufl.dot(ufl.inv(F).T * N, ufl.inv(F).T * N))
+
+
+class FacetSection:
+    """A reference cross-section given as tagged interior facets (idealized, cylinder).
+
+    The deformed area is integrated by Nanson's formula on the facets' '+' side; the
+    deformation gradient is cellwise polynomial, and either side gives the same area
+    to discretization error, so one side is enough.
+    """
+
+    def __init__(self, geometry, F):
+        comm = geometry.mesh.comm
+        n = ufl.FacetNormal(geometry.mesh)
+        dS = geometry.dS(geometry.midsection)
+        self._comm = comm
+        self._area0 = fem.form(1.0 * dS)
+        self._area = fem.form(nanson_area_density(F("+"), n("+")) * dS)
+        self.area0 = self._assemble(self._area0)
+
+    def _assemble(self, form) -> float:
+        from mpi4py import MPI
+
+        return self._comm.allreduce(fem.assemble_scalar(form), op=MPI.SUM)
+
+    def area(self) -> float:
+        return self._assemble(self._area)
