@@ -1,0 +1,407 @@
+"""Meshes, facet tags and fibre fields: everything that knows a shape (MODEL.md §5).
+
+Every geometry is a tetrahedral mesh in metres with facet tags for the two muscle ends
+(where the tendon springs act), the lateral surface and, where the mesh has one, an
+internal mid cross-section. `load` knows the project's meshes by clean identifiers:
+
+    idealized   fusiform muscle, length 0.2 m along z (Gmsh .msh: tags 1, 2 the flat
+                end disks, 3 the internal mid cross-section at z = 0.1)
+    cylinder    radius 0.02 m, length 0.1 m along z (Gmsh .msh: tags 1, 2 the end
+                disks, 3 the internal cross-section at z = 0.05)
+    <M>_<S>_<side>  the 12 anatomical meshes, M in BFLH, ST, TA, S in VHF, VHM,
+                side in Left, Right (XDMF in millimetres, tags `ft_small`: 1, 2 ends,
+                3 lateral surface)
+
+The two Gmsh meshes carry no lateral tag; the exterior facets that are neither end get
+`LATERAL_TAG` (4) on load. The idealized shape is read from its .msh, not from the XDMF
+next to it: the XDMF's tags 1 and 2 also cover a 2 cm band of the lateral surface at
+each end (57 of their 64 facets), whereas MODEL.md §5 and the .msh make them the flat
+end disks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import io
+from collections import OrderedDict
+from pathlib import Path
+
+import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
+
+import basix.ufl
+import numpy as np
+import ufl
+from dolfinx import fem, mesh as dmesh
+from dolfinx.graph import adjacencylist
+from dolfinx.io import XDMFFile
+from dolfinx.io.utils import distribute_entity_data
+from mpi4py import MPI
+
+from hyper.params import InputError
+
+MESHES_DIR = Path(__file__).resolve().parents[2] / "meshes"
+LATERAL_TAG = 4
+MM = 1.0e-3  # m per mm: the anatomical meshes are stored in millimetres
+
+MUSCLES = {"BFLH": "biceps femoris long head", "ST": "semitendinosus", "TA": "tibialis anterior"}
+
+# Clean id -> mesh file relative to MESHES_DIR; folder names keep the dataset's spellings.
+GEOMETRIES: OrderedDict[str, str] = OrderedDict(
+    [
+        ("idealized", "muscle-idealized/muscle-idealized.msh"),
+        ("cylinder", "muscle-cylinder/muscle-cylinder.msh"),
+    ]
+    + [
+        (ident, f"{folder}/{folder}.xdmf")
+        for ident, folder in [
+            ("BFLH_VHF_Left", "VHF_Left_Muscle_BicepsFemorisLong_smooth"),
+            ("BFLH_VHF_Right", "VHF_Right_Muscle_BicepsFemorisLongHead_smooth"),
+            ("BFLH_VHM_Left", "VHM_Left_Muscle_BicepsFemorisLongus_smooth"),
+            ("BFLH_VHM_Right", "VHM_Right_Muscle_BicepsFemorisLong_smooth"),
+            ("ST_VHF_Left", "VHF_Left_Muscle_Semitendinosus_smooth"),
+            ("ST_VHF_Right", "VHF_Right_Muscle_Semitendonosus_smooth"),
+            ("ST_VHM_Left", "VHM_Left_Muscle_Semitendonosus_smooth"),
+            ("ST_VHM_Right", "VHM_Right_Muscle_Semitendinosus_smooth"),
+            ("TA_VHF_Left", "VHF_Left_Muscle_TibialisAnterior_smooth"),
+            ("TA_VHF_Right", "VHF_Right_Muscle_TibialisAnterior_smooth"),
+            ("TA_VHM_Left", "VHM_Left_Muscle_TibialisAnterior_smooth"),
+            ("TA_VHM_Right", "VHM_Right_Muscle_TibialisAnterior_smooth"),
+        ]
+    ]
+)
+ANATOMICAL: tuple[str, ...] = tuple(name for name in GEOMETRIES if name not in ("idealized", "cylinder"))
+
+
+def split_id(name: str) -> tuple[str, str, str]:
+    """'BFLH_VHF_Left' -> ('BFLH', 'VHF', 'Left'): muscle, subject, side."""
+    if name not in ANATOMICAL:
+        raise InputError(f"{name!r} is not an anatomical geometry; known: {', '.join(ANATOMICAL)}")
+    muscle, subject, side = name.split("_")
+    return muscle, subject, side
+
+
+@dataclasses.dataclass
+class Geometry:
+    """A mesh with its facet tags; it owns the integration measures and their quadrature.
+
+    ends: the tags of the two ends Γ1, Γ2 (Γ1 = ends[0] is where reaction forces are
+    measured); lateral: the traction-free side; midsection: the tag of an internal
+    facet set for the mid cross-section, or None where the mesh has none.
+    """
+
+    name: str
+    mesh: dmesh.Mesh
+    facet_tags: dmesh.MeshTags
+    ends: tuple[int, int]
+    lateral: int
+    midsection: int | None = None
+    quadrature_degree: int = 4
+
+    @property
+    def comm(self):
+        return self.mesh.comm
+
+    @property
+    def metadata(self) -> dict:
+        return {"quadrature_degree": self.quadrature_degree}
+
+    @property
+    def dx(self) -> ufl.Measure:
+        return ufl.Measure("dx", domain=self.mesh, metadata=self.metadata)
+
+    @property
+    def ds(self) -> ufl.Measure:
+        return ufl.Measure("ds", domain=self.mesh, subdomain_data=self.facet_tags, metadata=self.metadata)
+
+    @property
+    def dS(self) -> ufl.Measure:
+        return ufl.Measure("dS", domain=self.mesh, subdomain_data=self.facet_tags, metadata=self.metadata)
+
+    def num_cells(self) -> int:
+        return self.mesh.topology.index_map(self.mesh.topology.dim).size_global
+
+    def reference_volume(self) -> float:
+        return _sum(self.comm, fem.assemble_scalar(fem.form(1.0 * self.dx)))
+
+    def area(self, tag: int) -> float:
+        """Reference area of an exterior (end, lateral) or interior (midsection) facet set."""
+        measure = self.dS if tag == self.midsection else self.ds
+        return _sum(self.comm, fem.assemble_scalar(fem.form(1.0 * measure(tag))))
+
+
+def _sum(comm, value):
+    return comm.allreduce(value, op=MPI.SUM)
+
+
+# ---------------------------------------------------------------------------- loading
+
+
+def load(name: str, comm, *, meshes_dir: str | Path | None = None, quadrature_degree: int = 4) -> Geometry:
+    """The geometry with clean identifier ``name``, distributed over ``comm``, in metres."""
+    if name not in GEOMETRIES:
+        raise InputError(f"unknown geometry {name!r}; known: {', '.join(GEOMETRIES)}")
+    path = Path(meshes_dir if meshes_dir is not None else MESHES_DIR) / GEOMETRIES[name]
+    if name in ("idealized", "cylinder"):
+        mesh, tags = _read_msh(path, comm)
+        tags = _with_lateral(mesh, tags, ends=(1, 2), lateral=LATERAL_TAG)
+        geometry = Geometry(name, mesh, tags, ends=(1, 2), lateral=LATERAL_TAG, midsection=3,
+                            quadrature_degree=quadrature_degree)
+        _check_tags(geometry, path)
+        return geometry
+    return load_file(path, comm, name=name, tags="ft_small", ends=(1, 2), lateral=3, scale=MM,
+                     quadrature_degree=quadrature_degree)
+
+
+def load_file(
+    path: str | Path,
+    comm,
+    *,
+    name: str | None = None,
+    tags: str = "ft_small",
+    ends: tuple[int, int] = (1, 2),
+    lateral: int = 3,
+    midsection: int | None = None,
+    scale: float = 1.0,
+    mesh_name: str = "Grid",
+    quadrature_degree: int = 4,
+) -> Geometry:
+    """A user-provided tetrahedral XDMF mesh with facet tags named ``tags``.
+
+    ``scale`` converts the file's length unit to metres (1e-3 for millimetres).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such mesh file")
+    try:
+        with XDMFFile(comm, str(path), "r") as xdmf:
+            mesh = xdmf.read_mesh(name=mesh_name)
+            mesh.topology.create_connectivity(mesh.topology.dim - 1, mesh.topology.dim)
+            facet_tags = xdmf.read_meshtags(mesh, name=tags)
+    except RuntimeError as err:
+        raise InputError(
+            f"{path}: cannot read a mesh {mesh_name!r} with facet tags {tags!r} "
+            f"(expected XDMF with HDF5 data): {err}"
+        ) from None
+    if mesh.topology.cell_name() != "tetrahedron":
+        raise InputError(f"{path}: expected a tetrahedral mesh, got {mesh.topology.cell_name()}")
+    if facet_tags.dim != mesh.topology.dim - 1:
+        raise InputError(f"{path}: tags {tags!r} are not facet tags (dimension {facet_tags.dim})")
+    mesh.geometry.x[:] *= scale
+    geometry = Geometry(name or path.stem, mesh, facet_tags, ends=tuple(ends), lateral=lateral,
+                        midsection=midsection, quadrature_degree=quadrature_degree)
+    _check_tags(geometry, path)
+    return geometry
+
+
+def _check_tags(geometry: Geometry, path) -> None:
+    required = {"end": list(geometry.ends), "lateral": [geometry.lateral]}
+    if geometry.midsection is not None:
+        required["midsection"] = [geometry.midsection]
+    present = geometry.facet_tags.values
+    for role, tags in required.items():
+        for tag in tags:
+            count = _sum(geometry.comm, int(np.count_nonzero(present == tag)))
+            if count == 0:
+                raise InputError(f"{path}: facet tag {tag} ({role}) is missing; "
+                                 f"the file has tags {_all_tags(geometry)}")
+
+
+def _all_tags(geometry: Geometry) -> list[int]:
+    tags = geometry.comm.allgather(np.unique(geometry.facet_tags.values).tolist())
+    return sorted(set().union(*tags))
+
+
+def _read_msh(path: Path, comm) -> tuple[dmesh.Mesh, dmesh.MeshTags]:
+    """A Gmsh .msh (tetrahedra, physical groups on triangles), read by meshio on rank 0.
+
+    (dolfinx.io.gmsh needs the gmsh module, which the project does not depend on.)
+    Cells are ghosted across shared facets so that interior facet integrals (dS) work
+    in parallel.
+    """
+    error = cells = x = facets = values = None
+    if comm.rank == 0:
+        try:
+            cells, x, facets, values = _msh_arrays(path)
+        except InputError as err:
+            error = str(err)
+    error = comm.bcast(error, root=0)
+    if error is not None:
+        raise InputError(error)
+    if comm.rank != 0:
+        cells = np.empty((0, 4), dtype=np.int64)
+        x = np.empty((0, 3), dtype=np.float64)
+        facets = np.empty((0, 3), dtype=np.int64)
+        values = np.empty((0,), dtype=np.int32)
+    domain = ufl.Mesh(basix.ufl.element("Lagrange", "tetrahedron", 1, shape=(3,)))
+    partitioner = dmesh.create_cell_partitioner(dmesh.GhostMode.shared_facet, 2)
+    mesh = dmesh.create_mesh(comm, cells, domain, x, partitioner)
+    local_facets, local_values = distribute_entity_data(mesh, 2, facets, values)
+    mesh.topology.create_connectivity(2, 3)
+    tags = dmesh.meshtags_from_entities(
+        mesh, 2, adjacencylist(local_facets), local_values.astype(np.int32)
+    )
+    return mesh, tags
+
+
+def _msh_arrays(path: Path):
+    import meshio
+
+    if not path.is_file():
+        raise InputError(f"{path}: no such mesh file")
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):  # meshio's Gmsh reader prints stray lines
+            msh = meshio.read(path)
+    except Exception as err:  # meshio raises many types for malformed files
+        raise InputError(f"{path}: cannot read as a Gmsh mesh: {err}") from None
+    phys = msh.cell_data.get("gmsh:physical")
+    if phys is None:
+        raise InputError(f"{path}: no physical groups (expected tagged triangles and tetrahedra)")
+    tets = [b.data for b in msh.cells if b.type == "tetra"]
+    tris = [(b.data, d) for b, d in zip(msh.cells, phys) if b.type == "triangle"]
+    if not tets:
+        raise InputError(f"{path}: no tetrahedra")
+    cells = np.vstack(tets).astype(np.int64)
+    facets = np.vstack([t for t, _ in tris]).astype(np.int64) if tris else np.empty((0, 3), np.int64)
+    values = np.concatenate([d for _, d in tris]).astype(np.int32) if tris else np.empty(0, np.int32)
+    return cells, np.ascontiguousarray(msh.points[:, :3], dtype=np.float64), facets, values
+
+
+def _with_lateral(mesh: dmesh.Mesh, tags: dmesh.MeshTags, ends, lateral: int) -> dmesh.MeshTags:
+    """``tags`` plus ``lateral`` on every exterior facet that carries no end tag."""
+    mesh.topology.create_connectivity(2, 3)
+    exterior = dmesh.exterior_facet_indices(mesh.topology)
+    side = np.setdiff1d(exterior, tags.indices[np.isin(tags.values, ends)])
+    indices = np.concatenate([tags.indices, side]).astype(np.int32)
+    values = np.concatenate([tags.values, np.full(len(side), lateral, dtype=np.int32)])
+    order = np.argsort(indices, kind="stable")
+    indices, values = indices[order], values[order]
+    keep = np.ones(len(indices), dtype=bool)
+    keep[1:] = indices[1:] != indices[:-1]  # a facet keeps its first (original) tag
+    return dmesh.meshtags(mesh, 2, indices[keep], values[keep])
+
+
+def refine(geometry: Geometry) -> Geometry:
+    """Uniform refinement (every tetrahedron into eight), facet tags carried over.
+
+    New vertices stay on the coarse facets: the domain is the coarse polyhedron, so a
+    sequence of refinements converges to the solution on that polyhedron.
+    """
+    mesh = geometry.mesh
+    mesh.topology.create_entities(1)
+    fine, parent_cell, parent_facet = dmesh.refine(mesh, option=dmesh.RefinementOption.parent_cell_and_facet)
+    fine.topology.create_connectivity(2, 3)
+    tags = dmesh.transfer_meshtag(geometry.facet_tags, fine, parent_cell, parent_facet)
+    return dataclasses.replace(geometry, mesh=fine, facet_tags=tags)
+
+
+# ----------------------------------------------------------------------------- shape
+
+
+def owned_vertex_coordinates(mesh: dmesh.Mesh) -> np.ndarray:
+    """Coordinates of the vertices this rank owns: over all ranks, each vertex once."""
+    n = mesh.topology.index_map(0).size_local
+    mesh.topology.create_connectivity(0, mesh.topology.dim)
+    nodes = dmesh.entities_to_geometry(mesh, 0, np.arange(n, dtype=np.int32)).ravel()
+    return mesh.geometry.x[nodes]
+
+
+def principal_axes(mesh: dmesh.Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of the vertices and the principal axes (columns, largest variance first).
+
+    Every vertex counts once, whatever the number of ranks, so the result is a property
+    of the reference mesh.
+    """
+    x = owned_vertex_coordinates(mesh)
+    comm = mesh.comm
+    count = _sum(comm, x.shape[0])
+    mean = _sum(comm, x.sum(axis=0)) / count
+    cov = _sum(comm, (x - mean).T @ (x - mean)) / count
+    _, vectors = np.linalg.eigh(cov)
+    return mean, vectors[:, ::-1].copy()
+
+
+def facet_centroid(geometry: Geometry, tag: int) -> np.ndarray:
+    """Area-weighted centroid of a tagged facet set (owned facets, reduced over ranks)."""
+    mesh = geometry.mesh
+    nowned = mesh.topology.index_map(2).size_local
+    facets = geometry.facet_tags.find(tag)
+    facets = facets[facets < nowned]
+    pts = mesh.geometry.x[dmesh.entities_to_geometry(mesh, 2, facets)]
+    area = 0.5 * np.linalg.norm(np.cross(pts[:, 1] - pts[:, 0], pts[:, 2] - pts[:, 0]), axis=1)
+    total = _sum(geometry.comm, area.sum())
+    return _sum(geometry.comm, (area[:, None] * pts.mean(axis=1)).sum(axis=0)) / total
+
+
+# ------------------------------------------------------------------------------ fibres
+
+
+def idealized_fiber(x: np.ndarray) -> np.ndarray:
+    """MODEL.md §5: a0 ∝ (x/r y'(z), y/r y'(z), 0.2), a0 = e_z on the axis; x has shape (3, n)."""
+    z = x[2]
+    slope = np.where(z <= 0.1, 0.06 - 6.0 * z**2, 6.0 * z**2 - 2.4 * z + 0.18)
+    r = np.hypot(x[0], x[1])
+    on_axis = r < 1e-12
+    r = np.where(on_axis, 1.0, r)
+    a = np.vstack([np.where(on_axis, 0.0, x[0] / r * slope), np.where(on_axis, 0.0, x[1] / r * slope),
+                   np.full_like(z, 0.2)])
+    return a / np.linalg.norm(a, axis=0)
+
+
+def uniform_fiber_field(mesh: dmesh.Mesh, direction) -> fem.Function:
+    """A constant unit fibre direction as a P1 vector function."""
+    d = np.asarray(direction, dtype=float)
+    d = d / np.linalg.norm(d)
+    a0 = fem.Function(fem.functionspace(mesh, ("Lagrange", 1, (3,))), name="a0")
+    a0.interpolate(lambda x: np.tile(d[:, None], (1, x.shape[1])))
+    return a0
+
+
+FIBER_KINDS = ("auto", "idealized", "axial", "principal")
+
+
+def fiber_field(geometry: Geometry, kind: str = "auto") -> fem.Function:
+    """The reference fibre direction a0 as a vector P1 function, unit length at the nodes.
+
+    kind: "idealized" the analytic spline fibres of MODEL.md §5; "axial" e_z (the axis of
+    the cylinder and the idealized shape); "principal" the first principal axis of the
+    vertex coordinates, oriented from end Γ1 to Γ2 (a placeholder for the anatomical
+    Stokes-flow fibres of a later issue); "auto" picks the first for `idealized`, the
+    second for `cylinder` and the third otherwise.
+
+    Why P1: every fibre source (analytic, Stokes flow) can be written at vertices, XDMF
+    stores and ParaView shows it as is, and any quadrature or DG space the forms or the
+    growth tensors use interpolates it. Between the nodes |a0| dips below 1 by O(h²)
+    where the fibres curve; code that needs exactly unit fibres at its points (the
+    growth field) normalises there.
+    """
+    if kind not in FIBER_KINDS:
+        raise InputError(f"unknown fibre kind {kind!r}; expected one of {', '.join(FIBER_KINDS)}")
+    if kind == "auto":
+        kind = {"idealized": "idealized", "cylinder": "axial"}.get(geometry.name, "principal")
+    if kind == "axial":
+        return uniform_fiber_field(geometry.mesh, (0.0, 0.0, 1.0))
+    if kind == "principal":
+        _, axes = principal_axes(geometry.mesh)
+        axis = axes[:, 0]
+        if np.dot(facet_centroid(geometry, geometry.ends[1]) - facet_centroid(geometry, geometry.ends[0]), axis) < 0:
+            axis = -axis
+        return uniform_fiber_field(geometry.mesh, axis)
+    a0 = fem.Function(fem.functionspace(geometry.mesh, ("Lagrange", 1, (3,))), name="a0")
+    a0.interpolate(idealized_fiber)
+    return a0
+
+
+__all__ = [
+    "ANATOMICAL",
+    "GEOMETRIES",
+    "Geometry",
+    "MUSCLES",
+    "fiber_field",
+    "load",
+    "load_file",
+    "principal_axes",
+    "refine",
+    "split_id",
+    "uniform_fiber_field",
+]
