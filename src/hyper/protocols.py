@@ -1,0 +1,186 @@
+"""Exercise protocols as data (MODEL.md §2): sessions, named protocols, TOML files.
+
+A session is an interval [start, start + duration) of constant intensity; a protocol is a
+sorted tuple of non-overlapping sessions and an end time. Times are in hours. Everything
+is validated when a ``Protocol`` is built, so a bad protocol never reaches a solver, and
+every message names the offending session (by its index, counting from 0) and field.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from hyper.params import InputError, as_float, read_toml
+
+NAMES = ("mwf", "weekly", "every3days", "daily15", "rest")
+
+WEEK = 168.0  # h
+
+
+@dataclass(frozen=True)
+class Session:
+    start: float  # h
+    duration: float  # h
+    intensity: float  # fraction of the maximal force capacity, in [0, 1]
+
+    @property
+    def end(self) -> float:
+        return self.start + self.duration
+
+
+@dataclass(frozen=True)
+class Protocol:
+    sessions: tuple[Session, ...]
+    end: float  # h, end of the simulated time span [0, end]
+    name: str = "custom"
+
+    def __post_init__(self):
+        object.__setattr__(self, "sessions", tuple(self.sessions))
+        for i, s in enumerate(self.sessions):
+            where = f"session {i}"
+            for field in ("start", "duration", "intensity"):
+                value = getattr(s, field)
+                if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+                    raise InputError(f"{where}: {field} must be a finite number, got {value!r}")
+            if s.start < 0:
+                raise InputError(f"{where}: start must be >= 0 h, got {s.start}")
+            if s.duration <= 0:
+                raise InputError(f"{where}: duration must be > 0 h, got {s.duration}")
+            if not 0.0 <= s.intensity <= 1.0:
+                raise InputError(f"{where}: intensity must lie in [0, 1], got {s.intensity}")
+            if i > 0:
+                prev = self.sessions[i - 1]
+                if s.start < prev.start:
+                    raise InputError(
+                        f"{where}: sessions must be sorted by start, but it starts at {s.start} h, "
+                        f"before session {i - 1} ({prev.start} h)"
+                    )
+                if s.start < prev.end:
+                    raise InputError(
+                        f"{where}: overlaps session {i - 1}: it starts at {s.start} h, "
+                        f"before session {i - 1} ends ({prev.end} h)"
+                    )
+        # plain floats from here on: ints and numpy scalars would leak into attributes and sums
+        object.__setattr__(
+            self, "sessions", tuple(Session(float(s.start), float(s.duration), float(s.intensity)) for s in self.sessions)
+        )
+        end = self.end
+        if isinstance(end, bool) or not isinstance(end, numbers.Real) or not math.isfinite(end) or end <= 0:
+            raise InputError(f"end must be a finite number > 0 h, got {end!r}")
+        if self.sessions and end < self.sessions[-1].end:
+            last = len(self.sessions) - 1
+            raise InputError(f"end ({end} h) lies before the end of the last session {last} ({self.sessions[-1].end} h)")
+        object.__setattr__(self, "end", float(end))
+
+    @cached_property
+    def starts(self) -> np.ndarray:
+        return np.array([s.start for s in self.sessions], dtype=float)
+
+    @cached_property
+    def ends(self) -> np.ndarray:
+        return np.array([s.end for s in self.sessions], dtype=float)
+
+    @cached_property
+    def intensities(self) -> np.ndarray:
+        return np.array([s.intensity for s in self.sessions], dtype=float)
+
+    def periods(self) -> list[tuple[float, float, bool]]:
+        """Consecutive (start, end, in_session) intervals covering [0, end].
+
+        Each session is one period and each rest gap between sessions another; gaps of
+        zero length are left out.
+        """
+        out = []
+        t = 0.0
+        for s in self.sessions:
+            if s.start > t:
+                out.append((t, s.start, False))
+            out.append((s.start, s.end, True))
+            t = s.end
+        if self.end > t:
+            out.append((t, float(self.end), False))
+        return out
+
+    def to_attributes(self) -> dict:
+        """The protocol as HDF5 attributes (arrays of session fields; empty for rest)."""
+        return {
+            "name": self.name,
+            "end": float(self.end),
+            "starts": self.starts,
+            "durations": self.ends - self.starts,
+            "intensities": self.intensities,
+        }
+
+
+def _regular(name: str, first: float, every: float, count: int, duration: float, intensity: float, end: float) -> Protocol:
+    return Protocol(
+        tuple(Session(first + every * k, duration, intensity) for k in range(count)), end, name
+    )
+
+
+def named(name: str) -> Protocol:
+    """The protocols of the paper (MODEL.md §2): one week of rest, then eight weeks of training."""
+    if name == "mwf":
+        starts = [WEEK + WEEK * w + d for w in range(8) for d in (0.0, 48.0, 96.0)]
+        return Protocol(tuple(Session(s, 1.0, 0.8) for s in starts), 9 * WEEK, name)
+    if name == "weekly":
+        return _regular(name, WEEK, WEEK, 8, 1.0, 0.8, 9 * WEEK)
+    if name == "every3days":
+        return _regular(name, WEEK, 72.0, 18, 4.0, 0.2, 9 * WEEK)
+    if name == "daily15":
+        return _regular(name, 0.0, 24.0, 15, 1.0, 0.8, 480.0)
+    if name == "rest":
+        return Protocol((), 9 * WEEK, name)
+    raise InputError(f"unknown protocol {name!r}; known: {', '.join(NAMES)}")
+
+
+SESSION_KEYS = ("start", "duration", "intensity")
+
+
+def load(path: str | Path) -> Protocol:
+    """A protocol from a TOML file: ``end`` (h), optional ``name``, and ``[[session]]`` tables
+    with ``start``, ``duration`` (h) and ``intensity``. Unknown keys are an error."""
+    path = Path(path)
+    data = read_toml(path)
+    unknown = sorted(set(data) - {"end", "name", "session"})
+    if unknown:
+        raise InputError(f"{path}: unknown key(s) {', '.join(unknown)}; known: end, name, session")
+    if "end" not in data:
+        raise InputError(f"{path}: missing 'end' (the end time of the protocol in hours)")
+    end = as_float(data["end"], f"{path}: end")
+    name = data.get("name", path.stem)
+    if not isinstance(name, str):
+        raise InputError(f"{path}: name must be a string, got {name!r}")
+    tables = data.get("session", [])
+    if not isinstance(tables, list) or not all(isinstance(t, dict) for t in tables):
+        raise InputError(f"{path}: 'session' must be an array of tables ([[session]] blocks)")
+    sessions = []
+    for i, table in enumerate(tables):
+        where = f"{path}: session {i}"
+        unknown = sorted(set(table) - set(SESSION_KEYS))
+        if unknown:
+            raise InputError(f"{where}: unknown key(s) {', '.join(unknown)}; known: {', '.join(SESSION_KEYS)}")
+        missing = [k for k in SESSION_KEYS if k not in table]
+        if missing:
+            raise InputError(f"{where}: missing {', '.join(missing)}")
+        sessions.append(Session(*(as_float(table[k], f"{where}: {k}") for k in SESSION_KEYS)))
+    try:
+        return Protocol(tuple(sessions), end, name)
+    except InputError as err:
+        raise InputError(f"{path}: {err}") from None
+
+
+def resolve(name_or_path: str | Path) -> Protocol:
+    """A named protocol, or one loaded from a ``.toml`` file."""
+    text = str(name_or_path)
+    if text in NAMES:
+        return named(text)
+    if text.endswith(".toml") or Path(text).is_file():
+        return load(text)
+    raise InputError(f"unknown protocol {text!r}: give one of {', '.join(NAMES)} or a .toml file")

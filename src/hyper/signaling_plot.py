@@ -1,0 +1,105 @@
+"""The signaling figure: the paper's Fig. 3A–E analog, protocols overlaid."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hyper.protocols import WEEK, Protocol
+
+STYLES = {"weekly": (0, (4, 2))}  # dashed: weekly and mwf coincide until the second session
+COLORS = {"mwf": "#c0392b", "every3days": "#2471a3", "weekly": "#229954", "daily15": "#8e44ad", "rest": "#555555"}
+LABELS = {
+    "mwf": "MWF: 3×/week, 1 h, I = 0.8",
+    "every3days": "every 3 days: 4 h, I = 0.2",
+    "weekly": "weekly: 1 h, I = 0.8",
+    "daily15": "daily ×15: 1 h, I = 0.8",
+    "rest": "rest",
+}
+PANELS = (
+    ("igf1", "A", "IGF1"),
+    ("akt", "B", "AKT"),
+    ("foxo", "C", "FOXO"),
+    ("mtor", "D", "mTOR"),
+    ("N", "E", "myofibrils N"),
+)
+
+
+def _color(name: str, k: int) -> str:
+    return COLORS.get(name, f"C{k}")
+
+
+def figure_protocols(runs: dict, protocols: dict[str, Protocol], params, insets: dict | None = None):
+    """Five panels (IGF1, AKT, FOXO, mTOR, N) over the protocols' time span, one line per
+    protocol, with 24-hour insets of IGF1 and AKT after the first session start, and a
+    sixth panel showing the sessions. ``runs[name]`` holds the series ``t, igf1, ..., N``;
+    ``insets[name]`` the same over the first day, t in hours after the first session start.
+    Returns the matplotlib Figure (Agg)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    end = max(p.end for p in protocols.values())
+    weeks = end / WEEK
+    fig, axes = plt.subplots(3, 2, figsize=(12, 10.5), constrained_layout=True)
+    panels = axes.ravel()
+    for (key, letter, label), ax in zip(PANELS, panels):
+        for k, (name, series) in enumerate(runs.items()):
+            ax.plot(series["t"] / WEEK, series[key], color=_color(name, k), ls=STYLES.get(name, "-"), lw=0.9,
+                    label=LABELS.get(name, name))
+        ax.set_title(f"{letter}   {label}", loc="left", fontweight="bold")
+        ax.set_xlim(0, weeks)
+        ax.set_xticks(np.arange(0, np.floor(weeks) + 1))
+        ax.set_xlabel("time (weeks)")
+        ax.set_ylabel(f"{label} (normalized)")
+        ax.grid(alpha=0.25)
+    for key, ax, theta, name in (("foxo", panels[2], params.thetaF, "θF"), ("mtor", panels[3], params.thetaM, "θM")):
+        if np.ndim(theta) == 0:
+            ax.axhline(theta, color="k", ls="--", lw=0.8)
+            ax.annotate(f"threshold {name} = {theta:g}", (0.99, theta), xycoords=("axes fraction", "data"),
+                        xytext=(0, -11 if key == "foxo" else 3), textcoords="offset points", ha="right", fontsize=8)
+    nax = panels[4]
+    nax.axhline(1.0, color="k", ls=":", lw=0.8)
+    for k, (name, series) in enumerate(runs.items()):
+        nax.annotate(f"{series['N'][-1]:.4f}", (series["t"][-1] / WEEK, series["N"][-1]), xytext=(-4, 4),
+                     textcoords="offset points", ha="right", fontsize=8, color=_color(name, k))
+    # IGF1 and AKT spike for about a day after each session: show the first one up close
+    if insets:
+        for key, ax in (("igf1", panels[0]), ("akt", panels[1])):
+            # room above the spikes for the inset
+            lo, hi = ax.get_ylim()
+            ticks = [t for t in ax.get_yticks() if lo <= t <= hi]
+            ax.set_ylim(lo, lo + (hi - lo) / 0.45)
+            ax.set_yticks(ticks)
+            inset = ax.inset_axes([0.52, 0.5, 0.46, 0.46])
+            for k, (name, series) in enumerate(insets.items()):
+                if series is not None:
+                    inset.plot(series["t"], series[key], color=_color(name, k), ls=STYLES.get(name, "-"), lw=1.0)
+            inset.set_xlim(0, 24)
+            inset.set_xticks([0, 6, 12, 18, 24])
+            inset.tick_params(labelsize=7)
+            inset.set_xlabel("hours after the first session start", fontsize=7, labelpad=1)
+            inset.grid(alpha=0.25)
+            # the stimulus reaches IGF1 tau_d after the session start
+            for k, (name, protocol) in enumerate(protocols.items()):
+                if protocol.sessions:
+                    tau_d = float(np.mean(params.tau_d))
+                    inset.axvspan(tau_d, tau_d + protocol.sessions[0].duration, ymax=0.06, color=_color(name, k), alpha=0.5, lw=0)
+    sax = panels[5]
+    for k, (name, protocol) in enumerate(protocols.items()):
+        bars = [(s.start / WEEK, s.duration / WEEK) for s in protocol.sessions]
+        sax.broken_barh(bars, (k - 0.35, 0.7), color=_color(name, k))
+        for s in protocol.sessions:
+            sax.plot([s.start / WEEK] * 2, [k - 0.35, k + 0.35], color=_color(name, k), lw=1.2)
+    sax.set_yticks(range(len(protocols)), [LABELS.get(n, n) for n in protocols], fontsize=8)
+    sax.set_ylim(-0.7, len(protocols) - 0.3)
+    sax.invert_yaxis()
+    sax.set_xlim(0, weeks)
+    sax.set_xticks(np.arange(0, np.floor(weeks) + 1))
+    sax.set_xlabel("time (weeks)")
+    sax.set_title("F   sessions", loc="left", fontweight="bold")
+    sax.grid(axis="x", alpha=0.25)
+    handles, labels = panels[4].get_legend_handles_labels()
+    panels[4].legend(handles, labels, loc="upper left", fontsize=8, frameon=False)
+    fig.suptitle("Signaling response to exercise protocols (IGF1–AKT–FOXO–mTOR, RK4)", fontsize=12)
+    return fig
