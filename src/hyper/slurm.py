@@ -1,0 +1,181 @@
+"""Slurm batch scripts from the templates in ``jobs/``: fill the placeholders, check values.
+
+    python -m hyper.slurm cohort --ntasks 36 --time 2:00:00 -o cohort.sbatch
+    python -m hyper.slurm grow-array --protocols mwf weekly -o array.sbatch
+    python -m hyper.slurm sobol --ntasks 64 --samples 10000 -o sobol.sbatch
+    sbatch cohort.sbatch
+
+A placeholder is ``{name}`` with a lower-case name; shell variables in the templates are
+upper case (``${RUNS[...]}``, ``$PID``), so the two never clash. Rendering fails on a
+placeholder without a value and on a value without a placeholder, so a script never
+leaves here half filled. See jobs/README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import shlex
+import sys
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from hyper.params import InputError
+
+ROOT = Path(__file__).resolve().parents[2]
+TEMPLATES = {
+    "cohort": ROOT / "jobs" / "cohort.sbatch.in",
+    "grow-array": ROOT / "jobs" / "grow-array.sbatch.in",
+    "sobol": ROOT / "jobs" / "sobol.sbatch.in",
+}
+PLACEHOLDER = re.compile(r"\{([a-z][a-z0-9_]*)\}")
+# Slurm's time formats: M, M:S, H:M:S, D-H, D-H:M, D-H:M:S
+TIME = re.compile(r"\d+(:\d{1,2}){0,2}|\d+-\d{1,2}(:\d{1,2}){0,2}")
+
+
+def placeholders(text: str) -> set[str]:
+    return set(PLACEHOLDER.findall(text))
+
+
+def render(text: str, values: Mapping[str, Any], source: str = "template") -> str:
+    """``text`` with every ``{name}`` replaced by ``str(values[name])``."""
+    needed = placeholders(text)
+    missing = sorted(needed - set(values))
+    unused = sorted(set(values) - needed)
+    if missing:
+        raise InputError(f"{source}: no value for placeholder(s) {', '.join(missing)}")
+    if unused:
+        raise InputError(f"{source}: no placeholder for value(s) {', '.join(unused)}")
+    return PLACEHOLDER.sub(lambda m: str(values[m.group(1)]), text)
+
+
+def render_template(path: str | Path, **values) -> str:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such template")
+    return render(path.read_text(), values, str(path))
+
+
+def cohort_runs(geometries: Sequence[str] | None, protocol_names: Sequence[str] | None) -> list[tuple[str, str]]:
+    """(geometry, protocol) pairs, geometry-major; by default the paper's cohort."""
+    from hyper import geometry, protocols
+
+    geometries = list(geometry.ANATOMICAL) if not geometries else list(geometries)
+    protocol_names = ["mwf", "every3days", "weekly"] if not protocol_names else list(protocol_names)
+    for g in geometries:
+        if g not in geometry.GEOMETRIES:
+            raise InputError(f"--geometries: unknown geometry {g!r}; known: {', '.join(geometry.GEOMETRIES)}")
+    for p in protocol_names:
+        if p not in protocols.NAMES:
+            raise InputError(f"--protocols: unknown protocol {p!r}; known: {', '.join(protocols.NAMES)}")
+    return [(g, p) for g in geometries for p in protocol_names]
+
+
+def runs_block(runs: Sequence[tuple[str, str]]) -> str:
+    """The lines of a bash array, one quoted "geometry protocol" pair each."""
+    return "\n".join(f'    "{g} {p}"' for g, p in runs)
+
+
+def _word(value, option: str) -> str:
+    """A value that goes into the script unquoted: it must need no shell quoting."""
+    text = str(value)
+    if not text or shlex.quote(text) != text:
+        raise InputError(f"{option}: {text!r} must be non-empty, without spaces or shell characters")
+    return text
+
+
+def _count(value: int, option: str, minimum: int = 1) -> int:
+    if value < minimum:
+        raise InputError(f"{option} must be an integer >= {minimum}, got {value}")
+    return value
+
+
+def values_for(kind: str, args: argparse.Namespace) -> dict[str, Any]:
+    """The placeholder values of template ``kind`` from the parsed options, checked."""
+    if not TIME.fullmatch(args.time):
+        raise InputError(f"--time: {args.time!r} is not a Slurm time (M, H:M:S, D-H:M:S, ...)")
+    if "\n" in args.args:
+        raise InputError("--args must be one line")
+    values = {
+        "job_name": _word(args.job_name or f"hyper-{kind}", "--job-name"),
+        "ntasks": _count(args.ntasks, "--ntasks"),
+        "time": args.time,
+        "workdir": _word(args.workdir.resolve(), "--workdir"),
+        "venv": _word(args.venv.resolve(), "--venv"),
+        "output": _word(args.output, "--output"),
+        "log_dir": _word(args.log_dir, "--log-dir"),
+        "warn_s": _count(args.warn_s, "--warn-s"),
+        "max_requeue": _count(args.max_requeue, "--max-requeue", 0),
+        "srun_mpi": _word(args.srun_mpi, "--srun-mpi"),
+        "args": args.args,
+    }
+    if kind == "cohort":
+        values["ranks_per_job"] = _count(args.ranks_per_job, "--ranks-per-job")
+        if args.ntasks % args.ranks_per_job:
+            raise InputError(f"--ranks-per-job {args.ranks_per_job} must divide --ntasks {args.ntasks}")
+    elif kind == "grow-array":
+        runs = cohort_runs(args.geometries, args.protocols)
+        throttle = f"%{_count(args.max_parallel, '--max-parallel')}" if args.max_parallel else ""
+        values["runs"] = runs_block(runs)
+        values["array"] = f"0-{len(runs) - 1}{throttle}"
+    elif kind == "sobol":
+        values["samples"] = _count(args.samples, "--samples")
+    return values
+
+
+DEFAULTS = {  # first guesses per template: ntasks, time, output
+    "cohort": (36, "2:00:00", "results/cohort"),
+    "grow-array": (1, "1:00:00", "results/grow"),
+    "sobol": (32, "24:00:00", "results/sobol"),
+}
+
+
+def parse_args(argv):
+    p = argparse.ArgumentParser(prog="python -m hyper.slurm", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    kinds = p.add_subparsers(dest="kind", required=True, metavar="{cohort,grow-array,sobol}")
+    for kind, (ntasks, time, output) in DEFAULTS.items():
+        k = kinds.add_parser(kind, help=f"render jobs/{TEMPLATES[kind].name}")
+        k.add_argument("-o", "--script", type=Path, help="where to write the script (default: stdout)")
+        k.add_argument("--ntasks", type=int, default=ntasks, help=f"MPI ranks (default {ntasks})")
+        k.add_argument("--time", default=time, help=f"time limit (default {time})")
+        k.add_argument("--job-name", help=f"default hyper-{kind}")
+        k.add_argument("--output", default=output, help=f"results folder (default {output})")
+        k.add_argument("--workdir", type=Path, default=ROOT, help="the project folder the job runs in")
+        k.add_argument("--venv", type=Path, default=Path(sys.prefix), help="virtual environment to activate")
+        k.add_argument("--log-dir", default="results/slurm", help="Slurm logs, relative to --workdir")
+        k.add_argument("--warn-s", type=int, default=300, help="TERM this many s before the time limit")
+        k.add_argument("--max-requeue", type=int, default=3, help="requeue at most this many times")
+        k.add_argument("--srun-mpi", default="pmi2", help="srun --mpi plugin (default pmi2)")
+        k.add_argument("--args", default="", help="extra options for the python command, as one string")
+        if kind == "cohort":
+            k.add_argument("--ranks-per-job", type=int, default=1, help="ranks per run (default 1)")
+        elif kind == "grow-array":
+            k.add_argument("--geometries", nargs="+", metavar="ID", help="default: the 12 anatomical meshes")
+            k.add_argument("--protocols", nargs="+", metavar="NAME", help="default: mwf every3days weekly")
+            k.add_argument("--max-parallel", type=int, help="at most this many array tasks at once")
+        else:
+            k.add_argument("--samples", type=int, default=10000, help="Sobol base samples (default 10000)")
+    return p.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        script = render_template(TEMPLATES[args.kind], **values_for(args.kind, args))
+    except InputError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    # Slurm does not create the folder of --output: a missing one fails the job silently.
+    (args.workdir / args.log_dir).mkdir(parents=True, exist_ok=True)
+    if args.script is None:
+        sys.stdout.write(script)
+    else:
+        args.script.parent.mkdir(parents=True, exist_ok=True)
+        args.script.write_text(script)
+        print(f"wrote {args.script}; submit with: sbatch {args.script}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
