@@ -49,22 +49,22 @@ class Protocol:
                 if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
                     raise InputError(f"{where}: {field} must be a finite number, got {value!r}")
             if s.start < 0:
-                raise InputError(f"{where}: start must be >= 0 h, got {s.start}")
+                raise InputError(f"{where}: start must be >= 0 h, got {s.start:g}")
             if s.duration <= 0:
-                raise InputError(f"{where}: duration must be > 0 h, got {s.duration}")
+                raise InputError(f"{where}: duration must be > 0 h, got {s.duration:g}")
             if not 0.0 <= s.intensity <= 1.0:
-                raise InputError(f"{where}: intensity must lie in [0, 1], got {s.intensity}")
+                raise InputError(f"{where}: intensity must lie in [0, 1], got {s.intensity:g}")
             if i > 0:
                 prev = self.sessions[i - 1]
                 if s.start < prev.start:
                     raise InputError(
-                        f"{where}: sessions must be sorted by start, but it starts at {s.start} h, "
-                        f"before session {i - 1} ({prev.start} h)"
+                        f"{where}: sessions must be sorted by start, but it starts at {s.start:g} h, "
+                        f"before session {i - 1} ({prev.start:g} h)"
                     )
                 if s.start < prev.end:
                     raise InputError(
-                        f"{where}: overlaps session {i - 1}: it starts at {s.start} h, "
-                        f"before session {i - 1} ends ({prev.end} h)"
+                        f"{where}: overlaps session {i - 1}: it starts at {s.start:g} h, "
+                        f"before session {i - 1} ends ({prev.end:g} h)"
                     )
         # plain floats from here on: ints and numpy scalars would leak into attributes and sums
         object.__setattr__(
@@ -75,7 +75,7 @@ class Protocol:
             raise InputError(f"end must be a finite number > 0 h, got {end!r}")
         if self.sessions and end < self.sessions[-1].end:
             last = len(self.sessions) - 1
-            raise InputError(f"end ({end} h) lies before the end of the last session {last} ({self.sessions[-1].end} h)")
+            raise InputError(f"end ({end:g} h) lies before the end of the last session {last} ({self.sessions[-1].end:g} h)")
         object.__setattr__(self, "end", float(end))
 
     @cached_property

@@ -1,0 +1,305 @@
+"""The signaling model (MODEL.md §1): equilibrium, closed forms, RK4 order and accuracy against the
+reference, batch == single bit for bit, the paper's qualitative results, failures, CLI, and the
+batch split over MPI ranks."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from hyper import signaling as S
+from hyper.params import InputError
+from hyper.protocols import Protocol, Session, named
+
+P0 = S.SignalingParams()
+Y0 = S.rest_state()
+END = 1512.0
+
+
+@pytest.fixture(scope="module")
+def mwf_reference():
+    return S.reference(P0, named("mwf"), Y0, 0.0, END)[1][-1]
+
+
+# --- parameters --------------------------------------------------------------------------
+
+
+def test_parameter_table():
+    assert (P0.a10, P0.a20, P0.a3, P0.a4) == (0.09, 0.4875, 0.01068, 0.004635)
+    assert (P0.b1, P0.b2, P0.b3, P0.b4) == (2.0, 0.5, 0.02, 0.01)
+    assert (P0.c21, P0.c32, P0.c42, P0.c43) == (0.2846, 0.002, 0.001139, 0.0025)
+    assert (P0.kM, P0.kF, P0.Nmin, P0.Nmax, P0.thetaF, P0.thetaM) == (0.01, 0.019, 0.5, 1.3, 0.434, 0.469)
+    assert (P0.tau_h, P0.t1, P0.tau_d, P0.beta, P0.Fmax) == (6.0, 17.0, 12.0, 0.04, 150.0)
+
+
+def test_params_from_toml(tmp_path):
+    path = tmp_path / "p.toml"
+    path.write_text("kM = 0.025\nb3 = 0.021\ntau_d = 10\n")
+    p = S.load_params(path)
+    assert (p.kM, p.b3, p.tau_d) == (0.025, 0.021, 10.0) and p.a10 == 0.09
+    assert S.load_params(path, kM=0.03).kM == 0.03
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("kM = 0.02\nspeed = 1\n", r"p.toml: unknown parameter\(s\) speed; known: Fmax, Nmax"),
+        ("kM = 'fast'\n", r"p.toml: kM: expected a number"),
+        ("b1 = 0\n", r"p.toml: b1 must be a finite positive number"),
+        ("c32 = -1\n", r"p.toml: c32 must be >= 0"),
+        ("Nmin = 1.5\n", r"p.toml: Nmin must be < Nmax"),
+        ("kM = [1\n", r"p.toml: malformed TOML"),
+    ],
+)
+def test_bad_parameter_files(tmp_path, text, message):
+    path = tmp_path / "p.toml"
+    path.write_text(text)
+    with pytest.raises(InputError, match=message):
+        S.load_params(path)
+
+
+def test_per_member_arrays_are_validated():
+    with pytest.raises(InputError, match="differ in length"):
+        S.SignalingParams(kM=np.ones(3), kF=np.ones(4))
+    with pytest.raises(InputError, match="b2 must be a finite positive"):
+        S.SignalingParams(b2=np.array([0.5, -0.5]))
+    p = S.SignalingParams(kM=[0.01, 0.02])
+    assert p.size == 2 and p.member(1).kM == 0.02 and p.take(np.array([1])).kM.tolist() == [0.02]
+    with pytest.raises(ValueError):
+        p.kM[0] = 1.0  # frozen means frozen
+
+
+# --- equilibrium and closed forms --------------------------------------------------------
+
+
+def test_rest_state_is_a_fixed_point():
+    np.testing.assert_allclose(Y0, [0.045, 1.000614, 0.433939, 0.468985, 1.0], atol=5e-7)
+    # both effectors sit just below their thresholds: no net balance at rest
+    assert Y0[2] < P0.thetaF and Y0[3] < P0.thetaM
+    assert S.net_balance(Y0[2], Y0[3], Y0[4], P0) == 0.0
+    for t in (0.0, 100.0):
+        f = S.rhs(t, Y0, P0, named("rest"))
+        assert np.max(np.abs(f / Y0)) < 1e-15
+    # and for per-member parameters, each at its own rest state (N moves where FOXO or mTOR
+    # rest above their thresholds)
+    p = S.SignalingParams(a3=np.array([0.0105, 0.01068, 0.011]), c21=np.array([0.2, 0.2846, 0.3]))
+    y = S.rest_state(p)
+    assert y.shape == (5, 3)
+    assert np.max(np.abs(S.rhs(0.0, y, p, named("rest"))[:4])) < 1e-16
+
+
+def test_net_balance_thresholds_and_range():
+    p = P0
+    assert S.net_balance(0.5, 0.4, 1.0, p) == pytest.approx(-p.kF * (0.5 - p.thetaF))
+    assert S.net_balance(0.4, 0.5, 1.0, p) == pytest.approx(p.kM * (0.5 - p.thetaM))
+    assert S.net_balance(0.4, 0.5, 1.0, p, kM=0.5) == pytest.approx(0.5 * (0.5 - p.thetaM))
+    assert S.net_balance(0.5, 0.5, np.array([0.49, 0.5, 1.3, 1.31]), p).tolist()[::3] == [0.0, 0.0]
+    assert np.all(S.net_balance(0.5, 0.5, np.array([0.5, 1.3]), p) != 0.0)
+
+
+def test_a2_closed_form_matches_the_integral_of_the_bump():
+    from scipy.integrate import quad
+
+    protocol = Protocol((Session(10.0, 1.0, 0.8),), 60.0)
+    th, t1 = P0.tau_h, P0.t1
+
+    def integrand(s):
+        return 0.5 * (-1 / th - s / th**2) * np.exp(s / th)
+
+    for t in (5.0, 12.0, 21.0, 24.0, 30.0):
+        bump = quad(integrand, -t1, t - 10.0 - t1)[0] if t >= 10 else 0.0
+        assert S.a2(t, protocol, P0) == pytest.approx(P0.a20 + max(bump, 0.0), abs=1e-14)
+    # the bump peaks near +0.10 at t_ex + 11 h and lasts about 16 h
+    t = np.linspace(10.0, 40.0, 30001)
+    a2 = S.a2(t, protocol, P0)
+    assert t[np.argmax(a2)] - 10.0 == pytest.approx(t1 - th, abs=1e-3)
+    assert a2.max() - P0.a20 == pytest.approx(0.1006, abs=1e-4)
+    duration = S.bump_duration(P0)
+    assert 15.0 < duration < 16.5
+    assert S.g(duration - t1, th) == pytest.approx(S.g(-t1, th), rel=1e-14)
+    assert np.all(a2[t > 10.0 + duration] == P0.a20)
+
+
+def test_a1_is_the_session_stimulus():
+    protocol = named("mwf")
+    assert S.a1(168.0, protocol, P0) == pytest.approx(0.04 * 0.8 * 150.0)
+    assert S.a1([167.999, 169.0, 169.5], protocol, P0).tolist() == [0.09, 0.09, 0.09]
+
+
+def test_switch_times():
+    got = S.switch_times(named("mwf"), P0, 0.0, 300.0)
+    d = S.bump_duration(P0)
+    expected = sorted(x for s in (168.0, 216.0, 264.0) for x in (s, s + 12.0, s + 13.0, s + d))
+    np.testing.assert_allclose(got, [x for x in expected if x < 300.0], rtol=0, atol=1e-12)
+    assert S.switch_times(named("rest"), P0, 0.0, END).size == 0
+    # bumps cut short by the next session start are no switch
+    dense = Protocol((Session(0.0, 1.0, 0.8), Session(10.0, 1.0, 0.8)), 50.0)
+    assert 0.0 + d not in S.switch_times(dense, P0, -1.0, 50.0).tolist()
+
+
+# --- RK4 ---------------------------------------------------------------------------------
+
+
+def test_rk4_has_order_four_on_a_smooth_stretch():
+    # perturbed rest state; FOXO and mTOR stay above their thresholds: no kink in 100 h
+    y0 = Y0 * np.array([1.5, 1.3, 1.15, 1.15, 1.0])
+    protocol = named("rest")
+    ref = S.reference(P0, protocol, y0, 0.0, 100.0)[1][-1]
+    dts = np.array([0.4, 0.2, 0.1, 0.05])
+    errors = [np.max(np.abs(S.integrate(P0, protocol, y0, 0.0, 100.0, dt)[1][-1] / ref - 1)) for dt in dts]
+    slope = np.polyfit(np.log(dts), np.log(errors), 1)[0]
+    print(f"\nsmooth stretch: errors {['%.2e' % e for e in errors]}, fitted order {slope:.3f}")
+    assert 3.8 < slope < 4.3
+
+
+def test_mwf_final_N_against_the_reference(mwf_reference):
+    protocol = named("mwf")
+    errors = {}
+    for dt in (0.1, 0.05):
+        n = S.integrate(P0, protocol, Y0, 0.0, END, dt)[1][-1, 4]
+        errors[dt] = abs(n / mwf_reference[4] - 1)
+    order = np.log2(errors[0.1] / errors[0.05])
+    print(f"\nmwf N(1512 h): rel. error {errors[0.05]:.2e} at dt = 0.05 h, {errors[0.1]:.2e} at 0.1 h; observed order {order:.2f}")
+    assert errors[0.05] < 1e-6
+    assert 3.5 < order < 4.5
+
+
+def test_batch_equals_single_runs_bit_for_bit():
+    protocol = named("mwf")
+    t_out = np.array([0.0, 170.0, 181.0, 250.0, 400.0])
+    _, single = S.integrate(P0, protocol, Y0, 0.0, 400.0, out_times=t_out)
+    _, batch = S.integrate(P0, protocol, np.repeat(Y0[:, None], 1000, axis=1), 0.0, 400.0, out_times=t_out)
+    assert batch.shape == (5, 5, 1000)
+    assert np.array_equal(batch, np.repeat(single[:, :, None], 1000, axis=2))
+    # the same with every parameter given per member
+    per_member = S.SignalingParams(**{f.name: np.full(1000, getattr(P0, f.name)) for f in dataclasses.fields(P0)})
+    _, batch = S.integrate(per_member, protocol, Y0, 0.0, 400.0, out_times=t_out, kM=np.full(1000, P0.kM))
+    assert np.array_equal(batch, np.repeat(single[:, :, None], 1000, axis=2))
+
+
+def test_heterogeneous_batch_member_equals_its_own_run():
+    rng = np.random.default_rng(1)
+    n = 40
+    p = S.SignalingParams(
+        b3=P0.b3 * rng.uniform(0.9, 1.1, n),
+        a20=P0.a20 * rng.uniform(0.9, 1.1, n),
+        beta=P0.beta * rng.uniform(0.5, 1.0, n),
+        tau_d=rng.choice([11.0, 12.0], n),  # two groups with their own switch times
+    )
+    kM = P0.kM * rng.uniform(0.5, 2.0, n)
+    _, batch = S.integrate(p, named("mwf"), Y0, 0.0, 300.0, kM=kM)
+    for m in (0, 7, 39):
+        _, one = S.integrate(p.member(m), named("mwf"), Y0, 0.0, 300.0, kM=float(kM[m]))
+        assert np.array_equal(batch[:, :, m], one)
+
+
+def test_kM_override_equals_changed_parameter():
+    protocol = named("weekly")
+    _, a = S.integrate(P0, protocol, Y0, 0.0, 400.0, kM=0.02)
+    _, b = S.integrate(dataclasses.replace(P0, kM=0.02), protocol, Y0, 0.0, 400.0)
+    assert np.array_equal(a, b)
+
+
+def test_integrate_starts_anywhere_and_lands_on_output_times():
+    protocol = named("mwf")
+    t_out = np.array([100.0, 180.5, 200.0])
+    times, y = S.integrate(P0, protocol, Y0, 0.0, 200.0, out_times=t_out)
+    assert times.tolist() == t_out.tolist()
+    # continuing from an intermediate state reproduces the run to round-off
+    _, rest = S.integrate(P0, protocol, y[1], 180.5, 200.0)
+    np.testing.assert_allclose(rest[-1], y[2], rtol=1e-13)
+    with pytest.raises(ValueError, match="out_times"):
+        S.integrate(P0, protocol, Y0, 0.0, 10.0, out_times=[5.0, 3.0])
+    with pytest.raises(InputError, match="dt"):
+        S.integrate(P0, protocol, Y0, 0.0, 10.0, dt=0.0)
+
+
+# --- the paper's results -----------------------------------------------------------------
+
+
+def test_igf1_and_akt_peak_12_to_14_hours_after_a_session_start():
+    protocol = named("mwf")
+    for start in (168.0, 216.0):
+        t = np.arange(start, start + 24.0 + 1e-9, 0.01)
+        _, y = S.integrate(P0, protocol, Y0, 0.0, t[-1], out_times=t)
+        for k in (0, 1):
+            assert 12.0 <= t[np.argmax(y[:, k])] - start <= 14.0
+
+
+def test_final_N_orders_the_protocols():
+    final = {name: S.integrate(P0, named(name), Y0, 0.0, END)[1][-1, 4] for name in ("mwf", "every3days", "weekly", "rest")}
+    print(f"\nN(1512 h): {final}")
+    assert final["mwf"] > final["every3days"] > final["weekly"] > final["rest"]
+    assert final["rest"] == 1.0
+
+
+# --- failures ----------------------------------------------------------------------------
+
+
+def test_too_large_a_step_stops_with_time_and_member():
+    with pytest.raises(S.SignalingError, match=r"t = 181 h to t = 181.9\d+ h gave member 0 .*smaller dt \(now 1 h\)"):
+        S.integrate(P0, named("mwf"), Y0, 0.0, END, dt=1.0)
+    # in a batch the failing member is named: a stronger stimulus makes member 2 stiffer
+    p = S.SignalingParams(beta=np.array([0.04, 0.04, 0.12]))
+    with pytest.raises(S.SignalingError, match=r"t = 180.5 h to t = 181 h gave member 2 "):
+        S.integrate(p, named("mwf"), Y0, 0.0, 400.0, dt=0.5)
+
+
+# --- CLI ---------------------------------------------------------------------------------
+
+
+def test_cli_writes_series_and_figure(tmp_path, capsys):
+    from hyper import io
+
+    out = tmp_path / "sig"
+    assert S.main(["--protocol", "all", "--output", str(out), "--plot", str(out / "f.png"), "--sample-every", "2"]) == 0
+    for name in S.PAPER:
+        series = io.read_series(out / f"{name}.h5")
+        assert sorted(series) == sorted(["t", *S.STATES])
+        assert series["t"][0] == 0.0 and series["t"][-1] == END
+    assert (out / "f.png").stat().st_size > 10_000
+    assert "mwf: N(1512 h) = 1.0912" in capsys.readouterr().out
+
+
+def test_cli_protocol_file_and_bad_input(tmp_path, capsys):
+    import h5py
+
+    spec = tmp_path / "mine.toml"
+    spec.write_text("end = 100.0\n[[session]]\nstart = 10\nduration = 2\nintensity = 0.5\n")
+    path = tmp_path / "mine.h5"
+    assert S.main(["--protocol-file", str(spec), "--output", str(path), "--dt", "0.1"]) == 0
+    with h5py.File(path) as f:
+        assert f.attrs["dt"] == 0.1 and f["protocol"].attrs["name"] == "mine"
+        assert f["parameters"].attrs["kM"] == 0.01 and "version_hyper" in f.attrs
+    bad = tmp_path / "bad.toml"
+    bad.write_text("end = 100.0\n[[session]]\nstart = 10\nduration = -2\nintensity = 0.5\n")
+    out = tmp_path / "none"
+    assert S.main(["--protocol-file", str(bad), "--output", str(out)]) == 2
+    assert "error: " in capsys.readouterr().err and not out.exists()
+    params = tmp_path / "p.toml"
+    params.write_text("kM = 0.01\nspeed = 2\n")
+    assert S.main(["--params", str(params), "--output", str(out)]) == 2
+    assert "unknown parameter(s) speed" in capsys.readouterr().err and not out.exists()
+    assert S.main(["--dt", "2", "--output", str(out)]) == 1
+    assert "smaller dt" in capsys.readouterr().err and not out.exists()
+
+
+# --- MPI: each rank integrates its share of the batch ------------------------------------
+
+
+@pytest.mark.mpi
+def test_batch_split_over_ranks_equals_serial():
+    from mpi4py import MPI
+
+    comm = MPI.COMM_WORLD
+    n = 64
+    rng = np.random.default_rng(7)
+    p = S.SignalingParams(kM=P0.kM * rng.uniform(0.5, 2.0, n), a3=P0.a3 * rng.uniform(0.98, 1.02, n))
+    mine = np.arange(comm.rank, n, comm.size)
+    _, part = S.integrate(p.take(mine), named("mwf"), Y0, 0.0, 300.0)
+    parts = comm.allgather((mine, part[-1]))
+    gathered = np.empty((5, n))
+    for index, values in parts:
+        gathered[:, index] = values
+    _, serial = S.integrate(p, named("mwf"), Y0, 0.0, 300.0)
+    assert np.array_equal(gathered, serial[-1])
