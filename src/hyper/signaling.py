@@ -560,6 +560,15 @@ def integrate(params: SignalingParams, protocol: Protocol, y0, t0: float, t1: fl
     return times, (states[:, :, 0] if single else states)
 
 
+def step_count(params: SignalingParams, protocol: Protocol, t0: float, t1: float, dt: float = 0.05, *,
+               out_times=None) -> int:
+    """How many RK4 steps ``integrate`` takes from t0 to t1 (for one member; the cost of a
+    batch is this times the number of members)."""
+    times = _output_times(t0, t1, out_times)
+    p = next(_timing_groups(params, params.size or 1))[1]
+    return sum(_steps(piece, dt)[0] for piece in _pieces(protocol, p, t0, t1, times))
+
+
 def reference(params: SignalingParams, protocol: Protocol, y0, t0: float, t1: float, *, out_times=None,
               kM: Array | None = None, rtol: float = 1e-13, atol: float = 1e-15, method: str = "DOP853"
               ) -> tuple[np.ndarray, np.ndarray]:

@@ -38,6 +38,7 @@ def figure_protocols(runs: dict, protocols: dict[str, Protocol], params, insets:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     end = max(p.end for p in protocols.values())
     weeks = end / WEEK
@@ -68,7 +69,7 @@ def figure_protocols(runs: dict, protocols: dict[str, Protocol], params, insets:
         for key, ax in (("igf1", panels[0]), ("akt", panels[1])):
             # room above the spikes for the inset
             lo, hi = ax.get_ylim()
-            ticks = [t for t in ax.get_yticks() if lo <= t <= hi]
+            ticks = [t for t in MaxNLocator(4, steps=[1, 2, 5, 10]).tick_values(lo, hi) if lo <= t <= hi]
             ax.set_ylim(lo, lo + (hi - lo) / 0.45)
             ax.set_yticks(ticks)
             inset = ax.inset_axes([0.52, 0.5, 0.46, 0.46])
