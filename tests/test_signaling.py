@@ -166,14 +166,15 @@ def test_mwf_final_N_against_the_reference(mwf_reference):
 
 def test_batch_equals_single_runs_bit_for_bit():
     protocol = named("mwf")
-    t_out = np.array([0.0, 170.0, 181.0, 250.0, 400.0])
-    _, single = S.integrate(P0, protocol, Y0, 0.0, 400.0, out_times=t_out)
-    _, batch = S.integrate(P0, protocol, np.repeat(Y0[:, None], 1000, axis=1), 0.0, 400.0, out_times=t_out)
+    # two sessions: every switch (stimulus on/off, bump start and end) and a state-dependent kink
+    t_out = np.array([0.0, 170.0, 181.0, 229.5, 250.0])
+    _, single = S.integrate(P0, protocol, Y0, 0.0, 250.0, out_times=t_out)
+    _, batch = S.integrate(P0, protocol, np.repeat(Y0[:, None], 1000, axis=1), 0.0, 250.0, out_times=t_out)
     assert batch.shape == (5, 5, 1000)
     assert np.array_equal(batch, np.repeat(single[:, :, None], 1000, axis=2))
     # the same with every parameter given per member
     per_member = S.SignalingParams(**{f.name: np.full(1000, getattr(P0, f.name)) for f in dataclasses.fields(P0)})
-    _, batch = S.integrate(per_member, protocol, Y0, 0.0, 400.0, out_times=t_out, kM=np.full(1000, P0.kM))
+    _, batch = S.integrate(per_member, protocol, Y0, 0.0, 250.0, out_times=t_out, kM=np.full(1000, P0.kM))
     assert np.array_equal(batch, np.repeat(single[:, :, None], 1000, axis=2))
 
 

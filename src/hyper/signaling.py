@@ -96,6 +96,7 @@ class SignalingParams:
             object.__setattr__(self, f.name, value)
         if len(sizes) > 1:
             raise InputError(f"per-member parameter arrays differ in length: {sorted(sizes)}")
+        object.__setattr__(self, "_size", sizes.pop() if sizes else None)
         _params.check_positive(self, *self.POSITIVE)
         for name in ("c21", "c32", "c42", "c43", "kM", "kF", "Nmin", "thetaF", "thetaM", "t1", "tau_d", "beta"):
             if np.any(np.asarray(getattr(self, name)) < 0):
@@ -106,11 +107,7 @@ class SignalingParams:
     @property
     def size(self) -> int | None:
         """The number of members if some field is an array, else None."""
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if isinstance(value, np.ndarray):
-                return value.size
-        return None
+        return self._size
 
     def take(self, index) -> SignalingParams:
         """The members at ``index`` (an index array); scalar fields stay scalar."""
@@ -411,7 +408,7 @@ def _stage_bumps(piece: _Piece, p: SignalingParams, steps: int, h: float) -> np.
 
 def _steps(piece: _Piece, dt: float) -> tuple[int, float]:
     length = piece.t1 - piece.t0
-    # the tolerance keeps round-off in length/dt from adding a step (0.5 / 0.05 > 10)
+    # the tolerance keeps round-off in the length from adding a step (0.6000000000000001 / 0.05 = 12.000000000000002)
     steps = max(1, math.ceil(length / dt - 1e-9))
     return steps, length / steps
 
