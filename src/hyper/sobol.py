@@ -1,0 +1,701 @@
+"""Sobol sensitivity analysis of the signaling model (MODEL.md §7), farmed across MPI ranks.
+
+What is analysed: N(480 h) under ``daily15`` from the *baseline* rest state (MODEL.md §1),
+as a function of the 14 parameters in ``PARAMETERS``, each uniform on [0.5, 2] x its
+baseline value. SALib draws a Saltelli/Sobol design with second-order terms,
+N (2D + 2) rows for N base samples, and estimates first-order, total and second-order
+indices with bootstrap confidence intervals.
+
+Evaluation. The rows are evaluated in chunks (jobs of ``hyper.farm``), each chunk one
+batch along the batch axis of the signaling model. The default backend is a compiled
+copy of ``hyper.signaling``'s RK4 step (C through cffi, the route DOLFINx takes for its
+form kernels): the same pieces, step sizes and stimulus tables, the same floating-point
+operations in the same order (``-ffp-contract=off`` keeps the compiler from fusing
+them), so every member equals ``signaling.integrate`` of its own parameters bit for bit,
+at about 10x the numpy batch's throughput. It also lets one member fail (a non-finite
+or negative state) without stopping the others: the member's output becomes NaN.
+The ``numpy`` backend calls ``signaling.integrate`` directly; there a failing member
+fails its whole chunk.
+
+Failures. Members whose trajectory fails are counted and reported, never dropped
+silently. SALib needs every output, so by default (``on_failure="abort"``) no indices
+are computed while any member failed; ``"drop"`` removes every base sample that has a
+failed row (its whole block of 2D + 2 rows, which keeps SALib's design intact) and
+says how many.
+
+The job layer (``run_chunks`` and ``main``) writes each finished chunk atomically to
+``<output>/chunks/<digest>/``, the digest covering the sample matrix and every setting,
+so a rerun skips finished chunks and never reuses chunks of a different run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import hashlib
+import importlib.machinery
+import importlib.util
+import json
+import math
+import os
+import platform
+import shutil
+import sys
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from hyper import signaling as S
+from hyper.params import InputError
+from hyper.protocols import NAMES, Protocol, resolve
+
+PARAMETERS = ("a10", "a20", "a3", "a4", "b1", "b2", "b3", "b4", "c21", "c32", "c42", "c43", "kM", "kF")
+
+# The species a parameter belongs to (the figures' colours). A coupling parameter belongs to
+# the species whose equation it sits in; ``SOURCE`` names the species it comes from.
+SPECIES = {
+    "IGF1": ("a10", "b1"),
+    "AKT": ("a20", "b2", "c21"),
+    "FOXO": ("a3", "b3", "c32"),
+    "mTOR": ("a4", "b4", "c42", "c43"),
+    "balance": ("kM", "kF"),
+}
+SOURCE = {"c21": "IGF1", "c32": "AKT", "c42": "AKT", "c43": "FOXO"}
+
+LOW, HIGH = 0.5, 2.0  # bounds as multiples of the baseline value
+T_END = 480.0  # h, the end of daily15
+ISHIGAMI_AB = (7.0, 0.1)
+
+
+# --------------------------------------------------------------------------------------
+# The design
+
+
+def problem(base: S.SignalingParams | None = None, names=PARAMETERS, low: float = LOW, high: float = HIGH) -> dict:
+    """SALib's problem: each parameter uniform on [low, high] x its baseline value."""
+    base = S.SignalingParams() if base is None else base
+    return {
+        "num_vars": len(names),
+        "names": list(names),
+        "bounds": [[low * float(getattr(base, n)), high * float(getattr(base, n))] for n in names],
+    }
+
+
+def ishigami_problem() -> dict:
+    return {"num_vars": 3, "names": ["x1", "x2", "x3"], "bounds": [[-math.pi, math.pi]] * 3}
+
+
+def ishigami_exact(a: float = ISHIGAMI_AB[0], b: float = ISHIGAMI_AB[1]) -> dict[str, np.ndarray]:
+    """The analytic indices of f = sin x1 + a sin² x2 + b x3⁴ sin x1 on [-pi, pi]³."""
+    pi4 = math.pi**4
+    v1 = 0.5 * (1 + b * pi4 / 5) ** 2
+    v2 = a**2 / 8
+    v13 = b**2 * pi4**2 * (1 / 18 - 1 / 50)
+    v = v1 + v2 + v13
+    S2 = np.full((3, 3), np.nan)
+    S2[0, 1], S2[0, 2], S2[1, 2] = 0.0, v13 / v, 0.0
+    return {"S1": np.array([v1, v2, 0.0]) / v, "ST": np.array([v1 + v13, v2, v13]) / v, "S2": S2}
+
+
+def sample(prob: dict, n: int, seed: int) -> np.ndarray:
+    """The Saltelli/Sobol design with second-order terms: n (2D + 2) rows, grouped by base sample.
+
+    SciPy warns when n is not a power of 2 (the Sobol sequence is balanced only then); the
+    paper's n = 10,000 is not, so the warning is swallowed here and ``main`` says it once.
+    """
+    from SALib.sample import sobol as sobol_sample
+
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
+        raise InputError(f"samples must be an integer >= 2, got {n!r}")
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*balance properties of Sobol.*")
+        return sobol_sample.sample(prob, int(n), calc_second_order=True, seed=seed)
+
+
+# --------------------------------------------------------------------------------------
+# Model evaluations
+
+
+def ishigami(X: np.ndarray, a: float = ISHIGAMI_AB[0], b: float = ISHIGAMI_AB[1]) -> np.ndarray:
+    return np.sin(X[:, 0]) + a * np.sin(X[:, 1]) ** 2 + b * X[:, 2] ** 4 * np.sin(X[:, 0])
+
+
+def sample_params(X: np.ndarray, names=PARAMETERS, base: S.SignalingParams | None = None) -> S.SignalingParams:
+    """The baseline parameters with the named fields replaced by the columns of X."""
+    base = S.SignalingParams() if base is None else base
+    return dataclasses.replace(base, **{name: X[:, k] for k, name in enumerate(names)})
+
+
+def final_N(X: np.ndarray, *, names=PARAMETERS, protocol: Protocol | None = None, dt: float = 0.05,
+            base: S.SignalingParams | None = None, backend: str = "c") -> np.ndarray:
+    """N at the end of ``protocol`` (default daily15) for every row of X, from the baseline rest
+    state, by RK4 with steps of at most dt. NaN marks a member whose trajectory failed (c
+    backend); the numpy backend raises ``SignalingError`` instead."""
+    protocol = resolve("daily15") if protocol is None else protocol
+    p = sample_params(np.atleast_2d(X), names, base)
+    y0 = S.rest_state(base)
+    if backend == "numpy":
+        return S.integrate(p, protocol, y0, 0.0, protocol.end, dt)[1][-1, 4]
+    if backend != "c":
+        raise InputError(f"backend must be 'c' or 'numpy', got {backend!r}")
+    states, failed = integrate_compiled(p, protocol, y0, 0.0, protocol.end, dt)
+    return np.where(failed, np.nan, states[4])
+
+
+# The compiled RK4. Rows of the per-member coefficient matrix, in the order the C code reads
+# them; the inhibitions c32 and c43 enter negated, as in signaling's kernels.
+_ROWS = ("b1", "b2", "b3", "b4", "a20", "a3", "a4", "c21", "c32", "c42", "c43",
+         "thetaF", "thetaM", "kF", "kM", "Nmin", "Nmax")
+_NEGATED = ("c32", "c43")
+
+_CDEF = """
+void rk4_piece(long n, long steps, double h, double h2, double h6, double t0, const double *P,
+               const double *A1, const double *bumps, double *Y, double *fail_t);
+"""
+
+# Each expression below is signaling._scalar_rhs / _rk4_single term for term: IEEE +, -, *
+# are exactly rounded, so the same trees in the same order give the same bits. Branches
+# are written as selects so that GCC vectorizes the loop over members.
+_C_SOURCE = r"""
+#include <math.h>
+
+enum {B1, B2, B3, B4, A20, A3, A4, C21, MC32, C42, MC43, THF, THM, KF, KM, NMIN, NMAX};
+#define ROW(k) (P + (long)(k) * n)
+
+static inline void rhs(long i, long n, const double *restrict P, double A1, double A2,
+                       double x1, double x2, double x3, double x4, double N, double *k)
+{
+    k[0] = x1 * (A1 - ROW(B1)[i] * x1);
+    k[1] = x2 * ((A2 - ROW(B2)[i] * x2) + ROW(C21)[i] * x1);
+    k[2] = x3 * ((ROW(A3)[i] - ROW(B3)[i] * x3) + ROW(MC32)[i] * x2);
+    k[3] = x4 * (((ROW(A4)[i] - ROW(B4)[i] * x4) + ROW(C42)[i] * x2) + ROW(MC43)[i] * x3);
+    const double d3 = x3 - ROW(THF)[i], d4 = x4 - ROW(THM)[i];
+    const double f = (d4 > 0.0 ? ROW(KM)[i] * d4 : 0.0) - (d3 > 0.0 ? ROW(KF)[i] * d3 : 0.0);
+    const int inside = (ROW(NMIN)[i] <= N) & (N <= ROW(NMAX)[i]);
+    k[4] = inside ? f : 0.0;
+}
+
+/* `steps` RK4 steps of size h from t0 for n members; Y (5 x n) in place. bumps holds a2 - a20
+   at the 2 steps + 1 stage times (zeros without a bump). fail_t[i] < 0 until member i first
+   leaves [0, inf) or turns NaN; then the time of the step's start. */
+void rk4_piece(long n, long steps, double h, double h2, double h6, double t0,
+               const double *restrict P, const double *restrict A1, const double *restrict bumps,
+               double *restrict Y, double *restrict fail_t)
+{
+    for (long j = 0; j < steps; ++j) {
+        const double u0 = bumps[2 * j], u1 = bumps[2 * j + 1], u2 = bumps[2 * j + 2];
+        const double t = t0 + j * h;
+        for (long i = 0; i < n; ++i) {
+            const double a20 = ROW(A20)[i], a1 = A1[i];
+            const double x[5] = {Y[i], Y[n + i], Y[2 * n + i], Y[3 * n + i], Y[4 * n + i]};
+            double k1[5], k2[5], k3[5], k4[5];
+            rhs(i, n, P, a1, a20 + u0, x[0], x[1], x[2], x[3], x[4], k1);
+            rhs(i, n, P, a1, a20 + u1, x[0] + k1[0] * h2, x[1] + k1[1] * h2, x[2] + k1[2] * h2,
+                x[3] + k1[3] * h2, x[4] + k1[4] * h2, k2);
+            rhs(i, n, P, a1, a20 + u1, x[0] + k2[0] * h2, x[1] + k2[1] * h2, x[2] + k2[2] * h2,
+                x[3] + k2[3] * h2, x[4] + k2[4] * h2, k3);
+            rhs(i, n, P, a1, a20 + u2, x[0] + k3[0] * h, x[1] + k3[1] * h, x[2] + k3[2] * h,
+                x[3] + k3[3] * h, x[4] + k3[4] * h, k4);
+            int ok = 1;
+            for (int s = 0; s < 5; ++s) {
+                const double z = x[s] + (((k1[s] + k2[s] * 2.0) + k3[s] * 2.0) + k4[s]) * h6;
+                Y[s * n + i] = z;
+                ok &= (z >= 0.0) & (z < INFINITY);
+            }
+            fail_t[i] = (!ok && fail_t[i] < 0.0) ? t : fail_t[i];
+        }
+    }
+}
+"""
+
+# Without -ffp-contract=off GCC fuses a*b + c into FMAs under -march=native, and the bits
+# differ from numpy's. -march=native buys AVX2 (4 members per instruction instead of 2).
+_FLAGS = (["-O3", "-ffp-contract=off", "-march=native"], ["-O3", "-ffp-contract=off"])
+
+# Members per call of the kernel: coefficients and state (22 doubles each) stay in L2.
+BLOCK = 2048
+
+
+def _cpu_tag() -> str:
+    """What -march=native depends on: a cached kernel must not run on a different CPU."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+        lines = [line for line in text.splitlines() if line.startswith(("model name", "flags"))][:2]
+        return "\n".join(lines) or platform.processor()
+    except OSError:
+        return platform.machine() + platform.processor()
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(os.environ.get("HYPER_CACHE_DIR", Path(root) / "hyper"))
+
+
+@functools.cache
+def compiled_kernel():
+    """The compiled RK4 step as a cffi module, built once per source, flags and CPU and cached
+    in ``$HYPER_CACHE_DIR`` (default ``~/.cache/hyper``). Several processes may build it at
+    once: each compiles in its own folder and renames the result into place atomically."""
+    from cffi import FFI
+
+    errors = []
+    for flags in _FLAGS:
+        key = hashlib.sha256("\0".join([_C_SOURCE, *flags, _cpu_tag(), sys.version]).encode()).hexdigest()[:16]
+        name = f"_hyper_rk4_{key}"
+        suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
+        path = _cache_dir() / f"{name}{suffix}"
+        try:
+            if not path.exists():
+                path.parent.mkdir(parents=True, exist_ok=True)
+                ffi = FFI()
+                ffi.cdef(_CDEF)
+                ffi.set_source(name, _C_SOURCE, extra_compile_args=flags)
+                with tempfile.TemporaryDirectory(dir=path.parent) as tmp:
+                    built = Path(ffi.compile(tmpdir=tmp))
+                    os.replace(built, path)
+            spec = importlib.util.spec_from_file_location(name, path)
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+            return module
+        except Exception as err:  # noqa: BLE001 - try the next flags, report all if none works
+            errors.append(f"{' '.join(flags)}: {err}")
+    raise RuntimeError(
+        "cannot build the compiled RK4 kernel (needs a C compiler and cffi, as DOLFINx does); "
+        "use backend 'numpy' instead. Tried: " + "; ".join(errors)
+    )
+
+
+def integrate_compiled(params: S.SignalingParams, protocol: Protocol, y0, t0: float, t1: float,
+                       dt: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """``signaling.integrate`` from t0 to t1 for a batch, on the compiled kernel, with failures
+    masked: returns the states at t1, shape (5, n), and which members failed (their states
+    are then meaningless). Timing parameters (tau_d, t1, tau_h) must be scalars."""
+    if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+        raise InputError(f"dt must be a finite number > 0 h, got {dt!r}")
+    n = params.size
+    if n is None:
+        raise ValueError("integrate_compiled needs per-member parameter arrays")
+    if any(np.ndim(getattr(params, k)) for k in S.TIMING):
+        raise ValueError("integrate_compiled needs scalar tau_d, t1 and tau_h")
+    kernel = compiled_kernel()
+    ffi, lib = kernel.ffi, kernel.lib
+    # signaling's own partition of [t0, t1] and stimulus tables: the same steps as integrate
+    pieces = S._pieces(protocol, params, t0, t1, np.array([t0, t1], dtype=float))
+    plan = []
+    for piece in pieces:
+        steps, h = S._steps(piece, dt)
+        bumps = S._stage_bumps(piece, params, steps, h)
+        bumps = np.zeros(2 * steps + 1) if bumps is None else np.ascontiguousarray(bumps, dtype=float)
+        plan.append((steps, h, S._a1_value(piece, params), bumps, piece.t0))
+    P = np.empty((len(_ROWS), n))
+    for k, name in enumerate(_ROWS):
+        value = np.asarray(getattr(params, name), dtype=float)
+        P[k] = -value if name in _NEGATED else value
+    Y0 = np.broadcast_to(np.asarray(y0, dtype=float).reshape(5, -1), (5, n))
+    states = np.empty((5, n))
+    fail_t = np.empty(n)
+
+    def ptr(a: np.ndarray):
+        return ffi.cast("double *", a.ctypes.data)
+
+    for start in range(0, n, BLOCK):
+        sel = slice(start, min(start + BLOCK, n))
+        m = sel.stop - sel.start
+        Pb = np.ascontiguousarray(P[:, sel])
+        Y = np.ascontiguousarray(Y0[:, sel])
+        fb = np.full(m, -1.0)
+        for steps, h, a1, bumps, piece_t0 in plan:
+            A1 = np.ascontiguousarray(np.broadcast_to(a1[sel] if np.ndim(a1) else a1, (m,)), dtype=float)
+            lib.rk4_piece(m, steps, h, 0.5 * h, h / 6.0, piece_t0, ptr(Pb), ptr(A1), ptr(bumps), ptr(Y), ptr(fb))
+        states[:, sel] = Y
+        fail_t[sel] = fb
+    return states, fail_t >= 0.0
+
+
+# --------------------------------------------------------------------------------------
+# Analysis
+
+
+@dataclass(frozen=True)
+class Indices:
+    names: tuple[str, ...]
+    S1: np.ndarray
+    S1_conf: np.ndarray  # half-width of the conf_level interval (bootstrap)
+    ST: np.ndarray
+    ST_conf: np.ndarray
+    S2: np.ndarray  # (D, D), upper triangle; NaN elsewhere
+    S2_conf: np.ndarray
+    S1_boot: np.ndarray  # (resamples, D): the bootstrap replicates behind S1_conf
+    ST_boot: np.ndarray
+    base_samples: int  # base samples that entered the estimate
+    dropped: int  # base samples left out because one of their rows failed
+
+    def table(self) -> str:
+        lines = [f"{'parameter':<10}{'S1':>9}{'±':>9}{'ST':>9}{'±':>9}"]
+        for k in np.argsort(-self.ST):
+            lines.append(f"{self.names[k]:<10}{self.S1[k]:9.4f}{self.S1_conf[k]:9.4f}{self.ST[k]:9.4f}{self.ST_conf[k]:9.4f}")
+        return "\n".join(lines)
+
+
+def failed_base_samples(Y: np.ndarray, D: int) -> np.ndarray:
+    """Which base samples have a non-finite output in their block of 2D + 2 rows."""
+    return ~np.isfinite(np.asarray(Y, dtype=float).reshape(-1, 2 * D + 2)).all(axis=1)
+
+
+def analyze(prob: dict, Y: np.ndarray, *, seed: int, resamples: int = 100, conf_level: float = 0.95,
+            on_failure: str = "abort") -> Indices:
+    """SALib's Sobol indices (first, total, second order) with bootstrap intervals.
+
+    Non-finite outputs mark failed members: ``on_failure="abort"`` raises ValueError,
+    ``"drop"`` leaves out every base sample with a failed row. The bootstrap is seeded
+    with seed + 1 (SALib takes a seed of 0 for no seed).
+    """
+    from SALib.analyze import sobol as sobol_analyze
+
+    D = prob["num_vars"]
+    Y = np.asarray(Y, dtype=float)
+    if Y.ndim != 1 or Y.size % (2 * D + 2):
+        raise ValueError(f"Y must hold n (2D + 2) = n x {2 * D + 2} outputs, got shape {Y.shape}")
+    bad = failed_base_samples(Y, D)
+    if bad.any():
+        if on_failure == "abort":
+            raise ValueError(
+                f"{int((~np.isfinite(Y)).sum())} of {Y.size} model evaluations failed (in {int(bad.sum())} "
+                "base samples); SALib needs every output: rerun with a smaller dt, or drop those base samples"
+            )
+        if on_failure != "drop":
+            raise ValueError(f"on_failure must be 'abort' or 'drop', got {on_failure!r}")
+        Y = Y.reshape(-1, 2 * D + 2)[~bad].ravel()
+    if Y.size == 0:
+        raise ValueError("no base sample is left to analyse")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        si = sobol_analyze.analyze(prob, Y, calc_second_order=True, num_resamples=resamples,
+                                   conf_level=conf_level, keep_resamples=True, seed=seed + 1)
+    return Indices(
+        names=tuple(prob["names"]),
+        S1=np.asarray(si["S1"]), S1_conf=np.asarray(si["S1_conf"]),
+        ST=np.asarray(si["ST"]), ST_conf=np.asarray(si["ST_conf"]),
+        S2=np.asarray(si["S2"]), S2_conf=np.asarray(si["S2_conf"]),
+        S1_boot=np.asarray(si["S1_conf_all"]), ST_boot=np.asarray(si["ST_conf_all"]),
+        base_samples=int(Y.size // (2 * D + 2)), dropped=int(bad.sum()),
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Figures
+
+COLOURS = {"IGF1": "tab:blue", "AKT": "tab:orange", "FOXO": "tab:red", "mTOR": "tab:green", "balance": "tab:purple",
+           "other": "tab:gray"}
+
+
+def species_of(name: str) -> str:
+    return next((s for s, names in SPECIES.items() if name in names), "other")
+
+
+def figure_spread(ind: Indices):
+    """The Fig. 3F analog: for each parameter the bootstrap mean of its index against the bootstrap
+    standard deviation, first-order and total side by side. Colour: species; a coupling
+    parameter is split between its own species and the one it comes from."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.6))
+    for ax, (label, boot) in zip(axes, (("first-order $S_1$", ind.S1_boot), ("total $S_T$", ind.ST_boot))):
+        mean, std = boot.mean(axis=0), boot.std(axis=0, ddof=1)
+        for k, name in enumerate(ind.names):
+            species = species_of(name)
+            alt = SOURCE.get(name)
+            ax.plot(mean[k], std[k], "o", ms=10, color=COLOURS[species], markeredgecolor="k",
+                    fillstyle="left" if alt else "full", markerfacecoloralt=COLOURS[alt] if alt else "none")
+            ax.annotate(name, (mean[k], std[k]), xytext=(6, 4), textcoords="offset points", fontsize=8)
+        ax.set_xlabel(f"mean of {label} over the bootstrap")
+        ax.set_ylabel("standard deviation over the bootstrap")
+        ax.grid(alpha=0.3)
+    handles = [plt.Line2D([], [], marker="o", ls="", color=COLOURS[s], markeredgecolor="k", label=s) for s in SPECIES]
+    axes[1].legend(handles=handles, loc="best", fontsize=8, title="species (split: coupling)")
+    fig.suptitle(f"Sobol indices of N(480 h), {ind.base_samples} base samples")
+    fig.tight_layout()
+    return fig
+
+
+def figure_bars(ind: Indices):
+    """S1 and ST with their confidence intervals, parameters by decreasing ST."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    order = np.argsort(-ind.ST)
+    x = np.arange(len(order))
+    fig, ax = plt.subplots(figsize=(10, 4.2))
+    ax.bar(x - 0.2, ind.S1[order], 0.4, yerr=ind.S1_conf[order], capsize=2, label="$S_1$", color="tab:blue")
+    ax.bar(x + 0.2, ind.ST[order], 0.4, yerr=ind.ST_conf[order], capsize=2, label="$S_T$", color="tab:orange")
+    ax.set_xticks(x, [ind.names[k] for k in order])
+    for tick, k in zip(ax.get_xticklabels(), order):
+        tick.set_color(COLOURS[species_of(ind.names[k])])
+    ax.set_ylabel("Sobol index")
+    ax.axhline(0.0, color="k", lw=0.5)
+    ax.legend()
+    ax.set_title("first-order and total Sobol indices of N(480 h) (bars: 95 % bootstrap intervals)")
+    fig.tight_layout()
+    return fig
+
+
+# --------------------------------------------------------------------------------------
+# The job layer: chunks of rows as farm jobs, written atomically, skipped when done
+
+
+def digest(X: np.ndarray, settings: dict) -> str:
+    """What a chunk's outputs depend on: the sample matrix and every setting."""
+    h = hashlib.sha256(np.ascontiguousarray(X, dtype=float).tobytes())
+    h.update(json.dumps(settings, sort_keys=True, default=str).encode())
+    return h.hexdigest()[:16]
+
+
+def chunk_jobs(rows: int, chunk: int):
+    from hyper.farm import Job
+
+    return [Job(f"rows_{a:09d}_{min(a + chunk, rows):09d}", cost=float(min(a + chunk, rows) - a),
+                payload=(a, min(a + chunk, rows))) for a in range(0, rows, chunk)]
+
+
+def _chunk_ok(path: Path, key: str, start: int, stop: int) -> bool:
+    try:
+        with np.load(path) as f:
+            return (bool(f["complete"]) and str(f["digest"]) == key and int(f["start"]) == start
+                    and int(f["stop"]) == stop and f["Y"].shape == (stop - start,))
+    except Exception:  # noqa: BLE001 - unreadable in any way (truncated, not a zip, ...) means not done
+        return False
+
+
+def run_chunks(comm, X: np.ndarray, evaluate: Callable[[np.ndarray], np.ndarray], folder: Path, key: str,
+               chunk: int, label: str = "sobol"):
+    """Evaluate every row of X in chunks farmed over ``comm``; collective.
+
+    Each chunk is written atomically to ``folder/<key>/<job key>.npz`` with its row range,
+    the digest ``key`` and a complete mark; chunks already there are skipped. Returns
+    (Y, farm results): Y, all outputs in row order, on rank 0 (None elsewhere, and None on
+    rank 0 too if a chunk failed).
+    """
+    from hyper import farm, io
+
+    where = Path(folder) / key
+    jobs = chunk_jobs(X.shape[0], chunk)
+
+    def path(job):
+        return where / f"{job.key}.npz"
+
+    def is_done(job):
+        return _chunk_ok(path(job), key, *job.payload)
+
+    def work(subcomm, job):
+        start, stop = job.payload
+        Y = np.asarray(evaluate(X[start:stop]), dtype=float)
+        if Y.shape != (stop - start,):
+            raise ValueError(f"the evaluator returned shape {Y.shape} for {stop - start} rows")
+        with io.atomic_path(path(job)) as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, Y=Y, start=start, stop=stop, digest=key, complete=True)
+        return {"failed": int((~np.isfinite(Y)).sum())}
+
+    results = farm.run(comm, jobs, work, is_done=is_done, label=label)
+    Y = None
+    if comm.rank == 0 and all(r.status != "failed" for r in results):
+        Y = np.empty(X.shape[0])
+        for job in jobs:
+            with np.load(path(job)) as f:
+                Y[job.payload[0]:job.payload[1]] = f["Y"]
+    return Y, results
+
+
+def remove_stale(folder: Path, key: str) -> list[str]:
+    """Remove the chunk folders of other runs (other digests) under ``folder``; their names."""
+    stale = sorted(p.name for p in Path(folder).glob("*") if p.is_dir() and p.name != key)
+    for name in stale:
+        shutil.rmtree(Path(folder) / name, ignore_errors=True)
+    return stale
+
+
+# --------------------------------------------------------------------------------------
+# CLI
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m hyper.sobol",
+        description="Sobol sensitivity analysis of N(480 h) under daily15 (MODEL.md §7), farmed over MPI ranks "
+        "(run under mpirun -n K). Writes sobol.h5, indices.csv and two figures to --output.",
+    )
+    parser.add_argument("--samples", type=int, default=10000, help="base samples N; N (2D + 2) evaluations (default: 10000)")
+    parser.add_argument("--output", type=Path, default=Path("results/sobol"), help="output folder (default: results/sobol)")
+    parser.add_argument("--dt", type=float, default=0.05, help="largest RK4 step in h (default: 0.05)")
+    parser.add_argument("--chunk", type=int, default=10000, help="rows per job and per chunk file (default: 10000)")
+    parser.add_argument("--seed", type=int, default=1, help="seed of the design; the bootstrap uses seed + 1 (default: 1)")
+    parser.add_argument("--resamples", type=int, default=100, help="bootstrap resamples (default: 100)")
+    parser.add_argument("--protocol", default="daily15", help=f"named protocol ({', '.join(NAMES)}) or a .toml file "
+                        "(default: daily15); the output is N at its end")
+    parser.add_argument("--on-failure", choices=("abort", "drop"), default="abort",
+                        help="failed members: compute no indices (abort), or drop their base samples (default: abort)")
+    parser.add_argument("--backend", choices=("c", "numpy"), default="c",
+                        help="RK4 backend: compiled (c) or signaling.integrate (numpy); same numbers (default: c)")
+    parser.add_argument("--function", choices=("signaling", "ishigami"), default="signaling",
+                        help="the model: the signaling model, or the Ishigami test function (default: signaling)")
+    return parser
+
+
+def _settings(args, protocol: Protocol | None) -> dict:
+    """Everything a chunk's outputs depend on besides the sample matrix."""
+    if args.function == "ishigami":
+        return {"function": "ishigami", "a_b": ISHIGAMI_AB}
+    return {"function": "signaling", "dt": args.dt, "protocol": protocol.to_attributes(),
+            "baseline": dataclasses.asdict(S.SignalingParams()), "start": "baseline rest state"}
+
+
+def _check(args) -> Protocol | None:
+    if args.samples < 2:
+        raise InputError(f"--samples must be >= 2, got {args.samples}")
+    if args.chunk < 1:
+        raise InputError(f"--chunk must be >= 1, got {args.chunk}")
+    if args.resamples < 2:
+        raise InputError(f"--resamples must be >= 2, got {args.resamples}")
+    if not (math.isfinite(args.dt) and args.dt > 0):
+        raise InputError(f"--dt must be a finite number > 0 h, got {args.dt}")
+    if args.seed < 0:
+        raise InputError(f"--seed must be >= 0, got {args.seed}")
+    return resolve(args.protocol) if args.function == "signaling" else None
+
+
+def main(argv=None, comm=None) -> int:
+    from mpi4py import MPI
+
+    from hyper import io
+    from hyper.farm import summary_line
+    from hyper.log import info
+
+    comm = MPI.COMM_WORLD if comm is None else comm
+    start = time.perf_counter()
+    args = _parser().parse_args(argv)
+    try:
+        protocol = _check(args)
+    except InputError as err:
+        if comm.rank == 0:
+            print(f"error: {err}", file=sys.stderr)
+        return 2
+    prob = ishigami_problem() if args.function == "ishigami" else problem()
+    D = prob["num_vars"]
+    X = sample(prob, args.samples, args.seed) if comm.rank == 0 else np.empty((args.samples * (2 * D + 2), D))
+    comm.Bcast(X, root=0)
+    settings = _settings(args, protocol)
+    key = digest(X, settings)
+    if args.function == "ishigami":
+        evaluate = ishigami
+    else:
+        if args.backend == "c":
+            # rank 0 builds the kernel; the other ranks then load it from the cache
+            error = None
+            if comm.rank == 0:
+                try:
+                    compiled_kernel()
+                except RuntimeError as err:
+                    error = str(err)
+            error = comm.bcast(error, root=0)
+            if error is not None:
+                if comm.rank == 0:
+                    print(f"error: {error}", file=sys.stderr)
+                return 1
+            compiled_kernel()
+        evaluate = functools.partial(final_N, protocol=protocol, dt=args.dt, backend=args.backend)
+    chunks = args.output / "chunks"
+    if comm.rank == 0:
+        stale = remove_stale(chunks, key)
+        if stale:
+            info(comm, f"removed chunks of other settings: {', '.join(stale)}")
+        if args.samples & (args.samples - 1):
+            info(comm, f"note: {args.samples} base samples is not a power of 2; the Sobol sequence is balanced only then")
+    comm.barrier()
+    info(comm, f"sobol: {args.function}, {D} parameters, N = {args.samples}, {X.shape[0]} evaluations in chunks of "
+               f"{args.chunk} on {comm.size} rank(s), dt = {args.dt} h, backend {args.backend}, digest {key}")
+    t_eval = time.perf_counter()
+    Y, results = run_chunks(comm, X, evaluate, chunks, key, args.chunk, label="sobol")
+    eval_wall = time.perf_counter() - t_eval
+    info(comm, summary_line(results))
+    if comm.rank != 0:
+        return int(comm.bcast(None, root=0))
+    code = _finish(args, prob, X, Y, results, protocol, key, eval_wall, start, comm.size, io, info)
+    comm.bcast(code, root=0)
+    return code
+
+
+def _finish(args, prob, X, Y, results, protocol, key, eval_wall, start, ranks, io, info) -> int:
+    """Rank 0: analysis, HDF5, CSV, figures, summary. Returns the exit code."""
+    if Y is None:
+        print("error: some chunks failed (see above); rerun the same command to compute only those", file=sys.stderr)
+        return 1
+    jobs = chunk_jobs(X.shape[0], args.chunk)
+    computed = sum(r.status == "done" for r in results)
+    evaluated_rows = sum(j.payload[1] - j.payload[0] for j, r in zip(jobs, results) if r.status == "done")
+    failed = np.flatnonzero(~np.isfinite(Y))
+    rate = evaluated_rows / eval_wall if evaluated_rows else float("nan")
+    info(None, f"evaluations: {X.shape[0]} ({evaluated_rows} computed now in {computed} chunks, "
+               f"{eval_wall:.1f} s, {rate:.0f} evaluations/s), failed members: {failed.size}")
+    if failed.size:
+        for row in failed[:5]:
+            info(None, "  failed: row " + str(row) + ", " + ", ".join(f"{n}={v:.4g}" for n, v in zip(prob["names"], X[row])))
+    try:
+        ind = analyze(prob, Y, seed=args.seed, resamples=args.resamples, on_failure=args.on_failure)
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    if ind.dropped:
+        info(None, f"dropped {ind.dropped} base samples with a failed member; indices from {ind.base_samples}")
+    wall = time.perf_counter() - start
+    from importlib.metadata import version
+
+    attrs = {
+        "model": f"Sobol indices of {'N(end)' if protocol else 'the Ishigami function'} (MODEL.md §7)",
+        "function": args.function, "N": args.samples, "D": prob["num_vars"], "evaluations": X.shape[0],
+        "seed": args.seed, "bootstrap_seed": args.seed + 1, "resamples": args.resamples, "conf_level": 0.95,
+        "dt": args.dt, "backend": args.backend, "ranks": ranks, "chunk": args.chunk, "digest": key,
+        "failures": int(failed.size), "on_failure": args.on_failure, "dropped_base_samples": ind.dropped,
+        "base_samples_used": ind.base_samples, "wall_s": wall, "evaluation_wall_s": eval_wall,
+        "evaluations_computed": evaluated_rows, "evaluations_per_s": rate, "version_SALib": version("SALib"),
+        "protocol": protocol.name if protocol else "", "start_state": "baseline rest state (MODEL.md §1)",
+    }
+    groups = {"bounds": {n: np.asarray(b, dtype=float) for n, b in zip(prob["names"], prob["bounds"])}}
+    if protocol is not None:
+        groups["protocol"] = protocol.to_attributes()
+        groups["baseline"] = dataclasses.asdict(S.SignalingParams())
+    out = args.output
+    io.write_series(out / "sobol.h5", {
+        "parameters": np.array(prob["names"], dtype="S"), "X": X, "Y": Y, "failed_rows": failed,
+        "S1": ind.S1, "S1_conf": ind.S1_conf, "ST": ind.ST, "ST_conf": ind.ST_conf, "S2": ind.S2,
+        "S2_conf": ind.S2_conf, "S1_bootstrap": ind.S1_boot, "ST_bootstrap": ind.ST_boot,
+    }, attrs=attrs, groups=groups)
+    with io.atomic_path(out / "indices.csv") as tmp:
+        with open(tmp, "w") as f:
+            f.write("parameter,S1,S1_conf,ST,ST_conf\n")
+            for k, name in enumerate(ind.names):
+                f.write(f"{name},{ind.S1[k]:.6g},{ind.S1_conf[k]:.6g},{ind.ST[k]:.6g},{ind.ST_conf[k]:.6g}\n")
+    import matplotlib.pyplot as plt
+
+    for name, make in (("spread.png", figure_spread), ("indices.png", figure_bars)):
+        fig = make(ind)
+        with io.atomic_path(out / name) as tmp:
+            fig.savefig(tmp, format="png", dpi=130)
+        plt.close(fig)
+    info(None, ind.table())
+    info(None, f"wall {wall:.1f} s; results: {out / 'sobol.h5'}, {out / 'indices.csv'}, {out / 'spread.png'}, "
+               f"{out / 'indices.png'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,245 @@
+"""Sobol analysis (MODEL.md §7): the batched evaluator against one-at-a-time runs, SALib's indices
+of the Ishigami function through the farm + chunk path (serial and mpirun -n 2), resuming a
+killed run, failure accounting, and the CLI."""
+
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from hyper import signaling as S
+from hyper import sobol
+from hyper.protocols import Protocol, Session, named
+
+ISHIGAMI = sobol.ishigami_problem()
+
+
+@pytest.fixture(scope="module")
+def design():
+    """8 base samples of the 14-parameter design: 8 (2 x 14 + 2) = 240 parameter sets."""
+    return sobol.sample(sobol.problem(), 8, seed=3)
+
+
+# --- the evaluator -----------------------------------------------------------------------
+
+
+def test_design_shape_and_bounds(design):
+    assert design.shape == (240, 14)
+    base = S.SignalingParams()
+    for k, name in enumerate(sobol.PARAMETERS):
+        ratio = design[:, k] / getattr(base, name)
+        assert ratio.min() >= 0.5 and ratio.max() <= 2.0
+
+
+def test_batch_equals_one_at_a_time(design):
+    # One-at-a-time runs are pure Python (about 1 s per member over 480 h here), so the 240
+    # members are compared over the first day of daily15: a session, the delayed IGF1
+    # stimulus, the AKT bump and its end, and threshold crossings of FOXO and mTOR.
+    day = Protocol((Session(0.0, 1.0, 0.8),), 30.0, "day")
+    batch = sobol.final_N(design, protocol=day)
+    single = np.array([S.integrate(sobol.sample_params(design[i : i + 1]).member(0), day, S.rest_state(), 0.0, 30.0)[1][-1, 4]
+                       for i in range(len(design))])
+    assert np.max(np.abs(batch - single)) <= 1e-12
+    assert np.array_equal(batch, single)  # in fact bit for bit: the same operations in the same order
+    assert np.ptp(single) > 0.01  # the parameters matter over one day already
+
+
+def test_compiled_equals_numpy_batch_over_daily15(design):
+    full = sobol.final_N(design)
+    assert np.array_equal(full, sobol.final_N(design, backend="numpy"))
+    for i in (0, 117):  # and two members run alone over the whole protocol
+        p = sobol.sample_params(design[i : i + 1]).member(0)
+        assert S.integrate(p, named("daily15"), S.rest_state(), 0.0, 480.0)[1][-1, 4] == full[i]
+    # N stays in [Nmin, Nmax] = [0.5, 1.3] up to the last step's overshoot
+    assert np.all((full >= 0.5 - 1e-3) & (full <= 1.3 + 1e-3))
+
+
+def test_a_failing_member_is_masked_not_fatal():
+    # beta = 0.8 makes the session stimulus 96/h: RK4 with dt = 0.05 h is unstable for that member only
+    p = S.SignalingParams(beta=np.array([0.04, 0.8, 0.04]), kM=np.array([0.01, 0.01, 0.02]))
+    states, failed = sobol.integrate_compiled(p, named("daily15"), S.rest_state(), 0.0, 480.0)
+    assert failed.tolist() == [False, True, False]
+    for i in (0, 2):
+        assert np.array_equal(states[:, i], S.integrate(p.member(i), named("daily15"), S.rest_state(), 0.0, 480.0)[1][-1])
+    with pytest.raises(S.SignalingError, match="member 1"):
+        S.integrate(p, named("daily15"), S.rest_state(), 0.0, 480.0)
+
+
+# --- analysis ----------------------------------------------------------------------------
+
+
+def check_ishigami(ind, tol=0.04):
+    exact = sobol.ishigami_exact()
+    np.testing.assert_allclose(ind.S1, exact["S1"], atol=tol)
+    np.testing.assert_allclose(ind.ST, exact["ST"], atol=tol)
+    np.testing.assert_allclose(ind.S2[0, 2], exact["S2"][0, 2], atol=2 * tol)
+    assert ind.names == ("x1", "x2", "x3")
+
+
+def test_ishigami_exact_values():
+    exact = sobol.ishigami_exact()
+    np.testing.assert_allclose(exact["S1"], [0.3139, 0.4424, 0.0], atol=1e-4)
+    np.testing.assert_allclose(exact["ST"], [0.5576, 0.4424, 0.2437], atol=1e-4)
+
+
+def test_ishigami_through_the_farm_and_chunks(tmp_path):
+    X = sobol.sample(ISHIGAMI, 2048, seed=5)
+    Y, results = sobol.run_chunks(MPI.COMM_SELF, X, sobol.ishigami, tmp_path, "k", chunk=3000)
+    assert [r.status for r in results] == ["done"] * 6
+    assert np.array_equal(Y, sobol.ishigami(X))
+    assert len(list((tmp_path / "k").glob("rows_*.npz"))) == 6
+    check_ishigami(sobol.analyze(ISHIGAMI, Y, seed=5))
+
+
+class Evaluator:
+    """Ishigami that counts its calls and, like a killed run, dies after ``die_after`` chunks."""
+
+    def __init__(self, die_after=None):
+        self.calls = 0
+        self.die_after = die_after
+
+    def __call__(self, X):
+        if self.die_after is not None and self.calls >= self.die_after:
+            raise RuntimeError("killed")
+        self.calls += 1
+        return sobol.ishigami(X)
+
+
+def test_killed_run_resumes_without_recomputing(tmp_path):
+    X = sobol.sample(ISHIGAMI, 512, seed=2)  # 4096 rows, 9 chunks of 500
+    reference, _ = sobol.run_chunks(MPI.COMM_SELF, X, sobol.ishigami, tmp_path / "ref", "k", chunk=500)
+
+    first = Evaluator(die_after=4)
+    Y, results = sobol.run_chunks(MPI.COMM_SELF, X, first, tmp_path / "run", "k", chunk=500)
+    assert Y is None and sum(r.status == "done" for r in results) == 4 and first.calls == 4
+    # a half-written chunk is invisible: only whole files under their final name count
+    (tmp_path / "run" / "k" / "rows_000004000_000004096.npz.partial").write_bytes(b"junk")
+
+    again = Evaluator()
+    Y, results = sobol.run_chunks(MPI.COMM_SELF, X, again, tmp_path / "run", "k", chunk=500)
+    assert again.calls == 9 - 4
+    assert [r.status for r in results].count("skipped") == 4
+    assert np.array_equal(Y, reference)
+    a, b = sobol.analyze(ISHIGAMI, Y, seed=2), sobol.analyze(ISHIGAMI, reference, seed=2)
+    assert np.array_equal(a.S1, b.S1) and np.array_equal(a.ST_conf, b.ST_conf) and np.array_equal(a.S2, b.S2, equal_nan=True)
+
+    # a truncated chunk file or one of other settings (another digest inside) is recomputed
+    path = next((tmp_path / "run" / "k").glob("rows_000000000_*.npz"))
+    path.write_bytes(path.read_bytes()[:50])
+    third = Evaluator()
+    Y, _ = sobol.run_chunks(MPI.COMM_SELF, X, third, tmp_path / "run", "k", chunk=500)
+    assert third.calls == 1 and np.array_equal(Y, reference)
+
+
+def test_digest_changes_with_samples_and_settings():
+    X = sobol.sample(ISHIGAMI, 8, seed=1)
+    key = sobol.digest(X, {"dt": 0.05})
+    assert key == sobol.digest(X.copy(), {"dt": 0.05})
+    assert key != sobol.digest(X, {"dt": 0.1})
+    assert key != sobol.digest(sobol.sample(ISHIGAMI, 8, seed=2), {"dt": 0.05})
+
+
+def test_failures_abort_or_drop_their_base_samples():
+    X = sobol.sample(ISHIGAMI, 256, seed=4)
+    Y = sobol.ishigami(X)
+    Y[[5, 6, 8 * 40 + 1]] = np.nan  # two failed rows in base sample 0, one in base sample 40
+    with pytest.raises(ValueError, match="3 of 2048 model evaluations failed .in 2 base samples"):
+        sobol.analyze(ISHIGAMI, Y, seed=1)
+    ind = sobol.analyze(ISHIGAMI, Y, seed=1, on_failure="drop")
+    assert (ind.dropped, ind.base_samples) == (2, 254)
+    keep = np.ones(256, bool)
+    keep[[0, 40]] = False
+    manual = sobol.analyze(ISHIGAMI, Y.reshape(256, 8)[keep].ravel(), seed=1)
+    assert np.array_equal(ind.ST, manual.ST) and np.array_equal(ind.S1_conf, manual.S1_conf)
+
+
+# --- CLI ---------------------------------------------------------------------------------
+
+
+def test_cli_ishigami_writes_results_and_resumes(tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["--function", "ishigami", "--samples", "1024", "--chunk", "2000", "--output", str(out), "--seed", "7"]
+    assert sobol.main(argv, comm=MPI.COMM_SELF) == 0
+    text = capsys.readouterr().out
+    assert "failed members: 0" in text and "not a power of 2" not in text
+    lines = (out / "indices.csv").read_text().splitlines()
+    assert lines[0] == "parameter,S1,S1_conf,ST,ST_conf" and [l.split(",")[0] for l in lines[1:]] == ["x1", "x2", "x3"]
+    with h5py.File(out / "sobol.h5") as f:
+        assert f.attrs["complete"] and f.attrs["failures"] == 0 and f.attrs["N"] == 1024
+        assert f["Y"].shape == (8192,) and f["S2"].shape == (3, 3) and f["S1_bootstrap"].shape == (100, 3)
+        assert [n.decode() for n in f["parameters"][()]] == ["x1", "x2", "x3"]
+        assert "version_SALib" in f.attrs and "wall_s" in f.attrs
+        S1 = f["S1"][()]
+    assert (out / "spread.png").stat().st_size > 0 and (out / "indices.png").stat().st_size > 0
+    # a rerun finds every chunk done and gives the same numbers
+    assert sobol.main(argv, comm=MPI.COMM_SELF) == 0
+    assert "0 to run, 5 skipped" in capsys.readouterr().out
+    with h5py.File(out / "sobol.h5") as f:
+        assert np.array_equal(f["S1"][()], S1)
+    # another seed is another design: the old chunks go, all are computed anew
+    assert sobol.main([*argv[:-1], "8"], comm=MPI.COMM_SELF) == 0
+    text = capsys.readouterr().out
+    assert "removed chunks of other settings" in text and "5 to run, 0 skipped" in text
+    assert len(list((out / "chunks").iterdir())) == 1
+
+
+def test_cli_signaling_small(tmp_path, capsys):
+    out = tmp_path / "s"
+    assert sobol.main(["--samples", "16", "--chunk", "200", "--output", str(out)], comm=MPI.COMM_SELF) == 0
+    with h5py.File(out / "sobol.h5") as f:
+        assert f.attrs["evaluations"] == 480 and f.attrs["dt"] == 0.05 and f.attrs["protocol"] == "daily15"
+        assert f.attrs["failures"] == 0 and f["failed_rows"].shape == (0,)
+        assert f["protocol"].attrs["end"] == 480.0 and f["baseline"].attrs["kM"] == 0.01
+        X, Y = f["X"][()], f["Y"][()]
+    assert np.array_equal(Y[:30], sobol.final_N(X[:30]))
+
+
+def test_cli_failures_are_reported(tmp_path, capsys):
+    # dt = 0.7 h is beyond RK4's stability limit during sessions: every member fails
+    out = tmp_path / "f"
+    assert sobol.main(["--samples", "2", "--dt", "0.7", "--output", str(out)], comm=MPI.COMM_SELF) == 1
+    captured = capsys.readouterr()
+    assert "failed members: 60" in captured.out and "60 of 60 model evaluations failed" in captured.err
+    assert not (out / "sobol.h5").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--samples", "1"], "--samples must be >= 2"),
+    (["--dt", "0"], "--dt must be a finite number > 0"),
+    (["--chunk", "0"], "--chunk must be >= 1"),
+    (["--protocol", "nope"], "unknown protocol 'nope'"),
+])
+def test_cli_bad_input(tmp_path, capsys, args, message):
+    out = tmp_path / "bad"
+    assert sobol.main([*args, "--output", str(out)], comm=MPI.COMM_SELF) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+# --- mpirun -n 2 -------------------------------------------------------------------------
+
+
+@pytest.mark.mpi
+def test_mpi_ishigami_farm_equals_serial(tmp_path):
+    comm = MPI.COMM_WORLD
+    assert comm.size == 2
+    folder = Path(comm.bcast(str(tmp_path) if comm.rank == 0 else None, root=0))
+    X = sobol.sample(ISHIGAMI, 1024, seed=9)
+
+    def slow(rows):  # long enough for rank 1 to ask for work while rank 0 is busy
+        time.sleep(0.05)
+        return sobol.ishigami(rows)
+
+    Y, results = sobol.run_chunks(comm, X, slow, folder / "par", "k", chunk=700)
+    assert {r.group for r in results} == {0, 1}  # both ranks evaluated chunks
+    if comm.rank == 0:
+        serial, _ = sobol.run_chunks(MPI.COMM_SELF, X, sobol.ishigami, folder / "ser", "k", chunk=700)
+        assert np.array_equal(Y, serial)
+        a, b = sobol.analyze(ISHIGAMI, Y, seed=9), sobol.analyze(ISHIGAMI, serial, seed=9)
+        assert np.array_equal(a.S1, b.S1) and np.array_equal(a.ST, b.ST) and np.array_equal(a.ST_conf, b.ST_conf)
+        check_ishigami(a)
+    else:
+        assert Y is None
