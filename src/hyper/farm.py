@@ -26,6 +26,11 @@ them waiting forever. ``work`` must therefore fail collectively (decide on error
 an allreduce before raising, as PETSc/DOLFINx solvers do with convergence failures),
 or raise only outside collective calls.
 
+Cost per job: a few communicator duplications and a full ``gc.collect()`` on every rank
+of the group (about 0.1 s with DOLFINx loaded), which frees the communicators that
+DOLFINx objects hold (MPICH has about 2000; 2500 DOLFINx jobs in one run were
+checked). Bundle work into jobs of seconds or more.
+
 Progress. Rank 0 learns of every job start and end through the queue it keeps (its
 server thread hears the other groups' reports), and prints done/running/failed, the
 elapsed time and the time left, estimated from the job costs finished so far.
