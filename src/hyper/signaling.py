@@ -214,14 +214,18 @@ def net_balance(x3: Array, x4: Array, N: Array, params: SignalingParams, kM: Arr
 # a batch. The two must evaluate the same expression trees (IEEE +, -, * are exactly
 # rounded and commutative, so a*b == b*a, but (a+b)+c != a+(b+c)); -c32 and -c43 enter as
 # negated coefficients (x - c*y == x + (-c)*y exactly).
+#
+# Both return s times the derivative: RK4 wants (h/2) k at every stage, and scaling the
+# rate constants by s once per piece is free, where scaling k would cost a pass over the
+# batch per stage. The stimuli A1, A2 are passed already scaled.
 
 
-def _scalar_rhs(p: SignalingParams, kM: float):
-    """f(x1, x2, x3, x4, N, A1, A2) -> the five derivatives, for one member (plain floats)."""
-    b1, b2, b3, b4 = float(p.b1), float(p.b2), float(p.b3), float(p.b4)
-    a3, a4 = float(p.a3), float(p.a4)
-    c21, mc32, c42, mc43 = float(p.c21), -float(p.c32), float(p.c42), -float(p.c43)
-    thF, thM, kF, kM = float(p.thetaF), float(p.thetaM), float(p.kF), float(kM)
+def _scalar_rhs(p: SignalingParams, kM: float, s: float = 1.0):
+    """f(x1, x2, x3, x4, N, s*A1, s*A2) -> s times the five derivatives, for one member (plain floats)."""
+    b1, b2, b3, b4 = s * float(p.b1), s * float(p.b2), s * float(p.b3), s * float(p.b4)
+    a3, a4 = s * float(p.a3), s * float(p.a4)
+    c21, mc32, c42, mc43 = s * float(p.c21), s * -float(p.c32), s * float(p.c42), s * -float(p.c43)
+    thF, thM, kF, kM = float(p.thetaF), float(p.thetaM), s * float(p.kF), s * float(kM)
     Nmin, Nmax = float(p.Nmin), float(p.Nmax)
 
     def f(x1, x2, x3, x4, N, A1, A2):
@@ -248,33 +252,44 @@ def _column(values, n: int, wide: bool = False) -> np.ndarray:
 
 
 class _Kernel:
-    """The right-hand side on a block of n members, evaluated in place into preallocated arrays."""
+    """s times the right-hand side on a block of n members, in place into preallocated arrays."""
 
     def __init__(self, p: SignalingParams, kM: Array, n: int, wide_rates: bool = False):
-        self.B = _column([p.b1, p.b2, p.b3, p.b4], n)
-        # growth rates (a1(t - tau_d), a2(t), a3, a4): rows 0 and 1 are set per piece and stage,
-        # per member where a stimulus parameter is
-        wide_rates = wide_rates or any(np.ndim(v) for v in (p.a10, p.a20, p.beta, p.Fmax))
+        self.rates = {
+            "B": _column([p.b1, p.b2, p.b3, p.b4], n),
+            "C1": _column([p.c21, -np.asarray(p.c32)], n),
+            "C2": _column([p.c42, -np.asarray(p.c43)], n),
+            "KK": _column([p.kF, kM], n),
+            "A34": _column([p.a3, p.a4], n),
+        }
+        # growth rates s*(a1(t - tau_d), a2(t), a3, a4): rows 0 and 1 are set per piece and
+        # stage, per member where a stimulus parameter is
+        wide_rates = wide_rates or any(np.ndim(v) for v in (p.a10, p.a20, p.beta, p.Fmax, p.a3, p.a4))
         self.G = _column([p.a10, p.a20, p.a3, p.a4], n, wide_rates).copy()
-        self.C1 = _column([p.c21, -np.asarray(p.c32)], n)
-        self.C2 = _column([p.c42, -np.asarray(p.c43)], n)
         self.TH = _column([p.thetaF, p.thetaM], n)
-        self.KK = _column([p.kF, kM], n)
         self.Nmin, self.Nmax = p.Nmin, p.Nmax
         # N inside [max Nmin, min Nmax] for every member: the range test is a no-op
         self.inner = (float(np.max(p.Nmin)), float(np.min(p.Nmax)))
         self.a20 = p.a20
         self.T = np.empty((4, n))
         self.P = np.empty((2, n))
+        self.scale(1.0)
+
+    def scale(self, s: float) -> None:
+        """Return s times the derivative from now on; set the stimuli after this."""
+        self.s = s
+        self.B, self.C1, self.C2, self.KK = (s * self.rates[k] for k in ("B", "C1", "C2", "KK"))
+        np.multiply(s, self.rates["A34"], out=self.G[2:])
 
     def set_a1(self, value: Array) -> None:
-        np.copyto(self.G[0], value)
+        np.multiply(self.s, value, out=self.G[0])
 
     def set_a2(self, value: Array) -> None:
-        np.copyto(self.G[1], value)
+        np.multiply(self.s, value, out=self.G[1])
 
     def set_bump(self, bump: float) -> None:
         np.add(self.a20, bump, out=self.G[1])
+        np.multiply(self.s, self.G[1], out=self.G[1])
 
     def __call__(self, Y: np.ndarray, K: np.ndarray) -> None:
         T, P = self.T, self.P
@@ -422,34 +437,37 @@ def _failure(t_from: float, t_to: float, member: int, y, dt: float) -> Signaling
     )
 
 
+# One RK4 step with K_i = (h/2) k_i: y + K1, y + K2, y + 2 K3 are the stage states and
+# y_new = y + ((K1 + K4) + 2 (K2 + K3)) / 3 = y + h/6 (k1 + 2 k2 + 2 k3 + k4).
+THIRD = 1.0 / 3.0
+
+
 def _rk4_single(y, p: SignalingParams, kM: float, pieces: list[_Piece], dt: float, out: np.ndarray, member: int):
     """RK4 for one member on plain floats: the same operations, in the same order, as _rk4_block."""
-    f = _scalar_rhs(p, kM)
-    inf = math.inf
+    inf, third = math.inf, THIRD
     x1, x2, x3, x4, N = (float(v) for v in y)
     for piece in pieces:
         steps, h = _steps(piece, dt)
-        h2, h6 = 0.5 * h, h / 6.0
-        A1 = float(_a1_value(piece, p))
+        s = 0.5 * h
+        f = _scalar_rhs(p, kM, s)
+        A1 = s * float(_a1_value(piece, p))
         bumps = _stage_bumps(piece, p, steps, h)
         a20 = float(p.a20)
-        A2 = [a20] * (2 * steps + 1) if bumps is None else [a20 + b for b in bumps.tolist()]
+        A2 = [s * a20] * (2 * steps + 1) if bumps is None else [s * (a20 + b) for b in bumps.tolist()]
         for j in range(steps):
             k11, k12, k13, k14, k15 = f(x1, x2, x3, x4, N, A1, A2[2 * j])
-            k21, k22, k23, k24, k25 = f(
-                x1 + k11 * h2, x2 + k12 * h2, x3 + k13 * h2, x4 + k14 * h2, N + k15 * h2, A1, A2[2 * j + 1]
-            )
-            k31, k32, k33, k34, k35 = f(
-                x1 + k21 * h2, x2 + k22 * h2, x3 + k23 * h2, x4 + k24 * h2, N + k25 * h2, A1, A2[2 * j + 1]
-            )
+            k21, k22, k23, k24, k25 = f(x1 + k11, x2 + k12, x3 + k13, x4 + k14, N + k15, A1, A2[2 * j + 1])
+            k31, k32, k33, k34, k35 = f(x1 + k21, x2 + k22, x3 + k23, x4 + k24, N + k25, A1, A2[2 * j + 1])
+            s1, s2, s3, s4, s5 = k21 + k31, k22 + k32, k23 + k33, k24 + k34, k25 + k35
             k41, k42, k43, k44, k45 = f(
-                x1 + k31 * h, x2 + k32 * h, x3 + k33 * h, x4 + k34 * h, N + k35 * h, A1, A2[2 * j + 2]
+                x1 + (k31 + k31), x2 + (k32 + k32), x3 + (k33 + k33), x4 + (k34 + k34), N + (k35 + k35),
+                A1, A2[2 * j + 2],
             )
-            x1 = x1 + (((k11 + k21 * 2.0) + k31 * 2.0) + k41) * h6
-            x2 = x2 + (((k12 + k22 * 2.0) + k32 * 2.0) + k42) * h6
-            x3 = x3 + (((k13 + k23 * 2.0) + k33 * 2.0) + k43) * h6
-            x4 = x4 + (((k14 + k24 * 2.0) + k34 * 2.0) + k44) * h6
-            N = N + (((k15 + k25 * 2.0) + k35 * 2.0) + k45) * h6
+            x1 = x1 + ((k11 + k41) + (s1 + s1)) * third
+            x2 = x2 + ((k12 + k42) + (s2 + s2)) * third
+            x3 = x3 + ((k13 + k43) + (s3 + s3)) * third
+            x4 = x4 + ((k14 + k44) + (s4 + s4)) * third
+            N = N + ((k15 + k45) + (s5 + s5)) * third
             if not (0.0 <= x1 < inf and 0.0 <= x2 < inf and 0.0 <= x3 < inf and 0.0 <= x4 < inf and 0.0 <= N < inf):
                 ta = piece.t0 + j * h
                 raise _failure(ta, ta + h, member, (x1, x2, x3, x4, N), dt)
@@ -464,34 +482,31 @@ def _rk4_block(Y: np.ndarray, p: SignalingParams, kM: Array, pieces: list[_Piece
     kernel = _Kernel(p, kM, n)
     K, ACC, W, Ys = (np.empty(Y.shape) for _ in range(4))
     for piece, (steps, h, bumps) in zip(pieces, tables):
-        h2, h6 = 0.5 * h, h / 6.0
+        kernel.scale(0.5 * h)
         kernel.set_a1(_a1_value(piece, p))
         if bumps is None:
             kernel.set_a2(p.a20)
         for j in range(steps):
             if bumps is not None:
                 kernel.set_bump(bumps[2 * j])
-            kernel(Y, ACC)
-            np.multiply(ACC, h2, out=W)
-            np.add(Y, W, out=Ys)
+            kernel(Y, ACC)  # K1
+            np.add(Y, ACC, out=Ys)
             if bumps is not None:
                 kernel.set_bump(bumps[2 * j + 1])
-            kernel(Ys, K)
-            np.multiply(K, 2.0, out=W)
-            np.add(ACC, W, out=ACC)
-            np.multiply(K, h2, out=W)
-            np.add(Y, W, out=Ys)
-            kernel(Ys, K)
-            np.multiply(K, 2.0, out=W)
-            np.add(ACC, W, out=ACC)
-            np.multiply(K, h, out=W)
+            kernel(Ys, K)  # K2
+            np.add(Y, K, out=Ys)
+            kernel(Ys, W)  # K3
+            np.add(K, W, out=K)  # K2 + K3
+            np.add(W, W, out=W)
             np.add(Y, W, out=Ys)
             if bumps is not None:
                 kernel.set_bump(bumps[2 * j + 2])
-            kernel(Ys, K)
+            kernel(Ys, W)  # K4
+            np.add(ACC, W, out=ACC)
+            np.add(K, K, out=K)
             np.add(ACC, K, out=ACC)
-            np.multiply(ACC, h6, out=W)
-            np.add(Y, W, out=Y)
+            np.multiply(ACC, THIRD, out=ACC)
+            np.add(Y, ACC, out=Y)
             if not (Y.min() >= 0.0 and Y.max() < math.inf):
                 bad = int(np.flatnonzero(~(np.isfinite(Y) & (Y >= 0.0)).all(axis=0))[0])
                 ta = piece.t0 + j * h

@@ -230,7 +230,9 @@ def main(argv=None) -> int:
     result = {
         "machine": {"python": platform.python_version(), "numpy": np.__version__, "cpus": os.cpu_count(),
                     "processor": platform.processor() or platform.machine(),
-                    "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS")},
+                    "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS"),
+                    # other work on the machine slows every number; the ratios suffer least
+                    "load_average_at_start": os.getloadavg()[0]},
         "quick": args.quick,
         "chunk": S.CHUNK,
         "reference_N_1512": reference_N,
@@ -241,6 +243,7 @@ def main(argv=None) -> int:
     result["single_vs_rk45"] = single_vs_rk45(reference_N, repeat=3)
     print("speed-accuracy ...", flush=True)
     result["speed_accuracy"] = speed_accuracy(QUICK_DTS if args.quick else DTS, reference_N)
+    result["machine"]["load_average_at_end"] = os.getloadavg()[0]
     failed = [r["dt"] for r in result["speed_accuracy"] if r["failed"]]
     stable = [r["dt"] for r in result["speed_accuracy"] if not r["failed"]]
     result["largest_stable_dt"] = max(stable) if stable else None
