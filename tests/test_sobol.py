@@ -43,16 +43,19 @@ def test_batch_equals_one_at_a_time(design):
     single = np.array([S.integrate(sobol.sample_params(design[i : i + 1]).member(0), day, S.rest_state(), 0.0, 30.0)[1][-1, 4]
                        for i in range(len(design))])
     assert np.max(np.abs(batch - single)) <= 1e-12
-    assert np.array_equal(batch, single)  # in fact bit for bit: the same operations in the same order
     assert np.ptp(single) > 0.01  # the parameters matter over one day already
-
-
-def test_compiled_equals_numpy_batch_over_daily15(design):
-    full = sobol.final_N(design)
-    assert np.array_equal(full, sobol.final_N(design, backend="numpy"))
     for i in (0, 117):  # and two members run alone over the whole protocol
         p = sobol.sample_params(design[i : i + 1]).member(0)
-        assert S.integrate(p, named("daily15"), S.rest_state(), 0.0, 480.0)[1][-1, 4] == full[i]
+        alone = S.integrate(p, named("daily15"), S.rest_state(), 0.0, 480.0)[1][-1, 4]
+        assert abs(alone - sobol.final_N(design[i : i + 1])[0]) <= 1e-12
+
+
+def test_compiled_kernel_follows_signaling_bit_for_bit(design):
+    # The C kernel repeats signaling's RK4 expression for expression, so both backends give
+    # the same bits (chunks of either backend can be mixed in one run). A failure here means
+    # signaling's RK4 arithmetic changed: update sobol._C_SOURCE to match it.
+    full = sobol.final_N(design)
+    assert np.array_equal(full, sobol.final_N(design, backend="numpy"))
     # N stays in [Nmin, Nmax] = [0.5, 1.3] up to the last step's overshoot
     assert np.all((full >= 0.5 - 1e-3) & (full <= 1.3 + 1e-3))
 

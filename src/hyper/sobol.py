@@ -149,23 +149,27 @@ def final_N(X: np.ndarray, *, names=PARAMETERS, protocol: Protocol | None = None
 
 
 # The compiled RK4. Rows of the per-member coefficient matrix, in the order the C code reads
-# them; the inhibitions c32 and c43 enter negated, as in signaling's kernels.
-_ROWS = ("b1", "b2", "b3", "b4", "a20", "a3", "a4", "c21", "c32", "c42", "c43",
-         "thetaF", "thetaM", "kF", "kM", "Nmin", "Nmax")
+# them: first those that scale with the step (rates), then thresholds and bounds. The
+# inhibitions c32 and c43 enter negated, as in signaling's kernels.
+_ROWS = ("b1", "b2", "b3", "b4", "a3", "a4", "c21", "c32", "c42", "c43", "kF", "kM",
+         "thetaF", "thetaM", "Nmin", "Nmax")
+_SCALED = 12
 _NEGATED = ("c32", "c43")
 
 _CDEF = """
-void rk4_piece(long n, long steps, double h, double h2, double h6, double t0, const double *P,
-               const double *A1, const double *bumps, double *Y, double *fail_t);
+void rk4_piece(long n, long steps, double s, double third, double t0, double h, const double *P,
+               const double *A1, const double *a20, const double *bumps, double *Y, double *fail_t);
 """
 
-# Each expression below is signaling._scalar_rhs / _rk4_single term for term: IEEE +, -, *
-# are exactly rounded, so the same trees in the same order give the same bits. Branches
-# are written as selects so that GCC vectorizes the loop over members.
+# signaling's RK4 in its (h/2)-scaled form, expression for expression (_scalar_rhs and
+# _rk4_single): with s = h/2 the rate constants in P and the stimuli come scaled by s, the
+# stages are K_i = s k_i, and y_new = y + ((K1 + K4) + 2 (K2 + K3)) / 3. IEEE +, -, * are
+# exactly rounded, so the same trees in the same order give the same bits. Branches are
+# written as selects so that GCC vectorizes the loop over members.
 _C_SOURCE = r"""
 #include <math.h>
 
-enum {B1, B2, B3, B4, A20, A3, A4, C21, MC32, C42, MC43, THF, THM, KF, KM, NMIN, NMAX};
+enum {B1, B2, B3, B4, A3, A4, C21, MC32, C42, MC43, KF, KM, THF, THM, NMIN, NMAX};
 #define ROW(k) (P + (long)(k) * n)
 
 static inline void rhs(long i, long n, const double *restrict P, double A1, double A2,
@@ -181,31 +185,33 @@ static inline void rhs(long i, long n, const double *restrict P, double A1, doub
     k[4] = inside ? f : 0.0;
 }
 
-/* `steps` RK4 steps of size h from t0 for n members; Y (5 x n) in place. bumps holds a2 - a20
-   at the 2 steps + 1 stage times (zeros without a bump). fail_t[i] < 0 until member i first
-   leaves [0, inf) or turns NaN; then the time of the step's start. */
-void rk4_piece(long n, long steps, double h, double h2, double h6, double t0,
-               const double *restrict P, const double *restrict A1, const double *restrict bumps,
-               double *restrict Y, double *restrict fail_t)
+/* `steps` RK4 steps of size h = 2 s from t0 for n members; Y (5 x n) in place. P holds the
+   rate constants times s; A1 is s a1; bumps holds a2 - a20 at the 2 steps + 1 stage times
+   (zeros without a bump). fail_t[i] < 0 until member i first leaves [0, inf) or turns NaN,
+   then the start time of that step. */
+void rk4_piece(long n, long steps, double s, double third, double t0, double h,
+               const double *restrict P, const double *restrict A1, const double *restrict a20,
+               const double *restrict bumps, double *restrict Y, double *restrict fail_t)
 {
     for (long j = 0; j < steps; ++j) {
         const double u0 = bumps[2 * j], u1 = bumps[2 * j + 1], u2 = bumps[2 * j + 2];
         const double t = t0 + j * h;
         for (long i = 0; i < n; ++i) {
-            const double a20 = ROW(A20)[i], a1 = A1[i];
+            const double a1 = A1[i];
             const double x[5] = {Y[i], Y[n + i], Y[2 * n + i], Y[3 * n + i], Y[4 * n + i]};
-            double k1[5], k2[5], k3[5], k4[5];
-            rhs(i, n, P, a1, a20 + u0, x[0], x[1], x[2], x[3], x[4], k1);
-            rhs(i, n, P, a1, a20 + u1, x[0] + k1[0] * h2, x[1] + k1[1] * h2, x[2] + k1[2] * h2,
-                x[3] + k1[3] * h2, x[4] + k1[4] * h2, k2);
-            rhs(i, n, P, a1, a20 + u1, x[0] + k2[0] * h2, x[1] + k2[1] * h2, x[2] + k2[2] * h2,
-                x[3] + k2[3] * h2, x[4] + k2[4] * h2, k3);
-            rhs(i, n, P, a1, a20 + u2, x[0] + k3[0] * h, x[1] + k3[1] * h, x[2] + k3[2] * h,
-                x[3] + k3[3] * h, x[4] + k3[4] * h, k4);
+            double K1[5], K2[5], K3[5], K4[5];
+            rhs(i, n, P, a1, s * (a20[i] + u0), x[0], x[1], x[2], x[3], x[4], K1);
+            rhs(i, n, P, a1, s * (a20[i] + u1), x[0] + K1[0], x[1] + K1[1], x[2] + K1[2], x[3] + K1[3],
+                x[4] + K1[4], K2);
+            rhs(i, n, P, a1, s * (a20[i] + u1), x[0] + K2[0], x[1] + K2[1], x[2] + K2[2], x[3] + K2[3],
+                x[4] + K2[4], K3);
+            rhs(i, n, P, a1, s * (a20[i] + u2), x[0] + (K3[0] + K3[0]), x[1] + (K3[1] + K3[1]),
+                x[2] + (K3[2] + K3[2]), x[3] + (K3[3] + K3[3]), x[4] + (K3[4] + K3[4]), K4);
             int ok = 1;
-            for (int s = 0; s < 5; ++s) {
-                const double z = x[s] + (((k1[s] + k2[s] * 2.0) + k3[s] * 2.0) + k4[s]) * h6;
-                Y[s * n + i] = z;
+            for (int c = 0; c < 5; ++c) {
+                const double m = K2[c] + K3[c];
+                const double z = x[c] + ((K1[c] + K4[c]) + (m + m)) * third;
+                Y[c * n + i] = z;
                 ok &= (z >= 0.0) & (z < INFINITY);
             }
             fail_t[i] = (!ok && fail_t[i] < 0.0) ? t : fail_t[i];
@@ -297,6 +303,7 @@ def integrate_compiled(params: S.SignalingParams, protocol: Protocol, y0, t0: fl
     for k, name in enumerate(_ROWS):
         value = np.asarray(getattr(params, name), dtype=float)
         P[k] = -value if name in _NEGATED else value
+    a20 = np.broadcast_to(np.asarray(params.a20, dtype=float), (n,))
     Y0 = np.broadcast_to(np.asarray(y0, dtype=float).reshape(5, -1), (5, n))
     states = np.empty((5, n))
     fail_t = np.empty(n)
@@ -308,11 +315,15 @@ def integrate_compiled(params: S.SignalingParams, protocol: Protocol, y0, t0: fl
         sel = slice(start, min(start + BLOCK, n))
         m = sel.stop - sel.start
         Pb = np.ascontiguousarray(P[:, sel])
+        Ps = Pb.copy()  # the rates times s = h/2 of the piece
+        a20b = np.ascontiguousarray(a20[sel])
         Y = np.ascontiguousarray(Y0[:, sel])
         fb = np.full(m, -1.0)
         for steps, h, a1, bumps, piece_t0 in plan:
-            A1 = np.ascontiguousarray(np.broadcast_to(a1[sel] if np.ndim(a1) else a1, (m,)), dtype=float)
-            lib.rk4_piece(m, steps, h, 0.5 * h, h / 6.0, piece_t0, ptr(Pb), ptr(A1), ptr(bumps), ptr(Y), ptr(fb))
+            s = 0.5 * h
+            np.multiply(s, Pb[:_SCALED], out=Ps[:_SCALED])
+            A1 = np.ascontiguousarray(np.multiply(s, np.broadcast_to(a1[sel] if np.ndim(a1) else a1, (m,))))
+            lib.rk4_piece(m, steps, s, S.THIRD, piece_t0, h, ptr(Ps), ptr(A1), ptr(a20b), ptr(bumps), ptr(Y), ptr(fb))
         states[:, sel] = Y
         fail_t[sel] = fb
     return states, fail_t >= 0.0
@@ -589,9 +600,14 @@ def main(argv=None, comm=None) -> int:
         if comm.rank == 0:
             print(f"error: {err}", file=sys.stderr)
         return 2
+    # io.versions() imports dolfinx, whose PETSc initialization is collective over COMM_WORLD:
+    # done by rank 0 alone (when it writes the results) it would meet the other ranks' next
+    # collective call and hang. All ranks import it here, together.
+    io.versions()
     prob = ishigami_problem() if args.function == "ishigami" else problem()
     D = prob["num_vars"]
     X = sample(prob, args.samples, args.seed) if comm.rank == 0 else np.empty((args.samples * (2 * D + 2), D))
+    _idle_barrier(comm)
     comm.Bcast(X, root=0)
     settings = _settings(args, protocol)
     key = digest(X, settings)
@@ -627,11 +643,17 @@ def main(argv=None, comm=None) -> int:
     Y, results = run_chunks(comm, X, evaluate, chunks, key, args.chunk, label="sobol")
     eval_wall = time.perf_counter() - t_eval
     info(comm, summary_line(results))
-    if comm.rank != 0:
-        return int(comm.bcast(None, root=0))
-    code = _finish(args, prob, X, Y, results, protocol, key, eval_wall, start, comm.size, io, info)
-    comm.bcast(code, root=0)
-    return code
+    code = _finish(args, prob, X, Y, results, protocol, key, eval_wall, start, comm.size, io, info) if comm.rank == 0 else 0
+    _idle_barrier(comm)
+    return int(comm.bcast(code, root=0))
+
+
+def _idle_barrier(comm) -> None:
+    """A barrier at which waiting ranks sleep: MPICH's blocking calls spin, and a spinning rank
+    would take a core from rank 0 while it samples or analyses alone."""
+    request = comm.Ibarrier()
+    while not request.Test():
+        time.sleep(0.02)
 
 
 def _finish(args, prob, X, Y, results, protocol, key, eval_wall, start, ranks, io, info) -> int:

@@ -1,0 +1,129 @@
+"""Sobol analysis benchmark: 1 rank against 2 ranks, and the compiled RK4 against numpy's.
+
+python -m hyper.bench sobol [--samples N] writes results/bench/sobol.json and sobol.png.
+
+- The whole CLI (``python -m hyper.sobol``) on N base samples, N (2D + 2) evaluations, once
+  with ``mpirun -n 1`` and once with ``mpirun -n 2``, one after the other, each from scratch
+  in its own folder: the evaluation rate (evaluations per second of the farm phase, read
+  from the results' attributes), the total wall time, and the speed-up of 2 ranks over 1.
+- The per-core throughput of the two RK4 backends on one batch of sampled parameter sets
+  over daily15, in this process: member-steps per second and their ratio.
+
+Timings on a machine shared with other work are inflated; the ratios, measured side by
+side, are what to read.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hyper import io, signaling as S, sobol
+from hyper.protocols import named
+
+
+def _cli(ranks: int, samples: int, chunk: int, folder: Path) -> dict:
+    """One run of the CLI under mpirun; its timings from the HDF5 attributes."""
+    import h5py
+
+    mpirun = Path(sys.executable).with_name("mpirun")
+    cmd = [str(mpirun), "-n", str(ranks), sys.executable, "-m", "hyper.sobol", "--samples", str(samples),
+           "--chunk", str(chunk), "--output", str(folder)]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    start = time.perf_counter()
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{done.stdout}\n{done.stderr}")
+    with h5py.File(folder / "sobol.h5") as f:
+        return {
+            "ranks": ranks,
+            "evaluations": int(f.attrs["evaluations"]),
+            "evaluation_wall_s": float(f.attrs["evaluation_wall_s"]),
+            "evaluations_per_s": float(f.attrs["evaluations_per_s"]),
+            "analysis_wall_s": float(f.attrs["wall_s"]),
+            "process_wall_s": wall,
+            "failures": int(f.attrs["failures"]),
+            "S1": f["S1"][()].tolist(),
+        }
+
+
+def _backends(members: int) -> dict:
+    X = sobol.sample(sobol.problem(), max(2, -(-members // 30)), seed=11)[:members]
+    protocol = named("daily15")
+    steps = sum(S._steps(piece, 0.05)[0] for piece in
+                S._pieces(protocol, sobol.sample_params(X[:2]), 0.0, protocol.end, np.array([0.0, protocol.end])))
+    sobol.compiled_kernel()  # built or loaded before timing
+    out = {"members": int(X.shape[0]), "steps": steps}
+    values = {}
+    for backend in ("c", "numpy"):
+        start = time.process_time()
+        values[backend] = sobol.final_N(X, backend=backend)
+        cpu = time.process_time() - start
+        out[backend] = {"cpu_s": cpu, "member_steps_per_s": X.shape[0] * steps / cpu}
+    out["identical"] = bool(np.array_equal(values["c"], values["numpy"]))
+    out["ratio_c_over_numpy"] = out["c"]["member_steps_per_s"] / out["numpy"]["member_steps_per_s"]
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m hyper.bench sobol", description=__doc__.splitlines()[0])
+    parser.add_argument("--samples", type=int, default=1024, help="base samples per CLI run (default: 1024)")
+    parser.add_argument("--chunk", type=int, default=2048, help="rows per chunk (default: 2048)")
+    parser.add_argument("--members", type=int, default=4096, help="batch of the backend comparison (default: 4096)")
+    parser.add_argument("--output", type=Path, default=Path("results/bench"))
+    args = parser.parse_args(argv)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        runs = [_cli(ranks, args.samples, args.chunk, Path(tmp) / f"n{ranks}") for ranks in (1, 2)]
+    one, two = runs
+    backends = _backends(args.members)
+    result = {
+        "machine": {"cpus": os.cpu_count(), "processor": platform.processor(), "load_average": os.getloadavg()},
+        "versions": io.versions(),
+        "samples": args.samples,
+        "runs": runs,
+        "speedup_2_over_1": two["evaluations_per_s"] / one["evaluations_per_s"],
+        "same_indices": one["S1"] == two["S1"],
+        "backends": backends,
+    }
+    args.output.mkdir(parents=True, exist_ok=True)
+    with io.atomic_path(args.output / "sobol.json") as path:
+        path.write_text(json.dumps(result, indent=2))
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.6))
+    a.bar(["1 rank", "2 ranks"], [r["evaluations_per_s"] for r in runs], color=["tab:blue", "tab:orange"])
+    a.set_ylabel("evaluations / s")
+    a.set_title(f"N = {args.samples}: speed-up {result['speedup_2_over_1']:.2f}x")
+    b.bar(["compiled (c)", "numpy"], [backends[k]["member_steps_per_s"] for k in ("c", "numpy")],
+          color=["tab:green", "tab:gray"])
+    b.set_yscale("log")
+    b.set_ylabel("member-steps / s / core")
+    b.set_title(f"RK4 backends: {backends['ratio_c_over_numpy']:.1f}x")
+    fig.tight_layout()
+    with io.atomic_path(args.output / "sobol.png") as path:
+        fig.savefig(path, format="png", dpi=120)
+    plt.close(fig)
+
+    print(f"1 rank: {one['evaluations_per_s']:.0f} evaluations/s ({one['evaluation_wall_s']:.1f} s), "
+          f"2 ranks: {two['evaluations_per_s']:.0f} evaluations/s ({two['evaluation_wall_s']:.1f} s): "
+          f"speed-up {result['speedup_2_over_1']:.2f}; same indices: {result['same_indices']}")
+    print(f"RK4 per core: compiled {backends['c']['member_steps_per_s']:.3g}, numpy "
+          f"{backends['numpy']['member_steps_per_s']:.3g} member-steps/s ({backends['ratio_c_over_numpy']:.1f}x), "
+          f"identical: {backends['identical']}")
+    print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores; -> {args.output / 'sobol.json'}")
+    return 0
