@@ -14,11 +14,13 @@ def available() -> list[str]:
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] in available():
+        # Dispatch before parsing, so that `<name> --help` reaches the benchmark's own parser.
+        return importlib.import_module(f"hyper.bench.{argv[0]}").main(argv[1:]) or 0
     parser = argparse.ArgumentParser(prog="python -m hyper.bench", description=__doc__)
     parser.add_argument("name", choices=available(), help="which benchmark")
-    args, rest = parser.parse_known_args(argv)
-    module = importlib.import_module(f"hyper.bench.{args.name}")
-    return module.main(rest) or 0
+    parser.parse_args(argv)  # only reached for --help or a bad name
+    return 2
 
 
 if __name__ == "__main__":
