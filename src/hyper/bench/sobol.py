@@ -50,6 +50,9 @@ def _cli(ranks: int, samples: int, chunk: int, folder: Path) -> dict:
             "evaluations": int(f.attrs["evaluations"]),
             "evaluation_wall_s": float(f.attrs["evaluation_wall_s"]),
             "evaluations_per_s": float(f.attrs["evaluations_per_s"]),
+            "evaluation_cpu_s": float(f.attrs["evaluation_cpu_s"]),
+            "evaluations_per_cpu_s": int(f.attrs["evaluations"]) / float(f.attrs["evaluation_cpu_s"]),
+            "cpu_share": float(f.attrs["cpu_share"]),
             "analysis_wall_s": float(f.attrs["wall_s"]),
             "process_wall_s": wall,
             "failures": int(f.attrs["failures"]),
@@ -77,8 +80,8 @@ def _backends(members: int) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m hyper.bench sobol", description=__doc__.splitlines()[0])
-    parser.add_argument("--samples", type=int, default=1024, help="base samples per CLI run (default: 1024)")
-    parser.add_argument("--chunk", type=int, default=2048, help="rows per chunk (default: 2048)")
+    parser.add_argument("--samples", type=int, default=2048, help="base samples per CLI run (default: 2048)")
+    parser.add_argument("--chunk", type=int, default=4096, help="rows per chunk (default: 4096)")
     parser.add_argument("--members", type=int, default=4096, help="batch of the backend comparison (default: 4096)")
     parser.add_argument("--output", type=Path, default=Path("results/bench"))
     args = parser.parse_args(argv)
@@ -93,6 +96,9 @@ def main(argv=None) -> int:
         "samples": args.samples,
         "runs": runs,
         "speedup_2_over_1": two["evaluations_per_s"] / one["evaluations_per_s"],
+        # evaluations per CPU-second of all ranks: 1 when the second rank costs nothing beyond its
+        # own work; the wall-clock speed-up is then bounded by the CPU the ranks got
+        "cpu_efficiency_2_over_1": two["evaluations_per_cpu_s"] / one["evaluations_per_cpu_s"],
         "same_indices": one["S1"] == two["S1"],
         "backends": backends,
     }
@@ -122,6 +128,8 @@ def main(argv=None) -> int:
     print(f"1 rank: {one['evaluations_per_s']:.0f} evaluations/s ({one['evaluation_wall_s']:.1f} s), "
           f"2 ranks: {two['evaluations_per_s']:.0f} evaluations/s ({two['evaluation_wall_s']:.1f} s): "
           f"speed-up {result['speedup_2_over_1']:.2f}; same indices: {result['same_indices']}")
+    print(f"share of their cores the ranks got: {100 * one['cpu_share']:.0f} % (1 rank), {100 * two['cpu_share']:.0f} % "
+          f"(2 ranks); evaluations per CPU-second, 2 ranks over 1: {result['cpu_efficiency_2_over_1']:.2f}")
     print(f"RK4 per core: compiled {backends['c']['member_steps_per_s']:.3g}, numpy "
           f"{backends['numpy']['member_steps_per_s']:.3g} member-steps/s ({backends['ratio_c_over_numpy']:.1f}x), "
           f"identical: {backends['identical']}")
