@@ -13,6 +13,7 @@ import datetime
 import os
 import platform
 import shutil
+import sys
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
@@ -34,12 +35,10 @@ def versions() -> dict[str, str]:
         "scipy": scipy.__version__,
         "h5py": h5py.__version__,
     }
-    try:
-        import dolfinx
-
+    # Importing dolfinx starts PETSc, which is collective: never do it here, on one rank.
+    dolfinx = sys.modules.get("dolfinx")
+    if dolfinx is not None:
         out["dolfinx"] = dolfinx.__version__
-    except ImportError:
-        pass
     return out
 
 
