@@ -32,7 +32,7 @@ import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import basix.ufl
 import numpy as np
 import ufl
-from dolfinx import fem, mesh as dmesh
+from dolfinx import fem, la, mesh as dmesh
 from dolfinx.graph import adjacencylist
 from dolfinx.io import XDMFFile
 from dolfinx.io.utils import distribute_entity_data
@@ -286,12 +286,53 @@ def refine(geometry: Geometry) -> Geometry:
 
     New vertices stay on the coarse facets: the domain is the coarse polyhedron, so a
     sequence of refinements converges to the solution on that polyhedron.
+    dolfinx.mesh.transfer_meshtag refuses ghosted meshes, and interior facet integrals
+    need the ghosts, so the tags are carried here: each rank tags the children of its
+    own refined cells, and a scatter shares them with every rank that holds the facet.
     """
     mesh = geometry.mesh
+    tdim = mesh.topology.dim
     mesh.topology.create_entities(1)
+    mesh.topology.create_connectivity(tdim, tdim - 1)
     fine, parent_cell, parent_facet = dmesh.refine(mesh, option=dmesh.RefinementOption.parent_cell_and_facet)
-    fine.topology.create_connectivity(2, 3)
-    tags = dmesh.transfer_meshtag(geometry.facet_tags, fine, parent_cell, parent_facet)
+    fine.topology.create_connectivity(tdim, tdim - 1)
+    fine.topology.create_connectivity(tdim - 1, tdim)
+
+    fmap = mesh.topology.index_map(tdim - 1)
+    coarse_value = np.full(fmap.size_local + fmap.num_ghosts, -1, dtype=np.int32)
+    coarse_value[geometry.facet_tags.indices] = geometry.facet_tags.values
+    nf = tdim + 1
+    parent_cell = np.asarray(parent_cell)
+    local_parent = np.asarray(parent_facet, dtype=np.int64).reshape(-1, nf)
+    # parent_cell/parent_facet follow the refined cells' creation order; the mesh
+    # reorders cells, and original_cell_index maps back.
+    offset = fine.topology.index_map(tdim).local_range[0]
+    created = np.asarray(fine.topology.original_cell_index, dtype=np.int64) - offset
+    child = np.full(len(parent_cell), -1, dtype=np.int64)
+    mine = (created >= 0) & (created < len(parent_cell))
+    child[created[mine]] = np.flatnonzero(mine)
+    coarse_c2f = mesh.topology.connectivity(tdim, tdim - 1)
+    fine_c2f = fine.topology.connectivity(tdim, tdim - 1)
+    rows, cols = np.nonzero(local_parent >= 0)
+    coarse_facets = np.array([coarse_c2f.links(parent_cell[r])[local_parent[r, c]] for r, c in zip(rows, cols)],
+                             dtype=np.int64)
+    fine_facets = np.array([fine_c2f.links(child[r])[c] for r, c in zip(rows, cols)], dtype=np.int64)
+    values = coarse_value[coarse_facets] if len(coarse_facets) else np.empty(0, np.int32)
+    keep = values >= 0
+
+    # Share: owners collect (count, sum of tags) from every rank, then broadcast to ghosts.
+    fine_map = fine.topology.index_map(tdim - 1)
+    count = la.vector(fine_map, 1, dtype=np.float64)
+    total = la.vector(fine_map, 1, dtype=np.float64)
+    marked, first = np.unique(fine_facets[keep], return_index=True)
+    count.array[marked] = 1.0
+    total.array[marked] = values[keep][first]
+    for vec in (count, total):
+        vec.scatter_reverse(la.InsertMode.add)
+        vec.scatter_forward()
+    facets = np.flatnonzero(count.array > 0).astype(np.int32)
+    tag_values = np.rint(total.array[facets] / count.array[facets]).astype(np.int32)
+    tags = dmesh.meshtags(fine, tdim - 1, facets, tag_values)
     return dataclasses.replace(geometry, mesh=fine, facet_tags=tags)
 
 

@@ -1,0 +1,379 @@
+"""Quasi-static muscle mechanics (MODEL.md §3): one problem object per mesh, built once.
+
+Unknowns: displacement u (P2 vector) and pressure p (P1), Taylor–Hood on tetrahedra.
+With an optional growth tensor Fg (F = Fe Fg, MODEL.md §4) the residual is
+
+    ∫ P : ∇v dX + ∫ q (det Fe - 1) dX + Σ_{Γ1, Γ2} ∫ k (n·u)(n·v) |cof(F) N| dA = 0,
+
+    P = det(Fg) Fe S(Fe) Fg⁻ᵀ   (consistent_stress=True)   or   Fe S(Fe)   (the original code),
+
+with S the law of `hyper.material` and n = cof(F) N / |cof(F) N| the current normal
+(Nanson). Without growth Fe = F and both choices are P = F S.
+
+Rigid motions. The tendon springs act along the end normals only. On the curved ends
+of the anatomical meshes they resist every rigid motion. On flat parallel ends
+(idealized, cylinder) the translations across the axis and the rotation about it
+cost nothing in the reference state, so the Jacobian there is singular. Which motions
+are free is read off the 6×6 stiffness the springs give the rigid motions of the
+reference body (`rigid_mode_stiffness`): its null space. Each free mode r is removed
+by a Lagrange multiplier μ enforcing
+
+    ∫ u·r dX = 0        (zero mean transverse displacement, zero mean axial rotation),
+
+which adds μ·∫ r·v dX to the equilibrium equation. A deformation symmetric about the
+axis through the body's centroid satisfies these exactly with μ = 0; in particular a
+uniform transverse growth Fg of the cylinder gives u = (Fg - I)(X - X̄) and p = c1 + 2c2
+to round-off. (Point constraints would need a vertex on the axis, and the cylinder
+mesh has none.) The multipliers are three global unknowns: the Newton system is
+[[J, B], [Bᵀ, 0]], assembled as a PETSc nest and converted to AIJ for MUMPS.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
+
+import basix.ufl
+import numpy as np
+import ufl
+import dolfinx.fem.petsc
+from dolfinx import fem, mesh as dmesh
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from hyper import material as mat
+from hyper.geometry import Geometry
+
+DEFAULT_PETSC_OPTIONS = {
+    "snes_type": "newtonls",
+    "snes_linesearch_type": "basic",
+    "snes_atol": 1e-8,
+    "snes_rtol": 1e-8,
+    # The solution vector mixes metres and pascals, so a step-size test says nothing.
+    "snes_stol": 0.0,
+    "snes_max_it": 25,
+    "ksp_type": "preonly",
+    "pc_type": "lu",
+    "pc_factor_mat_solver_type": "mumps",
+}
+
+# Free rigid modes are those whose spring stiffness is below this fraction of the largest.
+FREE_MODE_RATIO = 1e-8
+_REASONS = {v: k for k, v in vars(PETSc.SNES.ConvergedReason).items() if isinstance(v, int)}
+
+
+class SolverError(RuntimeError):
+    """Newton did not converge; the problem holds the solution it had before the solve."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RigidModes:
+    """The rigid motions the end springs leave free, as UFL vectors r(X), and a summary."""
+
+    modes: tuple
+    description: str
+    stiffness_ratio: float  # smallest/largest spring stiffness of the six rigid motions
+
+
+class MechanicsProblem:
+    """Taylor–Hood equilibrium with tendon springs, optional growth, SNES Newton + MUMPS.
+
+    Forms and the solver are compiled once; between solves change ``alpha.value`` and
+    the growth function in place. PETSc options: defaults < ``petsc_options`` < the
+    options database under ``options_prefix`` (command line, PETSC_OPTIONS).
+    """
+
+    def __init__(
+        self,
+        geometry: Geometry,
+        a0,
+        material: mat.MaterialParams = mat.MaterialParams(),
+        *,
+        growth=None,
+        consistent_stress: bool = True,
+        petsc_options: dict | None = None,
+        options_prefix: str = "mechanics_",
+    ):
+        self.geometry = geometry
+        self.material = material
+        self.a0 = a0
+        mesh = geometry.mesh
+        self.comm = mesh.comm
+        cell = mesh.basix_cell()
+        element = basix.ufl.mixed_element(
+            [basix.ufl.element("Lagrange", cell, 2, shape=(3,)), basix.ufl.element("Lagrange", cell, 1)]
+        )
+        self.W = fem.functionspace(mesh, element)
+        self.w = fem.Function(self.W, name="w")
+        self.u = self.w.sub(0)
+        self.p = self.w.sub(1)
+        self._p_dofs = self.W.sub(1).collapse()[1]
+        self.alpha = fem.Constant(mesh, 0.0)
+
+        u, p = ufl.split(self.w)
+        v, q = ufl.TestFunctions(self.W)
+        I = ufl.Identity(3)
+        self.F = I + ufl.grad(u)
+        if growth is None:
+            self.Fe = self.F
+            self.P = self.F * mat.second_piola(self.F, p, a0, self.alpha, material)
+        else:
+            self.Fe = self.F * ufl.inv(growth)
+            S = mat.second_piola(self.Fe, p, a0, self.alpha, material)
+            if consistent_stress:
+                self.P = ufl.det(growth) * self.Fe * S * ufl.inv(growth).T
+            else:
+                self.P = self.Fe * S
+        self.fibre_stretch = mat.fibre_stretch(self.F, a0)
+
+        dx, ds = geometry.dx, geometry.ds
+        N = ufl.FacetNormal(mesh)
+        cofN = ufl.det(self.F) * ufl.inv(self.F).T * N
+        area_ratio = ufl.sqrt(ufl.dot(cofN, cofN))
+        n = cofN / area_ratio
+        k = material.k_tendon
+        residual = ufl.inner(self.P, ufl.grad(v)) * dx + q * (ufl.det(self.Fe) - 1.0) * dx
+        for tag in geometry.ends:
+            residual += k * ufl.dot(n, u) * ufl.dot(n, v) * area_ratio * ds(tag)
+        self.residual = residual
+        self.jacobian = ufl.derivative(residual, self.w)
+        self._residual_form = fem.form(residual)
+        self._jacobian_form = fem.form(self.jacobian)
+
+        self.rigid = rigid_modes(geometry)
+        self._build_system([fem.form(ufl.dot(r, v) * dx) for r in self.rigid.modes])
+        self.multipliers = np.zeros(len(self.rigid.modes))
+
+        self.snes = PETSc.SNES().create(self.comm)
+        self.snes.setFunction(self._assemble_residual, self._F)
+        self.snes.setJacobian(self._assemble_jacobian, self._K, self._K)
+        self.snes.setOptionsPrefix(options_prefix)
+        _set_options(self.snes, options_prefix, {**DEFAULT_PETSC_OPTIONS, **(petsc_options or {})})
+
+        sigma = self.P * self.F.T / ufl.det(self.F)
+        gamma1 = ds(geometry.ends[0])
+        self._reaction = fem.form(ufl.dot(sigma * N, N) * gamma1)
+        self._reaction_current = fem.form(ufl.dot(self.P * N, n) * gamma1)
+        self._volume = fem.form(ufl.det(self.F) * dx)
+        self.reset()
+
+    # -- the Newton system -------------------------------------------------------------
+
+    def _build_system(self, constraint_forms) -> None:
+        """The Newton matrix K and vectors, with one row and column per free rigid mode.
+
+        The unknown vector holds each rank's owned dofs of w, and on the last rank the
+        multipliers after them, so the dofs keep the global numbers DOLFINx gives them
+        and the Jacobian form assembles straight into K.
+        """
+        imap = self.W.dofmap.index_map
+        bs = self.W.dofmap.index_map_bs
+        self._nowned = imap.size_local * bs
+        self._b = fem.petsc.create_vector(self.W)
+        A = fem.petsc.create_matrix(self._jacobian_form)
+        m = len(constraint_forms)
+        self._mult_rank = self.comm.size - 1
+        self._nmult = m if self.comm.rank == self._mult_rank else 0
+        if m == 0:
+            self._K = A
+            self._B = np.empty((0, self._nowned))
+        else:
+            cols = []
+            for form in constraint_forms:
+                vec = fem.petsc.assemble_vector(form)
+                vec.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+                cols.append(vec.array.copy())
+                vec.destroy()
+            self._B = np.array(cols)  # (modes, owned dofs)
+            N = imap.size_global * bs
+            self._rows = np.arange(*A.getOwnershipRange(), dtype=np.int32)
+            self._mult_index = np.arange(N, N + m, dtype=np.int32)
+            # The sparsity of [[A, B], [Bᵀ, 0]] comes from a nest converted once to AIJ;
+            # A must be assembled for its pattern to survive the conversion.
+            fem.petsc.assemble_matrix(A, self._jacobian_form)
+            A.assemble()
+            B = PETSc.Mat().createAIJ(((self._nowned, N), (self._nmult, m)), nnz=(m, m), comm=self.comm)
+            B.setValues(self._rows, np.arange(m, dtype=np.int32), self._B.T.copy())
+            B.assemble()
+            BT = B.transpose(PETSc.Mat())
+            nest = PETSc.Mat().createNest([[A, B], [BT, None]], comm=self.comm)
+            self._K = nest.convert(PETSc.Mat.Type.AIJ)
+            self._K.setLGMap(*A.getLGMap())
+            # The nest's layouts are shared with K: keep its blocks alive with it.
+            self._blocks = (nest, A, B, BT)
+        self._x, self._F = self._K.createVecs()
+
+    def _set_state(self, x) -> None:
+        arr = x.getArray(readonly=True)
+        self.w.x.array[: self._nowned] = arr[: self._nowned]
+        self.w.x.scatter_forward()
+        if len(self.multipliers):
+            mine = arr[self._nowned:].copy() if self.comm.rank == self._mult_rank else None
+            self.multipliers = self.comm.bcast(mine, root=self._mult_rank)
+
+    def _assemble_residual(self, snes, x, f) -> None:
+        self._set_state(x)
+        with self._b.localForm() as local:
+            local.set(0.0)
+        fem.petsc.assemble_vector(self._b, self._residual_form)
+        self._b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        out = f.getArray()
+        out[: self._nowned] = self._b.array + self.multipliers @ self._B
+        if len(self.multipliers):
+            constraint = self.comm.allreduce(self._B @ self.w.x.array[: self._nowned], op=MPI.SUM)
+            out[self._nowned:] = constraint[: self._nmult]
+
+    def _assemble_jacobian(self, snes, x, K, P) -> None:
+        self._set_state(x)
+        K.zeroEntries()
+        fem.petsc.assemble_matrix(K, self._jacobian_form)
+        if len(self.multipliers):
+            add = PETSc.InsertMode.ADD_VALUES
+            K.setValues(self._rows, self._mult_index, self._B.T.copy(), addv=add)
+            K.setValues(self._mult_index, self._rows, self._B, addv=add)
+        K.assemble()
+
+    # -- public ------------------------------------------------------------------------
+
+    @property
+    def num_dofs(self) -> int:
+        """Unknowns of the Newton system: displacement, pressure and multipliers."""
+        return self._K.getSize()[0]
+
+    def reset(self) -> None:
+        """The stress-free reference state: u = 0, p = c1 + 2 c2, μ = 0."""
+        self.w.x.array[:] = 0.0
+        self.w.x.array[self._p_dofs] = mat.reference_pressure(self.material)
+        self.w.x.scatter_forward()
+        self.multipliers[:] = 0.0
+
+    def solve(self) -> int:
+        """Newton from the current state; returns the number of iterations.
+
+        Raises SolverError (state restored) if SNES does not converge.
+        """
+        previous = self.w.x.array.copy(), self.multipliers.copy()
+        x = self._x.getArray()
+        x[: self._nowned] = self.w.x.array[: self._nowned]
+        x[self._nowned:] = self.multipliers[: self._nmult]
+        try:
+            self.snes.solve(None, self._x)
+            reason = self.snes.getConvergedReason()
+        except PETSc.Error as err:
+            reason = f"PETSc error {err}"
+        iterations = self.snes.getIterationNumber()
+        if not isinstance(reason, int) or reason <= 0:
+            self.w.x.array[:] = previous[0]
+            self.w.x.scatter_forward()
+            self.multipliers = previous[1]
+            name = _REASONS.get(reason, reason) if isinstance(reason, int) else reason
+            raise SolverError(
+                f"Newton did not converge at alpha = {float(self.alpha.value):g} "
+                f"after {iterations} iterations ({name}); previous solution restored"
+            )
+        self._set_state(self._x)
+        return iterations
+
+    def _sum(self, form) -> float:
+        return self.comm.allreduce(fem.assemble_scalar(form), op=MPI.SUM)
+
+    def reaction_force(self) -> float:
+        """∫_{Γ1} (σN)·N dA on the reference end face (N), as the original code reported it (N)."""
+        return self._sum(self._reaction)
+
+    def reaction_force_current(self) -> float:
+        """∫_{Γ1} (PN)·n dA: the force along the current end normal n (N)."""
+        return self._sum(self._reaction_current)
+
+    def volume(self) -> float:
+        """∫ det F dX (m³)."""
+        return self._sum(self._volume)
+
+
+def _set_options(snes, prefix: str, options: dict) -> None:
+    """Apply ``options`` under ``prefix`` except those already in the database, then clean up."""
+    db = PETSc.Options()
+    added = []
+    for key, value in options.items():
+        name = prefix + key
+        if not db.hasName(name):
+            db.setValue(name, value)
+            added.append(name)
+    snes.setFromOptions()
+    for name in added:
+        db.delValue(name)
+
+
+# ------------------------------------------------------------------- rigid motions
+
+
+def _end_facets(geometry: Geometry, tag: int):
+    """Unit normals, areas and centroids of the owned facets with ``tag``."""
+    mesh = geometry.mesh
+    facets = geometry.facet_tags.find(tag)
+    facets = facets[facets < mesh.topology.index_map(2).size_local]
+    pts = mesh.geometry.x[dmesh.entities_to_geometry(mesh, 2, facets)].reshape(-1, 3, 3)
+    cross = np.cross(pts[:, 1] - pts[:, 0], pts[:, 2] - pts[:, 0])
+    twice_area = np.linalg.norm(cross, axis=1)
+    return cross / twice_area[:, None], 0.5 * twice_area, pts.mean(axis=1)
+
+
+def rigid_mode_stiffness(geometry: Geometry):
+    """The springs' stiffness for rigid motions: eigenvalues (ascending, largest = 1),
+    eigenvectors, the centre c and length scale L of the parametrisation.
+
+    A rigid motion t + ω × (X - c) stretches the springs by n·t + ω·((X - c) × n); the
+    quadratic form ∫_{ends} (n·t + (ω L)·((X - c) × n) / L)² dA in (t, ωL) is a 6×6
+    matrix whose (near-)zero eigenvalues are the motions the ends leave free.
+    """
+    comm = geometry.comm
+    data = [_end_facets(geometry, tag) for tag in geometry.ends]
+    area = comm.allreduce(sum(a.sum() for _, a, _ in data), op=MPI.SUM)
+    centre = comm.allreduce(sum((a[:, None] * c).sum(axis=0) for _, a, c in data), op=MPI.SUM) / area
+    size2 = comm.allreduce(sum((a * ((c - centre) ** 2).sum(axis=1)).sum() for _, a, c in data), op=MPI.SUM)
+    size = float(np.sqrt(size2 / area))
+    K = np.zeros((6, 6))
+    for normals, areas, centroids in data:
+        g = np.hstack([normals, np.cross(centroids - centre, normals) / size])
+        K += (areas[:, None] * g).T @ g
+    K = comm.allreduce(K, op=MPI.SUM)
+    # One rank decides, so every rank builds the same constraints.
+    eig, vec = comm.bcast(np.linalg.eigh(K) if comm.rank == 0 else None, root=0)
+    return eig / eig[-1], vec, centre, size
+
+
+def rigid_modes(geometry: Geometry) -> RigidModes:
+    """The rigid motions the end springs leave free (null space of `rigid_mode_stiffness`)."""
+    eig, vec, centre, size = rigid_mode_stiffness(geometry)
+    free = np.flatnonzero(eig < FREE_MODE_RATIO)
+    ratio = float(eig[0])
+    if len(free) == 0:
+        return RigidModes((), f"none needed: the springs on the ends resist every rigid motion "
+                              f"(smallest/largest stiffness {ratio:.1e})", ratio)
+    X = ufl.SpatialCoordinate(geometry.mesh)
+    c = ufl.as_vector(centre.tolist())
+    modes = []
+    names = []
+    for j in free:
+        t, omega = vec[:3, j], vec[3:, j] / size
+        modes.append(ufl.as_vector(t.tolist()) + ufl.cross(ufl.as_vector(omega.tolist()), X - c))
+        names.append(_mode_name(t, omega * size))
+    return RigidModes(
+        tuple(modes),
+        f"{len(free)} free rigid motion(s) removed by Lagrange multipliers (∫ u·r dX = 0): "
+        + "; ".join(names),
+        ratio,
+    )
+
+
+def _mode_name(t, omega) -> str:
+    def fmt(a):
+        a = np.where(np.abs(a) < 1e-12, 0.0, a)
+        return np.array2string(a, precision=3, suppress_small=True)
+
+    if np.linalg.norm(omega) < 1e-8:
+        return f"translation {fmt(t)}"
+    return f"rotation about {fmt(omega / np.linalg.norm(omega))}" + (
+        f" + translation {fmt(t)}" if np.linalg.norm(t) > 1e-8 else ""
+    )

@@ -1,0 +1,196 @@
+"""MechanicsProblem: exact solutions, invariants, parallel = serial.
+
+Box with springs. A box [-a, a]² × [0, L] with fibres along z and tendon springs on
+both ends contracts homogeneously: F = diag(λ^-1/2, λ^-1/2, λ), J = 1. Each end moves
+by (1 - λ) L / 2, so the spring's Cauchy traction is σzz = k (1 - λ) L / 2, and
+equilibrium with the uniaxial law (see test_material.py) reads
+
+    λ P11(λ) = k (1 - λ) L / 2,   P11(λ) = c1 (λ - λ⁻²) + c2 (1 - λ⁻³) + α σact fact(λ/λ0) / λ.
+
+The reaction forces on Γ1 are then σzz A0 (reference normal) and P11 A0 (current).
+"""
+
+import dolfinx_solver  # noqa: F401
+
+import numpy as np
+import pytest
+import ufl
+from dolfinx import fem, mesh as dmesh
+from mpi4py import MPI
+from petsc4py import PETSc
+from scipy.optimize import brentq
+
+from hyper import geometry as geo_mod
+from hyper import material as mat
+from hyper.mechanics import MechanicsProblem, SolverError, rigid_modes
+from test_material import nominal_stress
+
+PARAMS = mat.MaterialParams()
+TIGHT = {"snes_rtol": 1e-11, "snes_atol": 1e-11}
+
+
+def box_geometry(comm, a=0.01, L=0.1, n=(2, 2, 6)) -> geo_mod.Geometry:
+    mesh = dmesh.create_box(comm, [[-a, -a, 0.0], [a, a, L]], list(n), dmesh.CellType.tetrahedron,
+                            ghost_mode=dmesh.GhostMode.shared_facet)
+    mesh.topology.create_connectivity(2, 3)
+    exterior = dmesh.exterior_facet_indices(mesh.topology)
+    mid = dmesh.compute_midpoints(mesh, 2, exterior)
+    values = np.where(np.isclose(mid[:, 2], 0.0), 1, np.where(np.isclose(mid[:, 2], L), 2, 4)).astype(np.int32)
+    tags = dmesh.meshtags(mesh, 2, exterior.astype(np.int32), values)
+    return geo_mod.Geometry("box", mesh, tags, ends=(1, 2), lateral=4)
+
+
+def _sum(comm, expr, measure):
+    return comm.allreduce(fem.assemble_scalar(fem.form(expr * measure)), op=MPI.SUM)
+
+
+def _box_spring_contraction(comm):
+    L, a = 0.1, 0.01
+    geometry = box_geometry(comm, a=a, L=L)
+    problem = MechanicsProblem(geometry, geo_mod.uniform_fiber_field(geometry.mesh, (0, 0, 1)),
+                               petsc_options=TIGHT)
+    for alpha in np.linspace(0, 1, 6)[1:]:
+        problem.alpha.value = alpha
+        problem.solve()
+    k = PARAMS.k_tendon
+    lam = brentq(lambda l: l * nominal_stress(l, 1.0) - k * (1 - l) * L / 2, 0.5, 1.0, xtol=1e-15)
+    area = (2 * a) ** 2
+
+    u = ufl.split(problem.w)[0]
+    X = ufl.SpatialCoordinate(geometry.mesh)
+    exact = ufl.as_vector([(lam**-0.5 - 1) * X[0], (lam**-0.5 - 1) * X[1], (lam - 1) * (X[2] - L / 2)])
+    err = np.sqrt(_sum(comm, ufl.dot(u - exact, u - exact), geometry.dx) / (area * L))
+    sigma = k * (1 - lam) * L / 2
+    return problem, lam, err, sigma * area, nominal_stress(lam, 1.0) * area, area * L
+
+
+def _check_box(comm):
+    problem, lam, err, force, force_current, volume = _box_spring_contraction(comm)
+    assert 0.6 < lam < 0.8
+    assert err < 1e-10 * 0.1
+    assert problem.reaction_force() == pytest.approx(force, rel=1e-8)
+    assert problem.reaction_force_current() == pytest.approx(force_current, rel=1e-8)
+    assert problem.volume() == pytest.approx(volume, rel=1e-10)
+    assert np.abs(problem.multipliers).max() < 1e-8  # the symmetric solution needs no constraint force
+
+
+def test_box_with_springs_contracts_as_analytic():
+    _check_box(MPI.COMM_WORLD)
+
+
+@pytest.mark.mpi
+def test_box_with_springs_contracts_as_analytic_in_parallel():
+    _check_box(MPI.COMM_WORLD)
+
+
+def test_no_activation_no_load_gives_zero_displacement():
+    comm = MPI.COMM_WORLD
+    geometry = geo_mod.load("idealized", comm)
+    problem = MechanicsProblem(geometry, geo_mod.fiber_field(geometry), petsc_options=TIGHT)
+    assert problem.solve() == 0  # the reference state is the solution, no work to do
+    rng = np.random.default_rng(comm.rank)
+    problem.w.x.array[:] += 1e-4 * rng.standard_normal(problem.w.x.array.shape)
+    problem.w.x.scatter_forward()
+    assert problem.solve() > 0
+    u, p = ufl.split(problem.w)
+    volume = geometry.reference_volume()
+    u_rms = np.sqrt(_sum(comm, ufl.dot(u, u), geometry.dx) / volume)
+    p_rms = np.sqrt(_sum(comm, (p - mat.reference_pressure(PARAMS)) ** 2, geometry.dx) / volume)
+    assert u_rms < 1e-12
+    assert p_rms < 1e-6  # Pa, against 3e4
+    assert abs(problem.reaction_force()) < 1e-10
+    assert problem.volume() == pytest.approx(volume, rel=1e-12)
+
+
+@pytest.mark.parametrize("consistent", [True, False])
+def test_uniform_transverse_growth_of_cylinder_is_stress_free(consistent):
+    """Fg = diag(√ϑ, √ϑ, 1): u = (Fg - I)(X - X̄) exactly, p = c1 + 2c2, V = ϑ V0."""
+    _check_growth(MPI.COMM_WORLD, consistent)
+
+
+@pytest.mark.mpi
+def test_uniform_transverse_growth_of_cylinder_in_parallel():
+    _check_growth(MPI.COMM_WORLD, True)
+
+
+def _check_growth(comm, consistent):
+    geometry = geo_mod.load("cylinder", comm)
+    theta = 1.21
+    s = np.sqrt(theta)
+    Fg = fem.Constant(geometry.mesh, np.diag([s, s, 1.0]))
+    problem = MechanicsProblem(geometry, geo_mod.fiber_field(geometry), growth=Fg,
+                               consistent_stress=consistent, petsc_options=TIGHT)
+    problem.solve()
+    V0 = geometry.reference_volume()
+    X = ufl.SpatialCoordinate(geometry.mesh)
+    centroid = [_sum(comm, X[i], geometry.dx) / V0 for i in range(2)]
+    u, p = ufl.split(problem.w)
+    grad_err = ufl.grad(u) - ufl.as_matrix(np.diag([s - 1, s - 1, 0.0]).tolist())
+    exact = ufl.as_vector([(s - 1) * (X[0] - centroid[0]), (s - 1) * (X[1] - centroid[1]), 0.0])
+    assert np.sqrt(_sum(comm, ufl.inner(grad_err, grad_err), geometry.dx) / V0) < 1e-10
+    assert np.sqrt(_sum(comm, ufl.dot(u - exact, u - exact), geometry.dx) / V0) < 1e-12
+    assert np.sqrt(_sum(comm, (p - mat.reference_pressure(PARAMS)) ** 2, geometry.dx) / V0) < 1e-5
+    assert problem.volume() == pytest.approx(theta * V0, rel=1e-10)
+    assert abs(problem.reaction_force()) < 1e-8
+
+
+def test_rigid_modes_found_where_the_ends_leave_them_free():
+    comm = MPI.COMM_WORLD
+    for name in ("idealized", "cylinder"):
+        modes = rigid_modes(geo_mod.load(name, comm))
+        assert len(modes.modes) == 3
+        assert modes.stiffness_ratio < 1e-14
+    curved = rigid_modes(geo_mod.load("TA_VHF_Left", comm))
+    assert curved.modes == ()
+    assert curved.stiffness_ratio > 1e-4  # the curved ends resist every rigid motion
+
+
+def test_divergence_raises_and_restores_the_state():
+    comm = MPI.COMM_WORLD
+    geometry = geo_mod.load("cylinder", comm)
+    problem = MechanicsProblem(geometry, geo_mod.fiber_field(geometry),
+                               petsc_options={"snes_max_it": 1}, options_prefix="test_diverge_")
+    before = problem.w.x.array.copy()
+    problem.alpha.value = 1.0
+    with pytest.raises(SolverError, match="did not converge at alpha = 1 after 1 iterations"):
+        problem.solve()
+    assert np.array_equal(problem.w.x.array, before)
+
+
+def test_options_database_overrides_the_dict_which_overrides_defaults():
+    comm = MPI.COMM_WORLD
+    geometry = box_geometry(comm)
+    a0 = geo_mod.uniform_fiber_field(geometry.mesh, (0, 0, 1))
+    db = PETSc.Options()
+    db["test_opts_snes_max_it"] = 7
+    try:
+        problem = MechanicsProblem(geometry, a0, petsc_options={"snes_max_it": 3, "snes_rtol": 1e-9},
+                                   options_prefix="test_opts_")
+    finally:
+        db.delValue("test_opts_snes_max_it")
+    rtol, atol, _, max_it = problem.snes.getTolerances()
+    assert (max_it, rtol, atol) == (7, 1e-9, 1e-8)
+    assert problem.snes.getKSP().getPC().getFactorSolverType() == "mumps"
+    assert not db.hasName("test_opts_snes_rtol")  # defaults are not left behind in the database
+
+
+def _idealized_reaction(comm, steps=4):
+    geometry = geo_mod.load("idealized", comm)
+    problem = MechanicsProblem(geometry, geo_mod.fiber_field(geometry), petsc_options=TIGHT,
+                               options_prefix=f"test_rank{comm.size}_")
+    forces = []
+    for alpha in np.linspace(0, 1, steps + 1)[1:]:
+        problem.alpha.value = alpha
+        problem.solve()
+        forces.append((problem.reaction_force(), problem.reaction_force_current(), problem.volume()))
+    return np.array(forces)
+
+
+@pytest.mark.mpi
+def test_two_ranks_give_the_serial_reaction_force():
+    world = MPI.COMM_WORLD
+    assert world.size == 2
+    parallel = _idealized_reaction(world)
+    serial = _idealized_reaction(MPI.COMM_SELF)
+    assert np.allclose(parallel, serial, rtol=1e-8, atol=0)
+    assert parallel[-1, 0] == pytest.approx(0.39675, rel=1e-4)  # N, full activation (see report)
