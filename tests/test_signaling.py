@@ -1,8 +1,11 @@
 """The signaling model (MODEL.md §1): equilibrium, closed forms, RK4 order and accuracy against the
-reference, batch == single bit for bit, the paper's qualitative results, failures, CLI, and the
-batch split over MPI ranks."""
+reference, batch == single bit for bit, the compiled backend == numpy bit for bit, the paper's
+qualitative results, failures raised or masked, CLI, the batch split over MPI ranks, and ranks
+building the compiled kernel at once."""
 
 import dataclasses
+import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -169,12 +172,14 @@ def test_batch_equals_single_runs_bit_for_bit():
     # two sessions: every switch (stimulus on/off, bump start and end) and a state-dependent kink
     t_out = np.array([0.0, 170.0, 181.0, 229.5, 250.0])
     _, single = S.integrate(P0, protocol, Y0, 0.0, 250.0, out_times=t_out)
-    _, batch = S.integrate(P0, protocol, np.repeat(Y0[:, None], 1000, axis=1), 0.0, 250.0, out_times=t_out)
+    _, batch = S.integrate(P0, protocol, np.repeat(Y0[:, None], 1000, axis=1), 0.0, 250.0, out_times=t_out,
+                           backend="numpy")
     assert batch.shape == (5, 5, 1000)
     assert np.array_equal(batch, np.repeat(single[:, :, None], 1000, axis=2))
     # the same with every parameter given per member
     per_member = S.SignalingParams(**{f.name: np.full(1000, getattr(P0, f.name)) for f in dataclasses.fields(P0)})
-    _, batch = S.integrate(per_member, protocol, Y0, 0.0, 250.0, out_times=t_out, kM=np.full(1000, P0.kM))
+    _, batch = S.integrate(per_member, protocol, Y0, 0.0, 250.0, out_times=t_out, kM=np.full(1000, P0.kM),
+                           backend="numpy")
     assert np.array_equal(batch, np.repeat(single[:, :, None], 1000, axis=2))
 
 
@@ -188,7 +193,7 @@ def test_heterogeneous_batch_member_equals_its_own_run():
         tau_d=rng.choice([11.0, 12.0], n),  # two groups with their own switch times
     )
     kM = P0.kM * rng.uniform(0.5, 2.0, n)
-    _, batch = S.integrate(p, named("mwf"), Y0, 0.0, 300.0, kM=kM)
+    _, batch = S.integrate(p, named("mwf"), Y0, 0.0, 300.0, kM=kM, backend="numpy")
     for m in (0, 7, 39):
         _, one = S.integrate(p.member(m), named("mwf"), Y0, 0.0, 300.0, kM=float(kM[m]))
         assert np.array_equal(batch[:, :, m], one)
@@ -215,6 +220,75 @@ def test_integrate_starts_anywhere_and_lands_on_output_times():
         S.integrate(P0, protocol, Y0, 0.0, 10.0, dt=0.0)
 
 
+# --- the compiled backend ----------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def mixed_batch():
+    """300 members (one full block of the C kernel and a partial one) whose rates, stimulus,
+    admissible range, stimulus delay (two timing groups) and kM differ."""
+    rng = np.random.default_rng(3)
+    n = 300
+    p = S.SignalingParams(
+        a20=P0.a20 * rng.uniform(0.9, 1.1, n),
+        b3=P0.b3 * rng.uniform(0.9, 1.1, n),
+        c43=P0.c43 * rng.uniform(0.8, 1.2, n),
+        beta=P0.beta * rng.uniform(0.5, 1.0, n),
+        Nmax=rng.uniform(1.0005, 1.05, n),  # some members reach the end of their range
+        tau_d=rng.choice([11.0, 12.0], n),
+    )
+    return p, P0.kM * rng.uniform(0.5, 3.0, n)
+
+
+def test_c_backend_equals_numpy_bit_for_bit(mixed_batch):
+    p, kM = mixed_batch
+    # the first two weeks of mwf: rest, three sessions with their switches, outputs inside
+    # sessions, stimulus windows and bumps
+    t_out = np.array([0.0, 100.0, 168.5, 180.25, 181.0, 200.0, 263.9, 336.0])
+    _, ref = S.integrate(p, named("mwf"), Y0, 0.0, 336.0, out_times=t_out, kM=kM, backend="numpy")
+    _, c = S.integrate(p, named("mwf"), Y0, 0.0, 336.0, out_times=t_out, kM=kM, backend="c")
+    assert c.shape == (8, 5, 300)
+    assert np.array_equal(c, ref)
+    assert np.ptp(ref[-1, 4]) > 0.005  # the parameters matter
+    assert np.any(ref[-1, 4] >= p.Nmax) and np.any(ref[-1, 4] < p.Nmax)  # the range limit is exercised
+    # one member on C equals its plain-Python run
+    _, one = S.integrate(p.member(7), named("mwf"), Y0, 0.0, 336.0, out_times=t_out, kM=float(kM[7]), backend="c")
+    assert np.array_equal(one, ref[:, :, 7])
+    with pytest.raises(InputError, match="backend must be one of numpy, c, auto"):
+        S.integrate(p, named("mwf"), Y0, 0.0, 10.0, kM=kM, backend="fortran")
+
+
+def test_auto_takes_c_for_batches_only(monkeypatch):
+    if S.c_backend_error() is not None:
+        pytest.skip(f"no C backend here: {S.c_backend_error()}")
+    sizes = []
+    compiled = S._rk4_compiled
+    monkeypatch.setattr(S, "_rk4_compiled", lambda Y0, *args: sizes.append(Y0.shape[1]) or compiled(Y0, *args))
+    batch = np.repeat(Y0[:, None], S.AUTO_MIN_MEMBERS, axis=1)
+    _, auto = S.integrate(P0, named("mwf"), batch, 0.0, 200.0)
+    _, single = S.integrate(P0, named("mwf"), Y0, 0.0, 200.0)
+    assert sizes == [S.AUTO_MIN_MEMBERS]  # the single member ran in plain Python
+    assert np.array_equal(auto, np.repeat(single[:, :, None], S.AUTO_MIN_MEMBERS, axis=2))
+
+
+def test_auto_falls_back_to_numpy_without_a_compiler(monkeypatch, tmp_path, mixed_batch):
+    from hyper import signaling_c
+
+    monkeypatch.setattr(signaling_c, "_KERNEL", {})  # forget the kernel built so far
+    monkeypatch.setenv("HYPER_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
+    assert "cannot build the compiled RK4 kernel" in S.c_backend_error()
+    p, kM = mixed_batch
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _, auto = S.integrate(p, named("mwf"), Y0, 160.0, 190.0, kM=kM)
+    _, ref = S.integrate(p, named("mwf"), Y0, 160.0, 190.0, kM=kM, backend="numpy")
+    assert np.array_equal(auto, ref)
+    with pytest.raises(signaling_c.Unavailable, match="no-such-cc"):
+        S.integrate(p, named("mwf"), Y0, 160.0, 190.0, kM=kM, backend="c")
+    assert list(tmp_path.iterdir()) == []  # the failed builds left nothing behind
+
+
 # --- the paper's results -----------------------------------------------------------------
 
 
@@ -237,13 +311,41 @@ def test_final_N_orders_the_protocols():
 # --- failures ----------------------------------------------------------------------------
 
 
-def test_too_large_a_step_stops_with_time_and_member():
+@pytest.mark.parametrize("backend", ["numpy", "c"])
+def test_too_large_a_step_stops_with_time_and_member(backend):
     with pytest.raises(S.SignalingError, match=r"t = 181 h to t = 181.9\d+ h gave member 0 .*smaller dt \(now 1 h\)"):
-        S.integrate(P0, named("mwf"), Y0, 0.0, END, dt=1.0)
-    # in a batch the failing member is named: a stronger stimulus makes member 2 stiffer
+        S.integrate(P0, named("mwf"), Y0, 0.0, END, dt=1.0, backend=backend)
+    # in a batch the failing member is named, with its state: a stronger stimulus makes member 2 stiffer
     p = S.SignalingParams(beta=np.array([0.04, 0.04, 0.12]))
-    with pytest.raises(S.SignalingError, match=r"t = 180.5 h to t = 181 h gave member 2 "):
-        S.integrate(p, named("mwf"), Y0, 0.0, 400.0, dt=0.5)
+    with pytest.raises(S.SignalingError, match=r"t = 180.5 h to t = 181 h gave member 2 .*igf1=-1.107e\+04, akt=24.56"):
+        S.integrate(p, named("mwf"), Y0, 0.0, 400.0, dt=0.5, backend=backend)
+
+
+def test_failed_members_are_masked_the_others_untouched():
+    # beta = 0.8 makes the session stimulus 96/h: RK4 with dt = 0.05 h is unstable for member 1
+    # only, 12.25 h after daily15's first session starts
+    p = S.SignalingParams(beta=np.array([0.04, 0.8, 0.04, 0.03]), kM=np.array([0.01, 0.01, 0.02, 0.015]))
+    protocol, t_out = named("daily15"), np.array([0.0, 12.0, 30.0, 48.0])
+    alone = [S.integrate(p.member(m), protocol, Y0, 0.0, 48.0, out_times=t_out, backend="numpy")[1] for m in (0, 2, 3)]
+    for backend in ("numpy", "c"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # no overflow warnings from the failing member
+            times, y, failed = S.integrate(p, protocol, Y0, 0.0, 48.0, out_times=t_out, backend=backend, failures="mask")
+        assert times.tolist() == t_out.tolist() and y.shape == (4, 5, 4)
+        assert failed.dtype == bool and failed.tolist() == [False, True, False, False]
+        assert np.all(np.isnan(y[:, :, 1]))
+        for m, one in zip((0, 2, 3), alone):
+            assert np.array_equal(y[:, :, m], one)
+        # one member: the flag is a bool
+        _, y1, f1 = S.integrate(p.member(1), protocol, Y0, 0.0, 48.0, backend=backend, failures="mask")
+        assert f1 is True and y1.shape == (2, 5) and np.all(np.isnan(y1))
+        _, y_ok, f_ok = S.integrate(p.member(0), protocol, Y0, 0.0, 48.0, out_times=t_out, backend=backend,
+                                    failures="mask")
+        assert f_ok is False and np.array_equal(y_ok, alone[0])
+        with pytest.raises(S.SignalingError, match=r"t = 12.25 h to t = 12.3 h gave member 1 .*smaller dt"):
+            S.integrate(p, protocol, Y0, 0.0, 48.0, backend=backend)
+    with pytest.raises(InputError, match="failures must be one of raise, mask"):
+        S.integrate(p, protocol, Y0, 0.0, 48.0, failures="nan")
 
 
 # --- CLI ---------------------------------------------------------------------------------
@@ -304,3 +406,24 @@ def test_batch_split_over_ranks_equals_serial():
         gathered[:, index] = values
     _, serial = S.integrate(p, named("mwf"), Y0, 0.0, 300.0)
     assert np.array_equal(gathered, serial[-1])
+
+
+@pytest.mark.mpi
+def test_ranks_building_the_kernel_at_once_get_the_same_bits(monkeypatch, tmp_path):
+    from mpi4py import MPI
+
+    from hyper import signaling_c
+
+    comm = MPI.COMM_WORLD
+    cache = Path(comm.bcast(str(tmp_path) if comm.rank == 0 else None, root=0)) / "cache"
+    monkeypatch.setenv("HYPER_CACHE_DIR", str(cache))
+    monkeypatch.setattr(signaling_c, "_KERNEL", {})  # every rank builds anew, into one empty cache
+    rng = np.random.default_rng(11)
+    p = S.SignalingParams(kM=P0.kM * rng.uniform(0.5, 2.0, 40), b4=P0.b4 * rng.uniform(0.9, 1.1, 40))
+    comm.barrier()
+    _, c = S.integrate(p, named("mwf"), Y0, 0.0, 250.0, backend="c")
+    _, ref = S.integrate(p, named("mwf"), Y0, 0.0, 250.0, backend="numpy")
+    assert np.array_equal(c, ref)
+    comm.barrier()
+    # one library in place, no temporary build folders left
+    assert [path.suffix for path in cache.iterdir()] == [".so"]

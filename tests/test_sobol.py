@@ -53,7 +53,7 @@ def test_batch_equals_one_at_a_time(design):
 def test_compiled_kernel_follows_signaling_bit_for_bit(design):
     # The C kernel repeats signaling's RK4 expression for expression, so both backends give
     # the same bits (chunks of either backend can be mixed in one run). A failure here means
-    # signaling's RK4 arithmetic changed: update sobol._C_SOURCE to match it.
+    # signaling's RK4 arithmetic changed: update signaling_c.SOURCE to match it.
     full = sobol.final_N(design)
     assert np.array_equal(full, sobol.final_N(design, backend="numpy"))
     # N stays in [Nmin, Nmax] = [0.5, 1.3] up to the last step's overshoot
@@ -62,13 +62,15 @@ def test_compiled_kernel_follows_signaling_bit_for_bit(design):
 
 def test_a_failing_member_is_masked_not_fatal():
     # beta = 0.8 makes the session stimulus 96/h: RK4 with dt = 0.05 h is unstable for that member only
-    p = S.SignalingParams(beta=np.array([0.04, 0.8, 0.04]), kM=np.array([0.01, 0.01, 0.02]))
-    states, failed = sobol.integrate_compiled(p, named("daily15"), S.rest_state(), 0.0, 480.0)
-    assert failed.tolist() == [False, True, False]
+    X = np.array([[0.04, 0.01], [0.8, 0.01], [0.04, 0.02]])
+    N = sobol.final_N(X, names=("beta", "kM"))
+    assert np.isnan(N[1])
     for i in (0, 2):
-        assert np.array_equal(states[:, i], S.integrate(p.member(i), named("daily15"), S.rest_state(), 0.0, 480.0)[1][-1])
+        p = sobol.sample_params(X[i : i + 1], ("beta", "kM")).member(0)
+        assert N[i] == S.integrate(p, named("daily15"), S.rest_state(), 0.0, 480.0)[1][-1, 4]
+    # the numpy backend fails the whole batch
     with pytest.raises(S.SignalingError, match="member 1"):
-        S.integrate(p, named("daily15"), S.rest_state(), 0.0, 480.0)
+        sobol.final_N(X, names=("beta", "kM"), backend="numpy")
 
 
 # --- analysis ----------------------------------------------------------------------------

@@ -7,15 +7,13 @@ N (2D + 2) rows for N base samples, and estimates first-order, total and second-
 indices with bootstrap confidence intervals.
 
 Evaluation. The rows are evaluated in chunks (jobs of ``hyper.farm``), each chunk one
-batch along the batch axis of the signaling model. The default backend is a compiled
-copy of ``hyper.signaling``'s RK4 step (C through cffi, the route DOLFINx takes for its
-form kernels): the same pieces, step sizes and stimulus tables, the same floating-point
-operations in the same order (``-ffp-contract=off`` keeps the compiler from fusing
-them), so every member equals ``signaling.integrate`` of its own parameters bit for bit,
-an order of magnitude faster than the numpy batch (``python -m hyper.bench sobol``). It
-also lets one member fail (a non-finite or negative state) without stopping the others:
-the member's output becomes NaN. The ``numpy`` backend calls ``signaling.integrate``
-directly; there a failing member fails its whole chunk.
+batch along the batch axis of the signaling model, through ``signaling.integrate``. The
+default backend is its compiled RK4 step (``backend="c"``, C through cffi, the route
+DOLFINx takes for its form kernels), bit for bit the numpy batch and an order of
+magnitude faster (``python -m hyper.bench sobol``), with failures masked: a member that
+fails (a non-finite or negative state) does not stop the others, its output becomes NaN.
+The ``numpy`` backend is signaling's numpy batch with failures raised; there a failing
+member fails its whole chunk.
 
 Failures. Members whose trajectory fails are counted and reported, never dropped
 silently. SALib needs every output, so by default (``on_failure="abort"``) no indices
@@ -34,15 +32,10 @@ import argparse
 import dataclasses
 import functools
 import hashlib
-import importlib.machinery
-import importlib.util
 import json
 import math
-import os
-import platform
 import shutil
 import sys
-import tempfile
 import time
 import warnings
 from dataclasses import dataclass
@@ -140,196 +133,18 @@ def final_N(X: np.ndarray, *, names=PARAMETERS, protocol: Protocol | None = None
     p = sample_params(np.atleast_2d(X), names, base)
     y0 = S.rest_state(base)
     if backend == "numpy":
-        return S.integrate(p, protocol, y0, 0.0, protocol.end, dt)[1][-1, 4]
+        return S.integrate(p, protocol, y0, 0.0, protocol.end, dt, backend="numpy")[1][-1, 4]
     if backend != "c":
         raise InputError(f"backend must be 'c' or 'numpy', got {backend!r}")
-    states, failed = integrate_compiled(p, protocol, y0, 0.0, protocol.end, dt)
-    return np.where(failed, np.nan, states[4])
+    return S.integrate(p, protocol, y0, 0.0, protocol.end, dt, backend="c", failures="mask")[1][-1, 4]
 
 
-# The compiled RK4. Rows of the per-member coefficient matrix, in the order the C code reads
-# them: first those that scale with the step (rates), then thresholds and bounds. The
-# inhibitions c32 and c43 enter negated, as in signaling's kernels.
-_ROWS = ("b1", "b2", "b3", "b4", "a3", "a4", "c21", "c32", "c42", "c43", "kF", "kM",
-         "thetaF", "thetaM", "Nmin", "Nmax")
-_SCALED = 12
-_NEGATED = ("c32", "c43")
-
-_CDEF = """
-void rk4_piece(long n, long steps, double s, double third, double t0, double h, const double *P,
-               const double *A1, const double *a20, const double *bumps, double *Y, double *fail_t);
-"""
-
-# signaling's RK4 in its (h/2)-scaled form, expression for expression (_scalar_rhs and
-# _rk4_single): with s = h/2 the rate constants in P and the stimuli come scaled by s, the
-# stages are K_i = s k_i, and y_new = y + ((K1 + K4) + 2 (K2 + K3)) / 3. IEEE +, -, * are
-# exactly rounded, so the same trees in the same order give the same bits. Branches are
-# written as selects so that GCC vectorizes the loop over members.
-_C_SOURCE = r"""
-#include <math.h>
-
-enum {B1, B2, B3, B4, A3, A4, C21, MC32, C42, MC43, KF, KM, THF, THM, NMIN, NMAX};
-#define ROW(k) (P + (long)(k) * n)
-
-static inline void rhs(long i, long n, const double *restrict P, double A1, double A2,
-                       double x1, double x2, double x3, double x4, double N, double *k)
-{
-    k[0] = x1 * (A1 - ROW(B1)[i] * x1);
-    k[1] = x2 * ((A2 - ROW(B2)[i] * x2) + ROW(C21)[i] * x1);
-    k[2] = x3 * ((ROW(A3)[i] - ROW(B3)[i] * x3) + ROW(MC32)[i] * x2);
-    k[3] = x4 * (((ROW(A4)[i] - ROW(B4)[i] * x4) + ROW(C42)[i] * x2) + ROW(MC43)[i] * x3);
-    const double d3 = x3 - ROW(THF)[i], d4 = x4 - ROW(THM)[i];
-    const double f = (d4 > 0.0 ? ROW(KM)[i] * d4 : 0.0) - (d3 > 0.0 ? ROW(KF)[i] * d3 : 0.0);
-    const int inside = (ROW(NMIN)[i] <= N) & (N <= ROW(NMAX)[i]);
-    k[4] = inside ? f : 0.0;
-}
-
-/* `steps` RK4 steps of size h = 2 s from t0 for n members; Y (5 x n) in place. P holds the
-   rate constants times s; A1 is s a1; bumps holds a2 - a20 at the 2 steps + 1 stage times
-   (zeros without a bump). fail_t[i] < 0 until member i first leaves [0, inf) or turns NaN,
-   then the start time of that step. */
-void rk4_piece(long n, long steps, double s, double third, double t0, double h,
-               const double *restrict P, const double *restrict A1, const double *restrict a20,
-               const double *restrict bumps, double *restrict Y, double *restrict fail_t)
-{
-    for (long j = 0; j < steps; ++j) {
-        const double u0 = bumps[2 * j], u1 = bumps[2 * j + 1], u2 = bumps[2 * j + 2];
-        const double t = t0 + j * h;
-        for (long i = 0; i < n; ++i) {
-            const double a1 = A1[i];
-            const double x[5] = {Y[i], Y[n + i], Y[2 * n + i], Y[3 * n + i], Y[4 * n + i]};
-            double K1[5], K2[5], K3[5], K4[5];
-            rhs(i, n, P, a1, s * (a20[i] + u0), x[0], x[1], x[2], x[3], x[4], K1);
-            rhs(i, n, P, a1, s * (a20[i] + u1), x[0] + K1[0], x[1] + K1[1], x[2] + K1[2], x[3] + K1[3],
-                x[4] + K1[4], K2);
-            rhs(i, n, P, a1, s * (a20[i] + u1), x[0] + K2[0], x[1] + K2[1], x[2] + K2[2], x[3] + K2[3],
-                x[4] + K2[4], K3);
-            rhs(i, n, P, a1, s * (a20[i] + u2), x[0] + (K3[0] + K3[0]), x[1] + (K3[1] + K3[1]),
-                x[2] + (K3[2] + K3[2]), x[3] + (K3[3] + K3[3]), x[4] + (K3[4] + K3[4]), K4);
-            int ok = 1;
-            for (int c = 0; c < 5; ++c) {
-                const double m = K2[c] + K3[c];
-                const double z = x[c] + ((K1[c] + K4[c]) + (m + m)) * third;
-                Y[c * n + i] = z;
-                ok &= (z >= 0.0) & (z < INFINITY);
-            }
-            fail_t[i] = (!ok && fail_t[i] < 0.0) ? t : fail_t[i];
-        }
-    }
-}
-"""
-
-# Without -ffp-contract=off GCC fuses a*b + c into FMAs under -march=native, and the bits
-# differ from numpy's. -march=native buys AVX2 or AVX-512 (4 or 8 members per instruction
-# instead of SSE2's 2); GCC uses 512-bit vectors only when asked: 1.4x on the development
-# machine (Rocket Lake). Vector width never changes a lane's arithmetic.
-_FLAGS = (["-O3", "-ffp-contract=off", "-march=native", "-mprefer-vector-width=512"], ["-O3", "-ffp-contract=off"])
-
-# Members per call of the kernel: what a step reads (23 doubles per member: scaled rates,
-# thresholds, state, stimuli) stays in a 48 KiB L1 cache. Measured best of 64 ... 8192 on
-# the development machine (about 15 % over 2048).
-BLOCK = 256
-
-
-def _cpu_tag() -> str:
-    """What -march=native depends on: a cached kernel must not run on a different CPU."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-        lines = [line for line in text.splitlines() if line.startswith(("model name", "flags"))][:2]
-        return "\n".join(lines) or platform.processor()
-    except OSError:
-        return platform.machine() + platform.processor()
-
-
-def _cache_dir() -> Path:
-    root = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(os.environ.get("HYPER_CACHE_DIR", Path(root) / "hyper"))
-
-
-@functools.cache
 def compiled_kernel():
-    """The compiled RK4 step as a cffi module, built once per source, flags and CPU and cached
-    in ``$HYPER_CACHE_DIR`` (default ``~/.cache/hyper``). Several processes may build it at
-    once: each compiles in its own folder and renames the result into place atomically."""
-    from cffi import FFI
+    """Build or load signaling's C backend now (raises ``signaling_c.Unavailable`` where it
+    cannot be built), to keep the build out of timings: ``hyper.bench.sobol`` calls it."""
+    from hyper import signaling_c
 
-    errors = []
-    for flags in _FLAGS:
-        key = hashlib.sha256("\0".join([_C_SOURCE, *flags, _cpu_tag(), sys.version]).encode()).hexdigest()[:16]
-        name = f"_hyper_rk4_{key}"
-        suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
-        path = _cache_dir() / f"{name}{suffix}"
-        try:
-            if not path.exists():
-                path.parent.mkdir(parents=True, exist_ok=True)
-                ffi = FFI()
-                ffi.cdef(_CDEF)
-                ffi.set_source(name, _C_SOURCE, extra_compile_args=flags)
-                with tempfile.TemporaryDirectory(dir=path.parent) as tmp:
-                    built = Path(ffi.compile(tmpdir=tmp))
-                    os.replace(built, path)
-            spec = importlib.util.spec_from_file_location(name, path)
-            module = importlib.util.module_from_spec(spec)
-            spec.loader.exec_module(module)
-            return module
-        except Exception as err:  # noqa: BLE001 - try the next flags, report all if none works
-            errors.append(f"{' '.join(flags)}: {err}")
-    raise RuntimeError(
-        "cannot build the compiled RK4 kernel (needs a C compiler and cffi, as DOLFINx does); "
-        "use backend 'numpy' instead. Tried: " + "; ".join(errors)
-    )
-
-
-def integrate_compiled(params: S.SignalingParams, protocol: Protocol, y0, t0: float, t1: float,
-                       dt: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
-    """``signaling.integrate`` from t0 to t1 for a batch, on the compiled kernel, with failures
-    masked: returns the states at t1, shape (5, n), and which members failed (their states
-    are then meaningless). Timing parameters (tau_d, t1, tau_h) must be scalars."""
-    if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
-        raise InputError(f"dt must be a finite number > 0 h, got {dt!r}")
-    n = params.size
-    if n is None:
-        raise ValueError("integrate_compiled needs per-member parameter arrays")
-    if any(np.ndim(getattr(params, k)) for k in S.TIMING):
-        raise ValueError("integrate_compiled needs scalar tau_d, t1 and tau_h")
-    kernel = compiled_kernel()
-    ffi, lib = kernel.ffi, kernel.lib
-    # signaling's own partition of [t0, t1] and stimulus tables: the same steps as integrate
-    pieces = S._pieces(protocol, params, t0, t1, np.array([t0, t1], dtype=float))
-    plan = []
-    for piece in pieces:
-        steps, h = S._steps(piece, dt)
-        bumps = S._stage_bumps(piece, params, steps, h)
-        bumps = np.zeros(2 * steps + 1) if bumps is None else np.ascontiguousarray(bumps, dtype=float)
-        plan.append((steps, h, S._a1_value(piece, params), bumps, piece.t0))
-    P = np.empty((len(_ROWS), n))
-    for k, name in enumerate(_ROWS):
-        value = np.asarray(getattr(params, name), dtype=float)
-        P[k] = -value if name in _NEGATED else value
-    a20 = np.broadcast_to(np.asarray(params.a20, dtype=float), (n,))
-    Y0 = np.broadcast_to(np.asarray(y0, dtype=float).reshape(5, -1), (5, n))
-    states = np.empty((5, n))
-    fail_t = np.empty(n)
-
-    def ptr(a: np.ndarray):
-        return ffi.cast("double *", a.ctypes.data)
-
-    for start in range(0, n, BLOCK):
-        sel = slice(start, min(start + BLOCK, n))
-        m = sel.stop - sel.start
-        Pb = np.ascontiguousarray(P[:, sel])
-        Ps = Pb.copy()  # the rates times s = h/2 of the piece
-        a20b = np.ascontiguousarray(a20[sel])
-        Y = np.ascontiguousarray(Y0[:, sel])
-        fb = np.full(m, -1.0)
-        for steps, h, a1, bumps, piece_t0 in plan:
-            s = 0.5 * h
-            np.multiply(s, Pb[:_SCALED], out=Ps[:_SCALED])
-            A1 = np.ascontiguousarray(np.multiply(s, np.broadcast_to(a1[sel] if np.ndim(a1) else a1, (m,))))
-            lib.rk4_piece(m, steps, s, S.THIRD, piece_t0, h, ptr(Ps), ptr(A1), ptr(a20b), ptr(bumps), ptr(Y), ptr(fb))
-        states[:, sel] = Y
-        fail_t[sel] = fb
-    return states, fail_t >= 0.0
+    return signaling_c.kernel()
 
 
 # --------------------------------------------------------------------------------------
@@ -619,18 +434,12 @@ def main(argv=None, comm=None) -> int:
     else:
         if args.backend == "c":
             # rank 0 builds the kernel; the other ranks then load it from the cache
-            error = None
-            if comm.rank == 0:
-                try:
-                    compiled_kernel()
-                except RuntimeError as err:
-                    error = str(err)
-            error = comm.bcast(error, root=0)
+            error = comm.bcast(S.c_backend_error() if comm.rank == 0 else None, root=0)
             if error is not None:
                 if comm.rank == 0:
-                    print(f"error: {error}", file=sys.stderr)
+                    print(f"error: {error}; use --backend numpy", file=sys.stderr)
                 return 1
-            compiled_kernel()
+            S.c_backend_error()
         evaluate = functools.partial(final_N, protocol=protocol, dt=args.dt, backend=args.backend)
     chunks = args.output / "chunks"
     if comm.rank == 0:
