@@ -5,8 +5,10 @@ signaling_throughput.png and signaling_speed_accuracy.png. Run it in one process
 OMP_NUM_THREADS=1: the throughput is per core.
 
 - Throughput in member-steps per second of ``integrate`` for 1e3, 1e4 and 1e5 members on
-  the 9-week ``mwf`` protocol (a window of it for the larger batches), next to a plain
-  numpy RK4 with temporaries on the same window.
+  the 9-week ``mwf`` protocol (a window of it for the larger batches), on both backends
+  side by side (numpy batch and the compiled kernel, checked to give the same bits), next
+  to a plain numpy RK4 with temporaries on the same window; and for batches of 1 to 64
+  members (where ``backend="auto"`` starts to take C) on a 30-h window.
 - One 9-week ``mwf`` run: ``integrate`` (dt = 0.05 h) against
   ``solve_ivp(method="RK45", max_step=0.05)`` of the same right-hand side (``rhs``), the
   way the paper integrated, with both errors of N(1512 h) against ``reference``.
@@ -25,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import io, signaling as S
+from hyper import io, signaling as S, signaling_c
 from hyper.protocols import named
 
 DTS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.55, 0.6, 0.65, 0.7, 0.8, 1.0)
@@ -70,22 +72,51 @@ def _plain_rk4(params, protocol, y, t0, t1, dt):
     return steps, y
 
 
-def throughput(sizes, windows, repeat: int) -> list[dict]:
+def _backends(n: int, t0: float, t1: float, repeat: int, c: bool) -> dict:
+    """Both backends on one batch of n members, one after the other: walls, rates, same bits."""
+    params, protocol, y0 = S.SignalingParams(), named("mwf"), S.rest_state()
+    y = np.repeat(y0[:, None], n, axis=1) if n > 1 else y0
+    steps = S.step_count(params, protocol, t0, t1)
+    wall, (_, numpy_states) = _best(lambda: S.integrate(params, protocol, y, t0, t1, backend="numpy"), repeat)
+    row = {"members": n, "t0": t0, "t1": t1, "steps": steps, "wall_s": wall, "member_steps_per_s": n * steps / wall}
+    if c:
+        wall_c, (_, c_states) = _best(lambda: S.integrate(params, protocol, y, t0, t1, backend="c"), repeat)
+        row.update({"c_wall_s": wall_c, "c_member_steps_per_s": n * steps / wall_c,
+                    "c_over_numpy": wall / wall_c, "c_identical": bool(np.array_equal(c_states, numpy_states))})
+    return row
+
+
+def _c_text(row: dict) -> str:
+    if "c_wall_s" not in row:
+        return ""
+    same = "same bits" if row["c_identical"] else "DIFFERENT BITS"
+    return f", C {row['c_member_steps_per_s']:.3g} (x{row['c_over_numpy']:.1f}, {same})"
+
+
+def throughput(sizes, windows, repeat: int, c: bool) -> list[dict]:
     params, protocol, y0 = S.SignalingParams(), named("mwf"), S.rest_state()
     rows = []
     for n, (t0, t1) in zip(sizes, windows):
         y = np.repeat(y0[:, None], n, axis=1)
-        steps = S.step_count(params, protocol, t0, t1)
-        wall, _ = _best(lambda: S.integrate(params, protocol, y, t0, t1), repeat)
-        row = {"members": n, "t0": t0, "t1": t1, "steps": steps, "wall_s": wall,
-               "member_steps_per_s": n * steps / wall}
+        row = _backends(n, t0, t1, repeat, c)
         # the baseline on a shorter window of the same stretch (it is slow)
         tp = t0 + min(t1 - t0, 24.0)
         wall_plain, (plain_steps, _) = _best(lambda: _plain_rk4(params, protocol, y, t0, tp, 0.05), 1)
         row["plain_numpy_member_steps_per_s"] = n * plain_steps / wall_plain
         row["speedup_over_plain_numpy"] = row["member_steps_per_s"] / row["plain_numpy_member_steps_per_s"]
-        print(f"  {n:>7d} members: {row['member_steps_per_s']:.3g} member-steps/s "
-              f"(plain numpy RK4: {row['plain_numpy_member_steps_per_s']:.3g}, x{row['speedup_over_plain_numpy']:.2f})", flush=True)
+        print(f"  {n:>7d} members: numpy {row['member_steps_per_s']:.3g} member-steps/s "
+              f"(plain numpy RK4: {row['plain_numpy_member_steps_per_s']:.3g}, x{row['speedup_over_plain_numpy']:.2f})"
+              + _c_text(row), flush=True)
+        rows.append(row)
+    return rows
+
+
+def small_batches(sizes, window, repeat: int, c: bool) -> list[dict]:
+    """Where the numpy batch's per-call overhead dominates: the case for AUTO_MIN_MEMBERS."""
+    rows = []
+    for n in sizes:
+        row = _backends(n, *window, repeat, c)
+        print(f"  {n:>7d} members: numpy {row['member_steps_per_s']:.3g} member-steps/s" + _c_text(row), flush=True)
         rows.append(row)
     return rows
 
@@ -94,7 +125,7 @@ def single_vs_rk45(reference_N: float, repeat: int) -> dict:
     from scipy.integrate import solve_ivp
 
     params, protocol, y0 = S.SignalingParams(), named("mwf"), S.rest_state()
-    wall_rk4, (_, y) = _best(lambda: S.integrate(params, protocol, y0, 0.0, 1512.0, 0.05), repeat)
+    wall_rk4, (_, y) = _best(lambda: S.integrate(params, protocol, y0, 0.0, 1512.0, 0.05, backend="numpy"), repeat)
 
     def fun(t, y):
         return S.rhs(t, y, params, protocol)
@@ -129,7 +160,7 @@ def speed_accuracy(dts, reference_N: float) -> list[dict]:
     for dt in dts:
         start = time.perf_counter()
         try:
-            _, y = S.integrate(params, protocol, y0, 0.0, 1512.0, dt)
+            _, y = S.integrate(params, protocol, y0, 0.0, 1512.0, dt, backend="numpy")
         except S.SignalingError as err:
             rows.append({"dt": dt, "failed": True, "error": str(err), "wall_s": time.perf_counter() - start})
             print(f"  dt = {dt:5.2f} h: FAILED ({err})", flush=True)
@@ -152,14 +183,27 @@ def _charts(result: dict, folder: Path) -> list[Path]:
     rows = result["throughput"]
     fig, ax = plt.subplots(figsize=(6.5, 4.2), constrained_layout=True)
     n = np.array([r["members"] for r in rows], dtype=float)
-    ax.plot(n, [r["member_steps_per_s"] for r in rows], "o-", label="hyper.signaling.integrate (chunked, in place)")
-    ax.plot(n, [r["plain_numpy_member_steps_per_s"] for r in rows], "s--", label="plain numpy RK4 (temporaries)")
+    small = result["small_batches"]
+    ns = np.array([r["members"] for r in small], dtype=float)
+    ax.plot(n, [r["member_steps_per_s"] for r in rows], "o-", color="C0",
+            label='integrate, backend="numpy" (chunked, in place)')
+    ax.plot(ns, [r["member_steps_per_s"] for r in small], "o:", color="C0", mfc="none")
+    if result["c_backend"] is None:
+        ax.plot(n, [r["c_member_steps_per_s"] for r in rows], "^-", color="C2", label='integrate, backend="c" (compiled)')
+        ax.plot(ns, [r["c_member_steps_per_s"] for r in small], "^:", color="C2", mfc="none")
+        for r in rows:
+            ax.annotate(f"x{r['c_over_numpy']:.1f}", (r["members"], r["c_member_steps_per_s"]), xytext=(0, 6),
+                        textcoords="offset points", ha="center", fontsize=8, color="C2")
+    ax.plot(n, [r["plain_numpy_member_steps_per_s"] for r in rows], "s--", color="C1", label="plain numpy RK4 (temporaries)")
     ax.axhline(1e7, color="k", ls=":", lw=1, label="goal 1e7")
     ax.set_xscale("log")
     ax.set_yscale("log")
+    ax.set_ylim(top=ax.get_ylim()[1] * 3)  # room for the ratios
     ax.set_xlabel("members in the batch")
     ax.set_ylabel("member-steps per second (one core)")
-    ax.set_title("Batch RK4 throughput, mwf protocol")
+    load = result["machine"]["load_average_at_start"]
+    ax.set_title(f"Batch RK4 throughput, mwf protocol (open: 30-h window; load {load:.1f} on "
+                 f"{result['machine']['cpus']} cores)", fontsize=9)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     paths.append(_save(fig, folder / "signaling_throughput.png"))
@@ -229,7 +273,11 @@ def main(argv=None) -> int:
         windows = ((168.0, 268.0), (168.0, 188.0), (168.0, 172.0))
     else:
         windows = ((0.0, 1512.0), (168.0, 468.0), (168.0, 198.0))
+    c_backend = S.c_backend_error()  # builds or loads the kernel before any timing
+    if c_backend is not None:
+        print(f"no C backend, numpy only: {c_backend}", flush=True)
     print("throughput ...", flush=True)
+    repeat = 1 if args.quick else 2
     result = {
         "machine": {"python": platform.python_version(), "numpy": np.__version__, "cpus": os.cpu_count(),
                     "processor": platform.processor() or platform.machine(),
@@ -238,10 +286,16 @@ def main(argv=None) -> int:
                     "load_average_at_start": os.getloadavg()[0]},
         "quick": args.quick,
         "chunk": S.CHUNK,
+        "c_block": signaling_c.BLOCK,
+        "c_flags": signaling_c.FLAGS[0],
+        "c_backend": c_backend,  # None: available; else why not
+        "auto_min_members": S.AUTO_MIN_MEMBERS,
         "reference_N_1512": reference_N,
         "reference_wall_s": reference_s,
-        "throughput": throughput(sizes, windows, repeat=1 if args.quick else 2),
+        "throughput": throughput(sizes, windows, repeat, c_backend is None),
     }
+    print("small batches ...", flush=True)
+    result["small_batches"] = small_batches((1, 2, 16, 64), (168.0, 198.0), repeat, c_backend is None)
     print("single run against RK45 ...", flush=True)
     result["single_vs_rk45"] = single_vs_rk45(reference_N, repeat=3)
     print("speed-accuracy ...", flush=True)
