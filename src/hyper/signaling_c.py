@@ -1,9 +1,11 @@
 """The C backend of ``hyper.signaling``: its RK4 step compiled at run time through cffi.
 
-``signaling.integrate(..., backend="c" | "auto")`` comes here; nothing else should. This
-module knows arrays, not protocols: signaling cuts [t0, t1] into pieces and tabulates the
-stimuli, as for its numpy batch, and ``run`` takes each block of members through those
-pieces on the compiled step.
+Use it through ``signaling.integrate(..., backend="c" | "auto")`` and
+``signaling.c_backend_error``; only ``kernel`` is called from outside the signaling
+layer, to build before timing (``sobol.compiled_kernel``). This module knows arrays, not
+protocols: signaling cuts [t0, t1] into pieces and tabulates the stimuli, as for its
+numpy batch, and ``run`` takes each block of members through those pieces on the
+compiled step.
 
 The C code repeats signaling's RK4 in its (h/2)-scaled form expression for expression
 (``_scalar_rhs``, ``_rk4_single``): with s = h/2 the rate constants and the stimuli come
@@ -173,7 +175,7 @@ def kernel():
         errors = []
         for flags in FLAGS:
             try:
-                _KERNEL["module"] = _build(flags)
+                _KERNEL["module"], _KERNEL["flags"] = _build(flags), flags
                 break
             except Exception as err:  # noqa: BLE001 - try the next flags, report all if none works
                 errors.append(f"{' '.join(flags)}: {type(err).__name__}: {err}")
@@ -185,6 +187,12 @@ def kernel():
     if "error" in _KERNEL:
         raise Unavailable(_KERNEL["error"])
     return _KERNEL["module"]
+
+
+def kernel_flags() -> list[str]:
+    """The compiler flags of the kernel in use (builds or loads it; raises Unavailable)."""
+    kernel()
+    return _KERNEL["flags"]
 
 
 def coefficients(params, kM, n: int) -> np.ndarray:

@@ -287,7 +287,7 @@ def main(argv=None) -> int:
         "quick": args.quick,
         "chunk": S.CHUNK,
         "c_block": signaling_c.BLOCK,
-        "c_flags": signaling_c.FLAGS[0],
+        "c_flags": signaling_c.kernel_flags() if c_backend is None else None,
         "c_backend": c_backend,  # None: available; else why not
         "auto_min_members": S.AUTO_MIN_MEMBERS,
         "reference_N_1512": reference_N,
