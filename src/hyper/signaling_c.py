@@ -1,11 +1,10 @@
 """The C backend of ``hyper.signaling``: its RK4 step compiled at run time through cffi.
 
-Use it through ``signaling.integrate(..., backend="c" | "auto")`` and
-``signaling.c_backend_error``; only ``kernel`` is called from outside the signaling
-layer, to build before timing (``sobol.compiled_kernel``). This module knows arrays, not
-protocols: signaling cuts [t0, t1] into pieces and tabulates the stimuli, as for its
-numpy batch, and ``run`` takes each block of members through those pieces on the
-compiled step.
+Use it through ``signaling.integrate(..., backend="c" | "auto")``;
+``signaling.c_backend_error`` builds it (ahead of timings) and says why it cannot be.
+This module knows arrays, not protocols: signaling cuts [t0, t1] into pieces and
+tabulates the stimuli, as for its numpy batch, and ``run`` takes each block of members
+through those pieces on the compiled step.
 
 The C code repeats signaling's RK4 in its (h/2)-scaled form expression for expression
 (``_scalar_rhs``, ``_rk4_single``): with s = h/2 the rate constants and the stimuli come

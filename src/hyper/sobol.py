@@ -139,14 +139,6 @@ def final_N(X: np.ndarray, *, names=PARAMETERS, protocol: Protocol | None = None
     return S.integrate(p, protocol, y0, 0.0, protocol.end, dt, backend="c", failures="mask")[1][-1, 4]
 
 
-def compiled_kernel():
-    """Build or load signaling's C backend now (raises ``signaling_c.Unavailable`` where it
-    cannot be built), to keep the build out of timings: ``hyper.bench.sobol`` calls it."""
-    from hyper import signaling_c
-
-    return signaling_c.kernel()
-
-
 # --------------------------------------------------------------------------------------
 # Analysis
 
