@@ -412,9 +412,9 @@ def fiber_field(geometry: Geometry, kind: str = "auto") -> fem.Function:
 
     Why P1: every fibre source (analytic, Stokes flow) can be written at vertices, XDMF
     stores and ParaView shows it as is, and any quadrature or DG space the forms or the
-    growth tensors use interpolates it. Between the nodes |a0| dips below 1 by O(h²)
-    where the fibres curve; code that needs exactly unit fibres at its points (the
-    growth field) normalises there.
+    growth tensors use interpolates it. Between the nodes |a0| dips below 1 where the
+    fibres turn (by up to 4 % next to the idealized shape's axis, where the formula
+    jumps); `MechanicsProblem` and the growth field normalise at their points.
     """
     if kind not in FIBER_KINDS:
         raise InputError(f"unknown fibre kind {kind!r}; expected one of {', '.join(FIBER_KINDS)}")

@@ -1,0 +1,214 @@
+"""python -m hyper.contraction: ramp the activation α from 0 to 1 on one geometry.
+
+Writes <output>.h5 (series alpha, reaction_force, reaction_force_current,
+newton_iterations, volume_ratio, stretch_min, stretch_max; parameters as attributes),
+<output>_fields.xdmf (displacement u and pressure p on P1, fibre stretch λ per cell, one
+time step per activation level) and <output>.png (force against activation).
+A step whose Newton solve fails is retried as two half steps, down to --max-halvings.
+Options after the known ones go to PETSc under the prefix mechanics_ (for example
+-mechanics_snes_monitor).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hyper.params import InputError, as_attributes
+
+SERIES = ("alpha", "reaction_force", "reaction_force_current", "newton_iterations",
+          "volume_ratio", "stretch_min", "stretch_max", "wall_s")
+
+
+def parse(argv):
+    parser = argparse.ArgumentParser(prog="python -m hyper.contraction", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--geometry", default="idealized", help="geometry identifier (default idealized)")
+    parser.add_argument("--steps", type=int, default=10, help="equal activation steps from 0 to 1")
+    parser.add_argument("--output", default="results/contraction/idealized.h5", help="HDF5 series file")
+    parser.add_argument("--fibres", default="auto", help="fibre field kind (see hyper.geometry.fiber_field)")
+    parser.add_argument("--quadrature-degree", type=int, default=4)
+    parser.add_argument("--max-halvings", type=int, default=6, help="step cuts allowed per step")
+    args, rest = parser.parse_known_args(argv)
+    if args.steps < 1:
+        raise InputError(f"--steps: expected a positive integer, got {args.steps}")
+    if args.quadrature_degree < 1:
+        raise InputError(f"--quadrature-degree: expected a positive integer, got {args.quadrature_degree}")
+    if not args.output.endswith(".h5"):
+        raise InputError(f"--output: expected a path ending in .h5, got {args.output!r}")
+    stray = [a for a in rest if a.startswith("--")]
+    if stray:
+        raise InputError(f"unknown option(s) {' '.join(stray)}; PETSc options take one dash")
+    return args, rest
+
+
+class Fields:
+    """Output fields on spaces XDMF stores: P1 displacement and pressure, DG0 fibre stretch."""
+
+    def __init__(self, problem):
+        from dolfinx import fem
+
+        mesh = problem.geometry.mesh
+        self.problem = problem
+        self.u = fem.Function(fem.functionspace(mesh, ("Lagrange", 1, (3,))), name="u")
+        self.p = fem.Function(fem.functionspace(mesh, ("Lagrange", 1)), name="p")
+        dg0 = fem.functionspace(mesh, ("DG", 0))
+        self.stretch = fem.Function(dg0, name="fibre_stretch")
+        self._stretch_expr = fem.Expression(problem.fibre_stretch, dg0.element.interpolation_points)
+        self._ncells = mesh.topology.index_map(3).size_local
+
+    def update(self):
+        self.u.interpolate(self.problem.u)
+        self.p.interpolate(self.problem.p)
+        self.stretch.interpolate(self._stretch_expr)
+        return self.u, self.p, self.stretch
+
+    def stretch_range(self) -> tuple[float, float]:
+        from mpi4py import MPI
+
+        values = self.stretch.x.array[: self._ncells]
+        comm = self.problem.comm
+        return comm.allreduce(values.min(), op=MPI.MIN), comm.allreduce(values.max(), op=MPI.MAX)
+
+
+def advance(problem, target: float, max_halvings: int) -> tuple[int, int]:
+    """Move α from its current value to ``target``, halving the step on failure.
+
+    Returns (Newton iterations, deepest halving).
+    """
+    from hyper.mechanics import SolverError
+
+    start = float(problem.alpha.value)
+    try:
+        problem.alpha.value = target
+        return problem.solve(), 0
+    except SolverError:
+        problem.alpha.value = start
+        if max_halvings == 0:
+            raise
+    middle = 0.5 * (start + target)
+    its1, h1 = advance(problem, middle, max_halvings - 1)
+    its2, h2 = advance(problem, target, max_halvings - 1)
+    return its1 + its2, 1 + max(h1, h2)
+
+
+def plot(path: Path, series: dict, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from hyper.io import atomic_path
+
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    ax.plot(series["alpha"], series["reaction_force"], "o-", label=r"$\int_{\Gamma_1} (\sigma N)\cdot N\,dA$ (original)")
+    ax.plot(series["alpha"], series["reaction_force_current"], "s-", label=r"$\int_{\Gamma_1} (PN)\cdot n\,dA$ (current)")
+    ax.set_xlabel("activation α")
+    ax.set_ylabel("reaction force on Γ1 (N)")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    ax2.fill_between(series["alpha"], series["stretch_min"], series["stretch_max"], alpha=0.3, label="cell range")
+    ax2.set_xlabel("activation α")
+    ax2.set_ylabel("fibre stretch λ")
+    ax2.legend()
+    ax2.grid(alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+    plt.close(fig)
+
+
+def run(comm, args) -> dict:
+    from hyper import geometry as geo
+    from hyper import io
+    from hyper.log import Progress, info
+    from hyper.material import MaterialParams
+    from hyper.mechanics import MechanicsProblem
+
+    geometry = geo.load(args.geometry, comm, quadrature_degree=args.quadrature_degree)
+    a0 = geo.fiber_field(geometry, args.fibres)
+    material = MaterialParams()
+    problem = MechanicsProblem(geometry, a0, material)
+    info(comm, f"{args.geometry}: {geometry.num_cells()} cells, {problem.num_dofs} unknowns, "
+               f"{comm.size} rank(s); rigid motions: {problem.rigid.description}")
+    fields = Fields(problem)
+    volume0 = problem.volume()
+    series = {name: [] for name in SERIES}
+    output = Path(args.output)
+    xdmf_path = output.with_name(output.stem + "_fields.xdmf")
+    progress = Progress(comm, args.steps, f"contraction {args.geometry}", every=0.0)
+    start = time.perf_counter()
+    with io.atomic_xdmf(comm, xdmf_path) as xdmf:
+        xdmf.write_mesh(geometry.mesh)
+        for k, alpha in enumerate(np.linspace(0.0, 1.0, args.steps + 1)):
+            iterations, halvings = advance(problem, float(alpha), args.max_halvings)
+            for f in fields.update():
+                xdmf.write_function(f, float(alpha))
+            lo, hi = fields.stretch_range()
+            values = (float(alpha), problem.reaction_force(), problem.reaction_force_current(), iterations,
+                      problem.volume() / volume0, lo, hi, time.perf_counter() - start)
+            for name, value in zip(SERIES, values):
+                series[name].append(value)
+            progress.update(k, f"α = {alpha:.3f}: R = {values[1]:.4e} N, R_current = {values[2]:.4e} N, "
+                               f"λ in [{lo:.4f}, {hi:.4f}], {iterations} Newton its"
+                               + (f" ({halvings} halvings)" if halvings else ""), force=True)
+    attrs = {
+        "geometry": args.geometry,
+        "steps": args.steps,
+        "fibres": args.fibres,
+        "cells": geometry.num_cells(),
+        "unknowns": problem.num_dofs,
+        "ranks": comm.size,
+        "quadrature_degree": geometry.quadrature_degree,
+        "rigid_motions": problem.rigid.description,
+        "fields_xdmf": xdmf_path.name,
+        "petsc_prefix": problem.snes.getOptionsPrefix(),
+        "snes_tolerances_rtol_atol": [problem.snes.getTolerances()[0], problem.snes.getTolerances()[1]],
+    }
+    if comm.rank == 0:
+        io.write_series(output, series, attrs=attrs, groups={"material": as_attributes(material)})
+        plot(output.with_suffix(".png"), series, f"{args.geometry}: {geometry.num_cells()} cells, "
+                                                  f"{problem.num_dofs} unknowns")
+    comm.barrier()
+    return series
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    from mpi4py import MPI
+
+    comm = MPI.COMM_WORLD
+    try:
+        args, petsc_args = parse(argv)
+        import dolfinx_solver  # noqa: F401  (before petsc4py)
+        from petsc4py import PETSc
+
+        if petsc_args:
+            PETSc.Options().insertString(" ".join(petsc_args))
+        from hyper.mechanics import SolverError
+
+        try:
+            series = run(comm, args)
+        except SolverError as err:
+            if comm.rank == 0:
+                print(f"error: {err} (after {args.max_halvings} step halvings)", file=sys.stderr)
+            return 1
+    except InputError as err:
+        if comm.rank == 0:
+            print(f"error: {err}", file=sys.stderr)
+        return 2
+    from hyper.log import info
+
+    info(comm, f"peak reaction force {max(series['reaction_force']):.4e} N (current normal: "
+               f"{max(series['reaction_force_current']):.4e} N); fibre stretch range at α = 1: "
+               f"[{series['stretch_min'][-1]:.4f}, {series['stretch_max'][-1]:.4f}]; wrote {args.output}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
