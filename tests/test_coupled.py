@@ -1,0 +1,91 @@
+"""The coupled model: exact growth of a cylinder, and the same answer on 1 and 2 ranks."""
+
+import dolfinx_solver  # noqa: F401  (must precede dolfinx)
+
+import numpy as np
+import pytest
+import ufl
+from dolfinx import fem
+from mpi4py import MPI
+
+from hyper import geometry as geo
+from hyper import growth, material, signaling
+from hyper.coupled import CoupledModel, GrowthSettings
+from hyper.mechanics import MechanicsProblem
+from hyper.protocols import Protocol, Session
+
+
+def test_uniform_growth_of_a_cylinder_is_stress_free_and_exact():
+    """Axial fibres and uniform ϑ: growth is compatible, so the body grows without stress.
+
+    The displacement is then u = (√Θ - 1)(x, y, 0) about the axis, CSA and volume grow by
+    Θ = ϑ1 ϑ2 exactly, and the pressure is the law's stress-free value c1 + 2 c2.
+    """
+    g = geo.load("cylinder", MPI.COMM_SELF)
+    a0 = geo.fiber_field(g)
+    field = growth.GrowthField(g.mesh, a0, g.quadrature_degree)
+    problem = MechanicsProblem(g, a0, growth=field.function)
+    field.set_deformation(problem.F)
+    section = growth.FacetSection(g, problem.F)
+    v0 = problem.volume()
+
+    thetas = (1.05, 1.03)
+    for theta in thetas:
+        field.grow(theta)
+        problem.solve()
+        field.accept()
+    total = np.prod(thetas)
+
+    assert section.area() / section.area0 == pytest.approx(total, rel=1e-10)
+    assert problem.volume() / v0 == pytest.approx(total, rel=1e-10)
+
+    # ∇u = Ḡ - I everywhere; the rigid-mode constraints (∫ u·r dX = 0) fix the centre of
+    # the expansion at the volume centroid.
+    mismatch = ufl.grad(problem.w.sub(0)) - (field.function - ufl.Identity(3))
+    assert np.sqrt(fem.assemble_scalar(fem.form(ufl.inner(mismatch, mismatch) * g.dx))) < 1e-12
+    X = ufl.SpatialCoordinate(g.mesh)
+    centroid = np.array([fem.assemble_scalar(fem.form(X[i] * g.dx)) for i in range(2)]) / v0
+    u = problem.w.sub(0).collapse()
+    x = u.function_space.tabulate_dof_coordinates()
+    exact = (np.sqrt(total) - 1.0) * np.column_stack([x[:, 0] - centroid[0], x[:, 1] - centroid[1], np.zeros(len(x))])
+    scale = (np.sqrt(total) - 1.0) * 0.02
+    np.testing.assert_allclose(u.x.array.reshape(-1, 3), exact, rtol=0, atol=1e-10 * scale)
+
+    p = problem.w.sub(1).collapse().x.array
+    p_ref = material.reference_pressure(material.MaterialParams())
+    np.testing.assert_allclose(p, p_ref, rtol=1e-10)
+    # A = F Ḡ⁻¹ is the identity: nothing elastic is left.
+    np.testing.assert_allclose(field.A, np.broadcast_to(np.eye(3), field.A.shape), atol=1e-10)
+
+
+def short_protocol() -> Protocol:
+    return Protocol((Session(0.0, 1.0, 0.8), Session(48.0, 1.0, 0.8)), end=96.0, name="short")
+
+
+# mTOR starts just above its threshold, so the muscle grows from the first hour.
+GROWING = signaling.SignalingParams(thetaM=0.46)
+
+
+def csa_series(comm) -> np.ndarray:
+    g = geo.load("idealized", comm)
+    a0 = geo.fiber_field(g)
+    model = CoupledModel(g, a0, short_protocol(), params=GROWING, settings=GrowthSettings(growth_dt=24.0))
+    return np.array([[r.t, r.csa_ratio, r.volume_ratio, r.kM] for r in model.run()])
+
+
+def test_growth_lowers_synthesis_and_volume_follows_the_population():
+    s = csa_series(MPI.COMM_SELF)
+    t, csa, vol, kM = s.T
+    assert np.all(np.diff(csa) > 0) and np.all(np.diff(vol) > 0)
+    assert csa[-1] > 1.005
+    np.testing.assert_allclose(kM[1:], GROWING.kM * growth.feedback(csa[1:]), rtol=1e-14)
+    assert np.all(kM[1:] < GROWING.kM)
+
+
+@pytest.mark.mpi
+def test_two_ranks_reproduce_the_serial_csa_series():
+    comm = MPI.COMM_WORLD
+    assert comm.size == 2
+    parallel = csa_series(comm)
+    serial = csa_series(MPI.COMM_SELF)
+    np.testing.assert_allclose(parallel[:, 1:3], serial[:, 1:3], rtol=1e-8)
