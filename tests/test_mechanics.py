@@ -174,12 +174,12 @@ def test_options_database_overrides_the_dict_which_overrides_defaults():
     assert not db.hasName("test_opts_snes_rtol")  # defaults are not left behind in the database
 
 
-def _idealized_reaction(comm, steps=4):
+def _idealized_reaction(comm):
     geometry = geo_mod.load("idealized", comm)
     problem = MechanicsProblem(geometry, geo_mod.fiber_field(geometry), petsc_options=TIGHT,
                                options_prefix=f"test_rank{comm.size}_")
     forces = []
-    for alpha in np.linspace(0, 1, steps + 1)[1:]:
+    for alpha in (0.1, 0.2, 0.35, 0.55, 0.8, 1.0):
         problem.alpha.value = alpha
         problem.solve()
         forces.append((problem.reaction_force(), problem.reaction_force_current(), problem.volume()))

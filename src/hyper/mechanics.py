@@ -23,9 +23,11 @@ by a Lagrange multiplier μ enforcing
 which adds μ·∫ r·v dX to the equilibrium equation. A deformation symmetric about the
 axis through the body's centroid satisfies these exactly with μ = 0; in particular a
 uniform transverse growth Fg of the cylinder gives u = (Fg - I)(X - X̄) and p = c1 + 2c2
-to round-off. (Point constraints would need a vertex on the axis, and the cylinder
-mesh has none.) The multipliers are three global unknowns: the Newton system is
-[[J, B], [Bᵀ, 0]], assembled as a PETSc nest and converted to AIJ for MUMPS.
+to round-off. Point constraints were the alternative: they would need a vertex on
+the axis (the cylinder mesh has none), and on Γ1, where the reaction force is
+measured, their point load shifted it by 10 % on the idealized mesh. The multipliers
+are global unknowns: the Newton matrix is [[J, B], [Bᵀ, 0]] in one AIJ matrix (its
+sparsity taken once from a PETSc nest), factorised by MUMPS.
 """
 
 from __future__ import annotations
@@ -157,8 +159,11 @@ class MechanicsProblem:
 
         sigma = self.P * self.F.T / ufl.det(self.F)
         gamma1 = ds(geometry.ends[0])
-        self._reaction = fem.form(ufl.dot(sigma * N, N) * gamma1)
-        self._reaction_current = fem.form(ufl.dot(self.P * N, n) * gamma1)
+        # Compiled on first use: a growth tensor on a quadrature space has no values on
+        # facets, so with growth these forms cannot be built (and growth runs need none).
+        self._reaction_ufl = ufl.dot(sigma * N, N) * gamma1
+        self._reaction_current_ufl = ufl.dot(self.P * N, n) * gamma1
+        self._reaction = self._reaction_current = None
         self._volume = fem.form(ufl.det(self.F) * dx)
         self.reset()
 
@@ -302,10 +307,14 @@ class MechanicsProblem:
 
     def reaction_force(self) -> float:
         """∫_{Γ1} (σN)·N dA on the reference end face (N), as the original code reported it (N)."""
+        if self._reaction is None:
+            self._reaction = fem.form(self._reaction_ufl)
         return self._sum(self._reaction)
 
     def reaction_force_current(self) -> float:
         """∫_{Γ1} (PN)·n dA: the force along the current end normal n (N)."""
+        if self._reaction_current is None:
+            self._reaction_current = fem.form(self._reaction_current_ufl)
         return self._sum(self._reaction_current)
 
     def volume(self) -> float:
