@@ -107,13 +107,17 @@ def test_fibres():
     assert np.allclose(a, [0, 0, 1])
 
     ta = g.load("TA_VHF_Left", comm)
-    _, a = _nodal(g.fiber_field(ta))
+    _, a = _nodal(g.fiber_field(ta, "principal"))
     _, axes = g.principal_axes(ta.mesh)
     assert np.allclose(np.abs(a @ axes[:, 0]), 1.0)
     along = (g.facet_centroid(ta, 2) - g.facet_centroid(ta, 1)) @ a[0] if len(a) else 1.0
     assert along > 0  # from end 1 towards end 2
     with pytest.raises(InputError, match="unknown fibre kind"):
-        g.fiber_field(ta, "stokes")
+        g.fiber_field(ta, "helical")
+    # anatomical meshes default to their stored Stokes-flow fibres
+    _, stokes = _nodal(g.fiber_field(ta))
+    assert np.allclose(np.linalg.norm(stokes, axis=1), 1.0, atol=1e-12)
+    assert not np.allclose(np.abs(stokes @ axes[:, 0]), 1.0)
 
 
 def test_principal_axis_of_cylinder_is_its_axis():

@@ -398,7 +398,7 @@ def uniform_fiber_field(mesh: dmesh.Mesh, direction) -> fem.Function:
     return a0
 
 
-FIBER_KINDS = ("auto", "idealized", "axial", "principal")
+FIBER_KINDS = ("auto", "idealized", "axial", "principal", "stokes")
 
 
 def fiber_field(geometry: Geometry, kind: str = "auto") -> fem.Function:
@@ -406,9 +406,10 @@ def fiber_field(geometry: Geometry, kind: str = "auto") -> fem.Function:
 
     kind: "idealized" the analytic spline fibres of MODEL.md §5; "axial" e_z (the axis of
     the cylinder and the idealized shape); "principal" the first principal axis of the
-    vertex coordinates, oriented from end Γ1 to Γ2 (a placeholder for the anatomical
-    Stokes-flow fibres of a later issue); "auto" picks the first for `idealized`, the
-    second for `cylinder` and the third otherwise.
+    vertex coordinates, oriented from end Γ1 to Γ2 (a stand-in for tests); "stokes" the
+    Stokes-flow fibres stored next to an anatomical mesh (`hyper.fibers`, MODEL.md §5);
+    "auto" picks the first for `idealized`, the second for `cylinder` and "stokes"
+    otherwise.
 
     Why P1: every fibre source (analytic, Stokes flow) can be written at vertices, XDMF
     stores and ParaView shows it as is, and any quadrature or DG space the forms or the
@@ -419,7 +420,11 @@ def fiber_field(geometry: Geometry, kind: str = "auto") -> fem.Function:
     if kind not in FIBER_KINDS:
         raise InputError(f"unknown fibre kind {kind!r}; expected one of {', '.join(FIBER_KINDS)}")
     if kind == "auto":
-        kind = {"idealized": "idealized", "cylinder": "axial"}.get(geometry.name, "principal")
+        kind = {"idealized": "idealized", "cylinder": "axial"}.get(geometry.name, "stokes")
+    if kind == "stokes":
+        from hyper import fibers
+
+        return fibers.load(geometry)
     if kind == "axial":
         return uniform_fiber_field(geometry.mesh, (0.0, 0.0, 1.0))
     if kind == "principal":
