@@ -27,7 +27,7 @@ $(VENV)/.installed: pyproject.toml
 	@touch $@
 
 demo: venv
-	$(PY) -m hyper.demo
+	$(MPIRUN) -n 2 $(PY) -m hyper.demo
 
 test: venv test-serial test-mpi
 
