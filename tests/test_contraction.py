@@ -41,7 +41,7 @@ def test_cli_writes_series_fields_and_plot(tmp_path, capsys):
         (["--geometry", "BFLH"], "error: unknown geometry 'BFLH'"),
         (["--steps", "0"], "error: --steps: expected a positive integer"),
         (["--output", "x.txt"], "error: --output: expected a path ending in .h5"),
-        (["--fibres", "stokes"], "error: unknown fibre kind 'stokes'"),
+        (["--fibres", "helical"], "error: unknown fibre kind 'helical'"),
         (["--stepz", "3"], "error: unknown option(s) --stepz"),
     ],
 )
