@@ -1,0 +1,580 @@
+"""python -m hyper.cohort: the anatomical cohort of the paper's Fig. 6 on an MPI job farm.
+
+    mpirun -n 2 python -m hyper.cohort                      # 12 meshes × mwf, every3days, weekly
+    mpirun -n 4 python -m hyper.cohort --ranks-per-job 2    # 2 groups of 2 ranks
+    python -m hyper.cohort --geometries BFLH_VHF_Left --protocols mwf my_protocol.toml
+
+Every (geometry, protocol) pair is one job of `hyper.farm` (longest first, by the
+estimate mesh cells × growth steps), run by `hyper.grow.run_one` on its group's
+communicator. Per run, under OUTPUT/runs/:
+
+    GEOMETRY_PROTOCOL.h5            the time series (as hyper.grow writes it) with the
+                                    attributes geometry, muscle, subject, side, protocol,
+                                    csa0_m2, volume0_m3, wall_s, ranks, run_digest and
+                                    the groups signaling, protocol, settings
+    GEOMETRY_PROTOCOL_fields.xdmf   snapshots of u, det Ḡ and a0 for ParaView
+    GEOMETRY_PROTOCOL.log           the run's own progress lines
+
+and for the cohort, written by rank 0 from the complete .h5 files (so a rerun that had
+nothing left to do writes the same summary):
+
+    summary.csv     geometry,muscle,subject,side,protocol,csa0_cm2,volume0_cm3,
+                    final_csa_ratio,final_volume_ratio,wall_s,status
+    failures.txt    the error of every failed run (only when some failed)
+    ratios.png      final CSA and volume change by muscle and protocol, mean ± standard
+                    error over the four members of each muscle (Fig. 6C–D analog)
+    shape.png       the grown --picture geometry (default BFLH_VHF_Left) per protocol,
+                    displacement amplified 10× (Fig. 6A analog)
+    table.md        the results against the paper (MODEL.md §8)
+
+Rerunning the same command skips every run whose .h5 is complete and was computed with
+the same geometry, protocol, signaling parameters and settings (the `run_digest`
+attribute); the others, failed or interrupted ones included, run again. Files appear
+only when whole (hyper.io), so a killed cohort is resumed by running it again. The exit
+status is 1 if any run failed, 2 for bad options (nothing written), 0 otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import hashlib
+import json
+import math
+import sys
+import threading
+import time
+from pathlib import Path
+
+import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
+
+import numpy as np
+from mpi4py import MPI
+
+from hyper import farm, io, protocols, signaling
+from hyper import geometry as geo
+from hyper import grow
+from hyper.coupled import GrowthSettings, step_times
+from hyper.log import hms, info
+from hyper.params import InputError, as_attributes
+from hyper.protocols import Protocol
+
+COLUMNS = ("geometry", "muscle", "subject", "side", "protocol", "csa0_cm2", "volume0_cm3",
+           "final_csa_ratio", "final_volume_ratio", "wall_s", "status")
+PAPER_PROTOCOLS = grow.PAPER_PROTOCOLS  # in the paper's order of growth: mwf > every3days > weekly
+# MODEL.md §8, anatomical cohort under mwf: increases in percent (low, high)
+PAPER_MWF_INCREASE = {"volume": (8.0, 9.0), "csa": (3.0, 6.0)}
+PICTURE_SCALE = 10.0  # displacement amplification of the shape picture (the paper's Fig. 6A)
+
+
+@dataclasses.dataclass(frozen=True)
+class Run:
+    geometry: str
+    protocol: Protocol
+
+    @property
+    def key(self) -> str:
+        return f"{self.geometry}_{self.protocol.name}"
+
+
+def plan(geometries, protocol_list) -> list[Run]:
+    """Every geometry with every protocol; names must make unique run keys."""
+    runs = [Run(g, p) for g in geometries for p in protocol_list]
+    keys = [r.key for r in runs]
+    repeated = sorted({k for k in keys if keys.count(k) > 1})
+    if repeated:
+        raise InputError(f"runs must be unique (check --geometries and the protocol names); repeated: "
+                         f"{', '.join(repeated)}")
+    return runs
+
+
+def member(geometry: str) -> dict[str, str]:
+    """muscle, subject and side of an anatomical geometry; blank for the others."""
+    if geometry in geo.ANATOMICAL:
+        return dict(zip(("muscle", "subject", "side"), geo.split_id(geometry)))
+    return {"muscle": "", "subject": "", "side": ""}
+
+
+def mesh_cells(geometry: str) -> int:
+    """The number of cells of a project mesh, read from its file header (no mesh built)."""
+    import h5py
+
+    path = geo.MESHES_DIR / geo.GEOMETRIES[geometry]
+    if path.suffix == ".xdmf":
+        with h5py.File(path.with_suffix(".h5"), "r") as f:
+            return int(f["Mesh/Grid/topology"].shape[0])
+    # The two Gmsh meshes are small: their file size (about 100 bytes a cell) suffices.
+    return max(1, path.stat().st_size // 100)
+
+
+def growth_steps(protocol: Protocol, growth_dt: float) -> int:
+    return sum(len(step_times(t0, t1, growth_dt)) - 1 for t0, t1, _ in protocol.periods())
+
+
+def run_digest(run: Run, params, settings: GrowthSettings) -> str:
+    """What a run's results depend on, hashed: a complete file with another digest is stale."""
+    text = json.dumps(
+        {"geometry": run.geometry, "protocol": run.protocol.to_attributes(),
+         "signaling": as_attributes(params), "settings": dataclasses.asdict(settings)},
+        sort_keys=True, default=lambda v: np.asarray(v).tolist(),
+    )
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def series_path(output: Path, run: Run) -> Path:
+    return Path(output) / "runs" / f"{run.key}.h5"
+
+
+def fields_path(output: Path, run: Run) -> Path:
+    return Path(output) / "runs" / f"{run.key}_fields.xdmf"
+
+
+def is_current(path: Path, digest: str) -> bool:
+    """A complete series file computed with the settings that ``digest`` stands for."""
+    import h5py
+
+    if not io.is_complete(path):
+        return False
+    with h5py.File(path, "r") as f:
+        return f.attrs.get("run_digest") == digest
+
+
+class _RunLog:
+    """While a run computes, what the calling thread prints (the run's own progress) goes
+    to the run's log file; other threads still print to the terminal. On rank 0 the farm's
+    server thread prints the other groups' progress while rank 0 computes a run of its own."""
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def __enter__(self):
+        self.file = open(self.path, "w")
+        self.thread = threading.get_ident()
+        self.terminal = sys.stdout
+        sys.stdout = self
+        return self
+
+    def write(self, text: str) -> int:
+        return (self.file if threading.get_ident() == self.thread else self.terminal).write(text)
+
+    def flush(self) -> None:
+        self.file.flush()
+        self.terminal.flush()
+
+    def __exit__(self, *exc):
+        sys.stdout = self.terminal
+        self.file.close()
+
+
+def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: GrowthSettings | None = None,
+               snapshot_every: int = 10, ranks_per_job: int = 1) -> list[farm.JobResult]:
+    """Run every run not done before on the farm; collective over ``comm``."""
+    params = signaling.SignalingParams() if params is None else params
+    settings = GrowthSettings() if settings is None else settings
+    output = Path(output)
+    digests = {r.key: run_digest(r, params, settings) for r in runs}
+    jobs = [farm.Job(r.key, cost=float(mesh_cells(r.geometry) * growth_steps(r.protocol, settings.growth_dt)),
+                     payload=r) for r in runs]
+    if comm.rank == 0:
+        (output / "runs").mkdir(parents=True, exist_ok=True)
+
+    def is_done(job):
+        return is_current(series_path(output, job.payload), digests[job.key])
+
+    def work(subcomm, job):
+        run: Run = job.payload
+        h5 = series_path(output, run)
+        log = h5.with_suffix(".log")
+        if subcomm.rank == 0:
+            with _RunLog(log):
+                series, meta = grow.run_one(subcomm, run.geometry, run.protocol, params, settings,
+                                            snapshot_every=snapshot_every, xdmf_path=fields_path(output, run))
+            io.write_series(
+                h5, series,
+                attrs={**meta, **member(run.geometry), "protocol": run.protocol.name,
+                       "run_digest": digests[run.key]},
+                groups={"signaling": as_attributes(params), "protocol": run.protocol.to_attributes(),
+                        "settings": dataclasses.asdict(settings)},
+            )
+            return {"csa_ratio": float(series["csa_ratio"][-1]), "volume_ratio": float(series["volume_ratio"][-1])}
+        grow.run_one(subcomm, run.geometry, run.protocol, params, settings,
+                     snapshot_every=snapshot_every, xdmf_path=fields_path(output, run))
+        return None
+
+    return farm.run(comm, jobs, work, ranks_per_job=ranks_per_job, is_done=is_done, label="cohort")
+
+
+# --------------------------------------------------------------------------------------
+# Summary and statistics (rank 0, plain numbers)
+
+
+def summary_row(path: Path) -> dict:
+    """The summary row of a complete series file."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        a = f.attrs
+        return {
+            "geometry": str(a["geometry"]), "muscle": str(a["muscle"]), "subject": str(a["subject"]),
+            "side": str(a["side"]), "protocol": str(a["protocol"]),
+            "csa0_cm2": float(a["csa0_m2"]) * 1e4, "volume0_cm3": float(a["volume0_m3"]) * 1e6,
+            "final_csa_ratio": float(f["csa_ratio"][-1]), "final_volume_ratio": float(f["volume_ratio"][-1]),
+            "wall_s": float(a["wall_s"]), "status": "done",
+        }
+
+
+def summarize(output: Path, runs: list[Run], failed: dict[str, str]) -> list[dict]:
+    """One row per run, in the order of ``runs``: read back from its complete file, or
+    marked failed (``failed``: run key -> error) or missing, with blank numbers."""
+    rows = []
+    for run in runs:
+        path = series_path(output, run)
+        if run.key not in failed and io.is_complete(path):
+            rows.append(summary_row(path))
+            continue
+        row = dict.fromkeys(COLUMNS, float("nan"))
+        row.update(geometry=run.geometry, protocol=run.protocol.name, **member(run.geometry),
+                   status="failed" if run.key in failed else "missing")
+        rows.append(row)
+    return rows
+
+
+def write_csv(rows: list[dict], path: Path) -> None:
+    with io.atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=COLUMNS)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: ("" if isinstance(v, float) and math.isnan(v) else
+                                 f"{v:.12g}" if isinstance(v, float) else v) for k, v in row.items()})
+
+
+def read_csv(path: Path) -> list[dict]:
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    for row in rows:
+        for key in ("csa0_cm2", "volume0_cm3", "final_csa_ratio", "final_volume_ratio", "wall_s"):
+            row[key] = float(row[key]) if row[key] else float("nan")
+    return rows
+
+
+def standard_error(values) -> float:
+    """Standard error of the mean, s/√n with the sample standard deviation; NaN for n < 2."""
+    values = np.asarray(values, dtype=float)
+    if values.size < 2:
+        return float("nan")
+    return float(values.std(ddof=1) / np.sqrt(values.size))
+
+
+def group(row: dict) -> str:
+    """The group a run belongs to in the statistics: its muscle, or its geometry if it has none."""
+    return row["muscle"] or row["geometry"]
+
+
+def percent(row: dict, quantity: str) -> float:
+    """The final relative increase of ``quantity`` ('csa' or 'volume') in percent."""
+    return 100.0 * (row[f"final_{quantity}_ratio"] - 1.0)
+
+
+def group_statistics(rows: list[dict], quantity: str) -> dict[tuple[str, str], dict]:
+    """(group, protocol) -> n, mean and standard error of the increase (%) over the done runs."""
+    out: dict[tuple[str, str], list[float]] = {}
+    for row in rows:
+        if row["status"] == "done":
+            out.setdefault((group(row), row["protocol"]), []).append(percent(row, quantity))
+    return {key: {"n": len(v), "mean": float(np.mean(v)), "se": standard_error(v)} for key, v in out.items()}
+
+
+def increases(rows: list[dict], geometry: str, quantity: str) -> dict[str, float]:
+    """protocol -> increase (%) of one geometry's done runs."""
+    return {r["protocol"]: percent(r, quantity) for r in rows if r["geometry"] == geometry and r["status"] == "done"}
+
+
+def ordered(values: dict[str, float], order=PAPER_PROTOCOLS) -> bool | None:
+    """Whether the values strictly decrease along ``order``; None if one is missing."""
+    if not all(p in values for p in order):
+        return None
+    return all(values[a] > values[b] for a, b in zip(order, order[1:]))
+
+
+def mwf_statistics(rows: list[dict], quantity: str) -> dict | None:
+    """Mean, min and max over the geometries of the mwf increase (%), or None without mwf runs."""
+    values = [percent(r, quantity) for r in rows if r["protocol"] == "mwf" and r["status"] == "done"]
+    if not values:
+        return None
+    return {"n": len(values), "mean": float(np.mean(values)), "min": float(np.min(values)),
+            "max": float(np.max(values))}
+
+
+def _yes(flag: bool | None) -> str:
+    return "–" if flag is None else ("yes" if flag else "**no**")
+
+
+def markdown(rows: list[dict], settings: GrowthSettings) -> str:
+    """The cohort's results against the paper (MODEL.md §8), as markdown."""
+    geometries = list(dict.fromkeys(r["geometry"] for r in rows))
+    names = list(dict.fromkeys(r["protocol"] for r in rows))
+    lines = [f"Final increase after {'/'.join(names)} (growth step {settings.growth_dt:g} h), per geometry:", ""]
+    head = ["geometry", *(f"CSA {p}" for p in names), *(f"volume {p}" for p in names)]
+    if all(p in names for p in PAPER_PROTOCOLS):
+        head.append("mwf > every3days > weekly")
+    if "mwf" in names:
+        head.append("ΔV > ΔCSA (mwf)")
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    order_ok = vol_ok = 0
+    for g in geometries:
+        csa, vol = increases(rows, g, "csa"), increases(rows, g, "volume")
+        cells = [g, *(f"{csa[p]:+.2f} %" if p in csa else "failed" for p in names),
+                 *(f"{vol[p]:+.2f} %" if p in vol else "failed" for p in names)]
+        if all(p in names for p in PAPER_PROTOCOLS):
+            flag = ordered(csa) and ordered(vol) if ordered(csa) is not None and ordered(vol) is not None else None
+            order_ok += bool(flag)
+            cells.append(_yes(flag))
+        if "mwf" in names:
+            flag = vol["mwf"] > csa["mwf"] if "mwf" in csa and "mwf" in vol else None
+            vol_ok += bool(flag)
+            cells.append(_yes(flag))
+        lines.append("| " + " | ".join(cells) + " |")
+    lines.append("")
+    if all(p in names for p in PAPER_PROTOCOLS):
+        lines.append(f"- mwf > every3days > weekly in both CSA and volume: {order_ok} of {len(geometries)} geometries.")
+    if "mwf" in names:
+        lines.append(f"- relative volume increase > relative CSA increase under mwf: {vol_ok} of {len(geometries)}.")
+        lines += ["", "mwf across the geometries against the paper:", "",
+                  "| quantity | mean | min | max | paper |", "|---|---|---|---|---|"]
+        for quantity, label in (("volume", "volume increase"), ("csa", "mid-belly CSA increase")):
+            s = mwf_statistics(rows, quantity)
+            lo, hi = PAPER_MWF_INCREASE[quantity]
+            if s is not None:
+                lines.append(f"| {label} (n = {s['n']}) | {s['mean']:+.2f} % | {s['min']:+.2f} % | "
+                             f"{s['max']:+.2f} % | +{lo:g}–{hi:g} % |")
+    failed = [f"{r['geometry']}/{r['protocol']}" for r in rows if r["status"] != "done"]
+    if failed:
+        lines += ["", f"Not done: {', '.join(failed)}."]
+    return "\n".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------------------
+# Figures (rank 0)
+
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> None:
+    with io.atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=140)
+
+
+def ratio_figure(rows: list[dict], path: Path) -> None:
+    """Final CSA and volume change per muscle and protocol: mean ± standard error over the
+    members (bars), each member (dots), and the paper's mwf range (grey band)."""
+    plt = _pyplot()
+    groups = list(dict.fromkeys(group(r) for r in rows))
+    names = list(dict.fromkeys(r["protocol"] for r in rows))
+    width = 0.8 / len(names)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), layout="constrained")
+    for ax, quantity, title in ((axes[0], "csa", "mid-belly CSA"), (axes[1], "volume", "volume")):
+        stats = group_statistics(rows, quantity)
+        if "mwf" in names:
+            lo, hi = PAPER_MWF_INCREASE[quantity]
+            ax.axhspan(lo, hi, color="0.85", zorder=0, label="paper, mwf")
+        for j, name in enumerate(names):
+            x = np.arange(len(groups)) + (j - (len(names) - 1) / 2) * width
+            cells = [stats.get((g, name), {"mean": np.nan, "se": np.nan}) for g in groups]
+            ax.bar(x, [c["mean"] for c in cells], width * 0.9, yerr=[np.nan_to_num(c["se"]) for c in cells],
+                   capsize=3, label=name, zorder=2)
+            for xi, g in zip(x, groups):
+                values = [percent(r, quantity) for r in rows
+                          if group(r) == g and r["protocol"] == name and r["status"] == "done"]
+                ax.plot([xi] * len(values), values, "k.", ms=3, zorder=3)
+        ax.set_xticks(range(len(groups)), groups)
+        ax.set_ylabel(f"{title} change (%)")
+        ax.set_title(f"final {title}: mean ± standard error, dots: members")
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].legend(fontsize=8)
+    _save(fig, path)
+    plt.close(fig)
+
+
+def final_fields(xdmf: Path) -> dict:
+    """Mesh and the last snapshot of u and det Ḡ from a run's XDMF output (its .h5)."""
+    import h5py
+
+    with h5py.File(Path(xdmf).with_suffix(".h5"), "r") as f:
+        mesh = f["Mesh"][next(iter(f["Mesh"]))]  # one mesh, named after the mesh read
+        last = max(f["Function/u"], key=float)
+        return {"x": mesh["geometry"][()], "cells": mesh["topology"][()].astype(np.int64),
+                "u": f["Function/u"][last][()], "detGbar": f["Function/detGbar"][last][()].ravel(),
+                "t": float(last)}
+
+
+def boundary_faces(x: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The faces of a tetrahedral mesh that belong to one cell only, numbered so that
+    their normals (b - a) × (c - a) point out of the mesh, and their cells."""
+    local = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+    faces = cells[:, local].reshape(-1, 3)
+    _, inverse, counts = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
+    once = counts[inverse.ravel()] == 1
+    faces, owner = faces[once], np.repeat(np.arange(len(cells)), 4)[once]
+    opposite = cells.ravel()[np.flatnonzero(once)]  # local face i is opposite local vertex i
+    a, b, c = (x[faces[:, i]] for i in range(3))
+    inward = np.einsum("ij,ij->i", np.cross(b - a, c - a), x[opposite] - a) > 0
+    faces[inward] = faces[inward][:, ::-1]
+    return faces, owner
+
+
+def shape_figure(fields: dict[str, dict], path: Path, title: str) -> None:
+    """The grown shape per protocol (``fields``: protocol -> final_fields), displacement
+    amplified PICTURE_SCALE×, long axis upright, boundary faces coloured by |u|."""
+    from matplotlib import cm, colors
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    plt = _pyplot()
+    first = next(iter(fields.values()))
+    # Upright frame from the reference vertices: the first principal axis vertical.
+    x0 = first["x"]
+    centre = x0.mean(axis=0)
+    _, vectors = np.linalg.eigh(np.cov((x0 - centre).T))
+    frame = vectors[:, ::-1][:, [1, 2, 0]]  # (second, third, first) axis -> (x, y, z)
+    top = max(float(np.linalg.norm(f["u"], axis=1).max()) for f in fields.values()) * 1e3
+    norm = colors.Normalize(0.0, top)
+    fig = plt.figure(figsize=(4 * len(fields) + 1, 6), layout="constrained")
+    for k, (name, f) in enumerate(fields.items()):
+        faces, _ = boundary_faces(f["x"], f["cells"])
+        y = (f["x"] + PICTURE_SCALE * f["u"] - centre) @ frame * 1e2  # cm
+        speed = np.linalg.norm(f["u"], axis=1)[faces].mean(axis=1) * 1e3  # mm
+        ax = fig.add_subplot(1, len(fields), k + 1, projection="3d")
+        ax.add_collection3d(Poly3DCollection(y[faces], facecolors=cm.viridis(norm(speed)), linewidths=0,
+                                             shade=True, lightsource=colors.LightSource(azdeg=225, altdeg=45)))
+        lo, hi = y.min(axis=0), y.max(axis=0)
+        mid, half = (lo + hi) / 2, (hi - lo).max() / 2
+        ax.set(xlim=(mid[0] - half, mid[0] + half), ylim=(mid[1] - half, mid[1] + half),
+               zlim=(mid[2] - half, mid[2] + half), xlabel="cm", zlabel="cm")
+        ax.set_box_aspect((1, 1, 1))
+        ax.view_init(elev=15, azim=-60)
+        ax.set_title(f"{name}, day {f['t'] / 24:.0f}\nmean det Ḡ {f['detGbar'].mean():.4f}", fontsize=10)
+    fig.colorbar(cm.ScalarMappable(norm=norm, cmap="viridis"), ax=fig.axes, shrink=0.6, label="|u| (mm)")
+    fig.suptitle(f"{title}: grown shape, displacement ×{PICTURE_SCALE:g}")
+    _save(fig, path)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------------------
+# CLI
+
+
+def parse_args(argv):
+    p = argparse.ArgumentParser(prog="python -m hyper.cohort", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--geometries", nargs="+", metavar="ID", default=list(geo.ANATOMICAL),
+                   help="geometry ids (default: the 12 anatomical meshes; idealized and cylinder work too)")
+    p.add_argument("--protocols", nargs="+", metavar="NAME|FILE", default=list(PAPER_PROTOCOLS),
+                   help=f"named protocols ({', '.join(protocols.NAMES)}) or .toml protocol files "
+                        f"(default: {' '.join(PAPER_PROTOCOLS)})")
+    p.add_argument("--output", type=Path, default=Path("results/cohort"), help="output folder (default results/cohort)")
+    p.add_argument("--ranks-per-job", type=int, default=1,
+                   help="MPI ranks per run; must divide the number of ranks (default 1)")
+    p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt,
+                   help=f"growth step Δtg in h, the accuracy option (default {GrowthSettings.growth_dt:g})")
+    p.add_argument("--snapshot-every", type=int, default=10, help="XDMF snapshot every K growth steps (default 10)")
+    p.add_argument("--picture", default="BFLH_VHF_Left", metavar="ID",
+                   help="geometry of the shape picture (default BFLH_VHF_Left, the paper's Fig. 6A)")
+    return p.parse_args(argv)
+
+
+def _check(args, comm) -> tuple[list[Run], GrowthSettings]:
+    unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
+    if unknown:
+        raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")
+    if args.ranks_per_job < 1 or comm.size % args.ranks_per_job:
+        raise InputError(f"--ranks-per-job must be >= 1 and divide the number of MPI ranks ({comm.size}), "
+                         f"got {args.ranks_per_job}")
+    if args.snapshot_every < 1:
+        raise InputError(f"--snapshot-every must be a positive integer, got {args.snapshot_every}")
+    try:
+        settings = GrowthSettings(growth_dt=args.growth_dt)
+    except InputError as err:
+        raise InputError(f"--growth-dt: {err}") from None
+    runs = plan(args.geometries, [protocols.resolve(p) for p in args.protocols])
+    return runs, settings
+
+
+def _idle_barrier(comm) -> None:
+    """A barrier at which waiting ranks sleep, instead of spinning in MPI and taking a core
+    from rank 0 while it writes the summary and figures."""
+    request = comm.Ibarrier()
+    while not request.Test():
+        time.sleep(0.05)
+
+
+def _finish(args, runs: list[Run], results, settings: GrowthSettings, elapsed: float) -> int:
+    """Rank 0: summary, failures, figures, table. Returns the exit status."""
+    output = args.output
+    failed = {r.key: r.error for r in results if r.status == "failed"}
+    rows = summarize(output, runs, failed)
+    write_csv(rows, output / "summary.csv")
+    failures = output / "failures.txt"
+    if failed:
+        with io.atomic_path(failures) as tmp:
+            tmp.write_text("".join(f"== {key} ==\n{error.rstrip()}\n\n" for key, error in failed.items()))
+    else:
+        failures.unlink(missing_ok=True)
+    done = [r for r in rows if r["status"] == "done"]
+    written = [output / "summary.csv"]
+    if done:
+        ratio_figure(done, output / "ratios.png")
+        written.append(output / "ratios.png")
+    pictured = {r.protocol.name: fields_path(output, r) for r in runs if r.geometry == args.picture}
+    pictured = {name: p for name, p in pictured.items() if p.is_file()}
+    if pictured:
+        shape_figure({name: final_fields(p) for name, p in pictured.items()}, output / "shape.png", args.picture)
+        written.append(output / "shape.png")
+    table = markdown(rows, settings)
+    with io.atomic_path(output / "table.md") as tmp:
+        tmp.write_text(table)
+    written.append(output / "table.md")
+
+    info(None, f"\n{'geometry':<16} {'protocol':<11} {'CSA0 cm²':>8} {'V0 cm³':>8} {'CSA/CSA0':>9} "
+               f"{'V/V0':>8} {'wall':>8} status")
+    for r in rows:
+        info(None, f"{r['geometry']:<16} {r['protocol']:<11} {r['csa0_cm2']:>8.3f} {r['volume0_cm3']:>8.2f} "
+                   f"{r['final_csa_ratio']:>9.5f} {r['final_volume_ratio']:>8.5f} {hms(r['wall_s']):>8} {r['status']}")
+    info(None, "\n" + table)
+    info(None, farm.summary_line(results) + f"; cohort wall time {hms(elapsed)} ({elapsed:.0f} s)")
+    if failed:
+        written.append(failures)
+        info(None, f"errors in {failures}; rerun the same command to retry only the failed runs")
+    info(None, "wrote " + ", ".join(str(p) for p in written))
+    return 1 if failed else 0
+
+
+def main(argv=None) -> int:
+    comm = MPI.COMM_WORLD
+    start = time.perf_counter()
+    args = parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        runs, settings = _check(args, comm)
+    except InputError as err:
+        if comm.rank == 0:
+            print(f"error: {err}", file=sys.stderr)
+        return 2
+    info(comm, f"cohort: {len(runs)} runs ({len(args.geometries)} geometries × {len(args.protocols)} protocols) "
+               f"on {comm.size} rank(s) in groups of {args.ranks_per_job}, growth step {settings.growth_dt:g} h, "
+               f"output {args.output}")
+    results = run_cohort(comm, runs, args.output, settings=settings, snapshot_every=args.snapshot_every,
+                         ranks_per_job=args.ranks_per_job)
+    code = _finish(args, runs, results, settings, time.perf_counter() - start) if comm.rank == 0 else 0
+    _idle_barrier(comm)
+    return int(comm.bcast(code, root=0))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
