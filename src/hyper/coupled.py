@@ -11,6 +11,7 @@ one `StepReport` per growth step, and the caller decides what to keep.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 from dataclasses import dataclass, field
@@ -21,11 +22,13 @@ import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
 from dolfinx import fem
 from mpi4py import MPI
+from petsc4py import PETSc
 
 from hyper import growth, section, signaling
 from hyper.mechanics import MechanicsProblem, SolverError
 from hyper.params import InputError
 from hyper.protocols import Protocol
+from hyper.signaling import SignalingError
 
 
 @dataclass(frozen=True)
@@ -37,23 +40,103 @@ class GrowthSettings:
     consistent_stress: bool = True  # P = det(Fg) Fe S Fg⁻ᵀ; False: the original Fe S
     max_halvings: int = 4  # growth-step cuts tried before a failed solve stops the run
 
+    # A step cut k times is 2^k solves: beyond this a run is better stopped and looked at.
+    MAX_HALVINGS = 12
+
     def __post_init__(self):
         for name in ("growth_dt", "signaling_dt"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InputError(f"{name} must be a finite positive number of hours, got {value!r}")
+        if self.signaling_dt > self.growth_dt:
+            raise InputError(f"signaling_dt ({self.signaling_dt:g} h) must not exceed growth_dt ({self.growth_dt:g} h)")
         if self.feedback not in growth.FEEDBACK_LAWS:
             raise InputError(
                 f"feedback must be one of {', '.join(growth.FEEDBACK_LAWS)}, got {self.feedback!r}"
             )
-        if not (isinstance(self.max_halvings, int) and self.max_halvings >= 0):
-            raise InputError(f"max_halvings must be a non-negative integer, got {self.max_halvings!r}")
+        if isinstance(self.max_halvings, bool) or not (
+            isinstance(self.max_halvings, int) and 0 <= self.max_halvings <= self.MAX_HALVINGS
+        ):
+            raise InputError(f"max_halvings must be an integer in [0, {self.MAX_HALVINGS}], got {self.max_halvings!r}")
+
+    def model_attributes(self) -> dict:
+        """The settings that define the solution; max_halvings only decides how hard a
+        failing step is tried, so a stopped run may be resumed with another value."""
+        out = dataclasses.asdict(self)
+        del out["max_halvings"]
+        return out
 
 
 # Growth steps change the equilibrium by a fraction of a percent, so a Jacobian (and its
 # LU factors) stays a good Newton matrix for many steps: refreshing it every 10
 # iterations made the 9-week idealized run 4.8× faster with the same CSA to 1e-11.
-GROWTH_PETSC_OPTIONS = {"snes_lag_jacobian": 10, "snes_lag_jacobian_persists": True}
+# `LaggedJacobian` applies the lag; snes_lag_jacobian (in petsc_options or as
+# -mechanics_snes_lag_jacobian) sets it and never reaches PETSc.
+JACOBIAN_LAG = 10
+LAG_OPTION = "snes_lag_jacobian"
+
+
+class GrowthFailure(RuntimeError):
+    """A growth step failed for good (Newton after every allowed cut, or the signaling
+    ODEs); the model is back at the state after its last completed step."""
+
+    def __init__(self, message: str, *, step: int, t0: float, t1: float):
+        super().__init__(message)
+        self.step = step  # the step that failed (1-based: steps done before it + 1)
+        self.t0 = t0  # h, its start
+        self.t1 = t1  # h, its end
+
+
+class LaggedJacobian:
+    """The Newton matrix, reassembled every ``lag`` Newton iterations counted across
+    solves (PETSc's snes_lag_jacobian with persistence), or when `refresh` asks.
+
+    PETSc keeps that count inside the SNES where a restart cannot reach it. Here SNES
+    asks at every iteration (its own lag is 1) and this object decides; an unchanged
+    matrix keeps its LU factors, since PETSc refactors only a matrix whose state changed.
+    The state is the count and the point (w and Ḡ) of the last assembly: `rebuild`
+    assembles the same matrix again there.
+    """
+
+    def __init__(self, problem: MechanicsProblem, growth_function: fem.Function, lag: int):
+        self.problem = problem
+        self.growth_function = growth_function
+        self.lag = lag if lag >= 1 else 0  # PETSc's -1/-2: never again after the first
+        self.count = 0  # Newton iterations so far, over all solves
+        self.assemblies = 0
+        self.point: tuple[np.ndarray, np.ndarray] | None = None  # (w, Ḡ) local arrays
+        self._refresh = False
+        K = problem._K
+        problem.snes.setJacobian(self._jacobian, K, K)
+
+    def refresh(self) -> None:
+        """Assemble anew at the next Newton iteration."""
+        self._refresh = True
+
+    def _jacobian(self, snes, x, K, P) -> None:
+        due = self.count == 0 or (self.lag > 0 and self.count % self.lag == 0)
+        if due or self._refresh:
+            self.problem._assemble_jacobian(snes, x, K, P)
+            self.point = (self.problem.w.x.array.copy(), self.growth_function.x.array.copy())
+            self.assemblies += 1
+            self._refresh = False
+        self.count += 1
+
+    def rebuild(self, count: int, point: tuple[np.ndarray, np.ndarray] | None) -> None:
+        """Take over a saved state: the count and the matrix assembled at ``point``."""
+        self.count = count
+        self.point = point
+        if point is None:
+            return
+        problem, g = self.problem, self.growth_function
+        saved = problem.w.x.array.copy(), problem.multipliers.copy(), g.x.array.copy()
+        g.x.array[:] = point[1]
+        x = problem._x
+        x.getArray()[: problem._nowned] = point[0][: problem._nowned]
+        problem._assemble_jacobian(problem.snes, x, problem._K, problem._K)
+        problem.w.x.array[:] = saved[0]
+        problem.multipliers = saved[1]
+        g.x.array[:] = saved[2]
 
 
 @dataclass
@@ -116,15 +199,22 @@ class CoupledModel:
         self.settings = settings
         self.growth = growth.GrowthField(geometry.mesh, a0, geometry.quadrature_degree)
         kwargs = {} if material is None else {"material": material}
-        self.problem = MechanicsProblem(
-            geometry,
-            a0,
-            growth=self.growth.function,
-            consistent_stress=settings.consistent_stress,
-            petsc_options={**GROWTH_PETSC_OPTIONS, **(petsc_options or {})},
-            **kwargs,
-        )
+        options = dict(petsc_options or {})
+        lag = _jacobian_lag(options.pop(LAG_OPTION, JACOBIAN_LAG))
+        with _taken_from_database(MECHANICS_PREFIX + LAG_OPTION) as value:
+            if value is not None:
+                lag = _jacobian_lag(value)
+            self.problem = MechanicsProblem(
+                geometry,
+                a0,
+                growth=self.growth.function,
+                consistent_stress=settings.consistent_stress,
+                petsc_options=options,
+                options_prefix=MECHANICS_PREFIX,
+                **kwargs,
+            )
         self.growth.set_deformation(self.problem.F)
+        self.jacobian = LaggedJacobian(self.problem, self.growth.function, lag)
         if geometry.midsection is not None:
             self.section = growth.FacetSection(geometry, self.problem.F)
         else:
@@ -152,6 +242,13 @@ class CoupledModel:
         self.volume_ratio = 1.0
         self.step = 0
         self.t = 0.0
+        # Position in the protocol: the period being stepped through, the growth steps
+        # of it already done, and its signaling samples (None until it is integrated).
+        self.period = 0
+        self.period_step = 0
+        self.period_times: np.ndarray | None = None
+        self.period_states: np.ndarray | None = None
+        self.resumed = False
 
     def _mean_states(self, y) -> np.ndarray:
         if y.ndim == 1:
@@ -178,15 +275,10 @@ class CoupledModel:
         try:
             return self.problem.solve()
         except SolverError:
-            snes = self.problem.snes
-            lag = snes.getLagJacobian()
-            if lag == 1:
+            if self.jacobian.lag == 1:
                 raise
-            snes.setLagJacobian(-2)  # PETSc: recompute at the next iteration
-            try:
-                return self.problem.solve()
-            finally:
-                snes.setLagJacobian(lag)
+            self.jacobian.refresh()
+            return self.problem.solve()
 
     def _grow(self, theta, halvings: int = 0) -> tuple[int, int]:
         """Grow by ϑ and solve; on a failed solve, retry as two half increments √ϑ."""
@@ -204,16 +296,60 @@ class CoupledModel:
         self.growth.accept()
         return iterations, halvings
 
+    def _set_growth(self, Gbar: np.ndarray, A: np.ndarray) -> None:
+        g = self.growth
+        g.Gbar, g.A = Gbar, A
+        values = g.function.x.array.reshape(-1, 9)
+        values[self._growth_dofs.ravel()] = Gbar.reshape(-1, 9)
+        g.function.x.scatter_forward()
+
+    @property
+    def _growth_dofs(self) -> np.ndarray:
+        return self.growth.space.dofmap.list[self.growth.cells]
+
+    def _step(self, theta, t0: float, t1: float) -> tuple[int, int]:
+        """One growth step; if it cannot be solved, the state before it comes back."""
+        w, mult = self.problem.w.x.array.copy(), self.problem.multipliers.copy()
+        Gbar, A = self.growth.Gbar, self.growth.A  # replaced, never changed in place
+        try:
+            return self._grow(theta)
+        except SolverError as err:
+            self.problem.w.x.array[:] = w
+            self.problem.multipliers = mult
+            self._set_growth(Gbar, A)
+            raise GrowthFailure(
+                f"growth step {self.step + 1} ({t0:g} h to {t1:g} h): Newton did not converge "
+                f"with the step cut {self.settings.max_halvings} time(s): {err}",
+                step=self.step + 1, t0=t0, t1=t1,
+            ) from err
+
     def run(self) -> Iterator[StepReport]:
-        """Yield the initial state, then one report per growth step to the protocol's end."""
-        yield self._report(0)
+        """Yield the initial state (not after a resume), then one report per growth step
+        to the protocol's end. Raises GrowthFailure with the state of the last step."""
+        if not self.resumed:
+            yield self._report(0)
         s = self.settings
-        for t0, t1, in_session in self.protocol.periods():
-            times = step_times(t0, t1, s.growth_dt)
-            _, ys = signaling.integrate(
-                self.params, self.protocol, self.y, t0, t1, s.signaling_dt, out_times=times, kM=self.kM
-            )
-            for k in range(1, len(times)):
+        periods = self.protocol.periods()
+        while self.period < len(periods):
+            t0, t1, in_session = periods[self.period]
+            if self.period_states is None:
+                times = step_times(t0, t1, s.growth_dt)
+                error = ys = None
+                try:
+                    _, ys = signaling.integrate(
+                        self.params, self.protocol, self.y, t0, t1, s.signaling_dt, out_times=times, kM=self.kM
+                    )
+                except SignalingError as err:
+                    error = str(err)
+                # per-cell ODEs may fail on some ranks only: every rank stops alike
+                errors = [e for e in self.comm.allgather(error) if e is not None]
+                if errors:
+                    raise GrowthFailure(f"signaling from {t0:g} h to {t1:g} h: {errors[0]}",
+                                        step=self.step + 1, t0=t0, t1=t1)
+                self.period_times, self.period_states, self.period_step = times, ys, 0
+            times, ys = self.period_times, self.period_states
+            while self.period_step + 1 < len(times):
+                k = self.period_step + 1
                 iterations = halvings = 0
                 dN = ys[k][4] - ys[k - 1][4]
                 if in_session and not s.grow_during_sessions:
@@ -222,14 +358,155 @@ class CoupledModel:
                 # f vanishes below the thresholds (the rest week, early recovery):
                 # nothing grows, so the previous equilibrium stands.
                 if self.comm.allreduce(bool(np.any(theta != 1.0)), op=MPI.LOR):
-                    iterations, halvings = self._grow(theta)
+                    iterations, halvings = self._step(theta, float(times[k - 1]), float(times[k]))
                     self.csa_ratio = self.section.area() / self.csa0
                     self.volume_ratio = self.problem.volume() / self.volume0
                     self.kM = self.kM0 * growth.feedback(self.csa_ratio, s.feedback)
                 self.y = ys[k]
                 self.t = float(times[k])
                 self.step += 1
+                self.period_step = k
                 yield self._report(iterations, halvings)
+            self.period += 1
+            self.period_times = self.period_states = None
+
+    # -- restart -----------------------------------------------------------------------
+
+    def local_state(self) -> tuple[np.ndarray, dict, dict]:
+        """(original index of each owned cell, per-cell arrays, global values).
+
+        Per-cell arrays have one row per owned cell. The mixed solution is stored as
+        each cell's own dof values in the element's order: that order follows the cell's
+        vertices as the mesh file lists them, so it is the same on any partition (P2 has
+        one dof per edge, so no dof transformation enters). Ḡ and A are per quadrature
+        point of the cell, whose points are placed by the same vertex order.
+        """
+        cells = self.growth.cells
+        original = np.asarray(self.geometry.mesh.topology.original_cell_index, dtype=np.int64)[cells]
+        wdofs = self.problem.W.dofmap.list[cells]
+        gdofs = self._growth_dofs
+        per_cell = {
+            "w": self.problem.w.x.array[wdofs],
+            "Gbar": self.growth.Gbar,
+            "A": self.growth.A,
+        }
+        glob = {
+            "multipliers": np.asarray(self.problem.multipliers, dtype=float),
+            "csa_ratio": self.csa_ratio,
+            "volume_ratio": self.volume_ratio,
+            "t": self.t,
+            "step": self.step,
+            "period": self.period,
+            "period_step": self.period_step,
+            "jacobian_count": self.jacobian.count,
+            "csa0": self.csa0,
+            "volume0": self.volume0,
+        }
+        if self.jacobian.point is not None:
+            w_j, g_j = self.jacobian.point
+            per_cell["jacobian_w"] = w_j[wdofs]
+            per_cell["jacobian_Gbar"] = g_j.reshape(-1, 9)[gdofs]
+        per_cell_y = self.y.ndim == 2
+        (per_cell if per_cell_y else glob)["y"] = self.y.T if per_cell_y else self.y
+        if np.ndim(self.kM):
+            per_cell["kM"] = np.asarray(self.kM)
+        else:
+            glob["kM"] = float(self.kM)
+        if self.period_states is not None:
+            glob["period_times"] = self.period_times
+            ys = self.period_states
+            if per_cell_y:
+                per_cell["period_states"] = np.moveaxis(ys, 2, 0)  # (cell, time, species)
+            else:
+                glob["period_states"] = ys
+        for f in dataclasses.fields(self.params):
+            value = getattr(self.params, f.name)
+            if isinstance(value, np.ndarray):
+                per_cell[f"params.{f.name}"] = value
+        return original, per_cell, glob
+
+    def set_local_state(self, rows, glob: dict) -> None:
+        """Take over a state saved by `local_state` (on any partition).
+
+        ``rows(name)`` gives a per-cell array for this rank's cells, owned then ghost (the
+        local cell numbering), or None where the state has no such array.
+        """
+        nowned = len(self.growth.cells)
+        mesh = self.geometry.mesh
+        nlocal = nowned + mesh.topology.index_map(mesh.topology.dim).num_ghosts
+        local = np.arange(nlocal, dtype=np.int32)
+        wdofs = self.problem.W.dofmap.list[local]
+        w = self.problem.w
+        w.x.array[wdofs] = rows("w")
+        w.x.scatter_forward()
+        self.problem.multipliers = np.array(glob["multipliers"], dtype=float)
+        self._set_growth(np.array(rows("Gbar")[:nowned]), np.array(rows("A")[:nowned]))
+
+        params = {name.split(".", 1)[1]: rows(name)[:nowned] for name in _param_names(self.params) if rows(name) is not None}
+        if params:
+            self.params = dataclasses.replace(self.params, **params)
+            self.kM0 = self.params.kM
+        y = rows("y")
+        self.y = np.ascontiguousarray(y[:nowned].T) if y is not None else np.array(glob["y"], dtype=float)
+        kM = rows("kM")
+        self.kM = np.array(kM[:nowned]) if kM is not None else float(glob["kM"])
+        self.csa_ratio = float(glob["csa_ratio"])
+        self.volume_ratio = float(glob["volume_ratio"])
+        self.t = float(glob["t"])
+        self.step = int(glob["step"])
+        self.period = int(glob["period"])
+        self.period_step = int(glob["period_step"])
+        if "period_times" in glob:
+            self.period_times = np.array(glob["period_times"], dtype=float)
+            ys = rows("period_states")
+            self.period_states = (np.ascontiguousarray(np.moveaxis(ys[:nowned], 0, 2)) if ys is not None
+                                  else np.array(glob["period_states"], dtype=float))
+        else:
+            self.period_times = self.period_states = None
+
+        point = None
+        jw = rows("jacobian_w")
+        if jw is not None:
+            pw = np.zeros_like(w.x.array)
+            pw[wdofs] = jw
+            g = fem.Function(self.growth.space)
+            g.x.array.reshape(-1, 9)[self._growth_dofs.ravel()] = rows("jacobian_Gbar")[:nowned].reshape(-1, 9)
+            g.x.scatter_forward()
+            point = (pw, g.x.array.copy())
+        self.jacobian.rebuild(int(glob["jacobian_count"]), point)
+        self.resumed = True
 
     def settings_attributes(self) -> dict:
         return dataclasses.asdict(self.settings)
+
+
+MECHANICS_PREFIX = "mechanics_"
+
+
+def _jacobian_lag(value) -> int:
+    try:
+        lag = int(value)
+    except (TypeError, ValueError):
+        lag = 0
+    if lag < 1 and lag not in (-1, -2):
+        raise InputError(f"{LAG_OPTION} must be a positive integer (or -1: never refresh), got {value!r}")
+    return lag
+
+
+@contextlib.contextmanager
+def _taken_from_database(name: str):
+    """Yield the value of a PETSc option (None if unset), absent from the database
+    meanwhile so that PETSc's own setting of that name stays at its default."""
+    db = PETSc.Options()
+    value = db.getString(name) if db.hasName(name) else None
+    if value is not None:
+        db.delValue(name)
+    try:
+        yield value
+    finally:
+        if value is not None:
+            db.setValue(name, value)
+
+
+def _param_names(params) -> list[str]:
+    return [f"params.{f.name}" for f in dataclasses.fields(params)]
