@@ -1,0 +1,240 @@
+"""Restart and failure handling of `python -m hyper.grow` (issue 8).
+
+A short coupled run on the cylinder (two sessions, 96 h, Δtg = 8 h: 14 growth steps)
+is killed midway, by SIGKILL and by SIGTERM, and run again with the same command: its
+CSA and volume series equal those of an uninterrupted run to 1e-12 (in fact bit for
+bit), also when 2 ranks resume what 1 rank wrote (1e-8). A Newton solve limited to
+too few iterations makes steps cut in halves; allowed no cut, the run stops with the
+state of its last step saved and the reason recorded, and resumes from there.
+"""
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from hyper import checkpoint as ckpt
+from hyper import grow, io
+
+ROOT = Path(__file__).resolve().parents[1]
+PYTHON = sys.executable
+MPIRUN = str(Path(PYTHON).parent / "mpirun")
+
+PROTOCOL = """
+name = "short"
+end = 96.0
+[[session]]
+start = 0.0
+duration = 1.0
+intensity = 0.8
+[[session]]
+start = 48.0
+duration = 1.0
+intensity = 0.8
+"""
+STEPS = 14  # growth steps of the short protocol at Δtg = 8 h
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("inputs")
+    (d / "short.toml").write_text(PROTOCOL)
+    # mTOR starts just above its threshold, so the muscle grows from the first hour.
+    (d / "growing.toml").write_text("thetaM = 0.46\n")
+    return d
+
+
+def command(inputs, output, *extra):
+    return ["--geometry", "cylinder", "--protocol-file", str(inputs / "short.toml"),
+            "--params", str(inputs / "growing.toml"), "--growth-dt", "8", "--snapshot-every", "4",
+            "--output", str(output), *extra]
+
+
+def env():
+    return {**os.environ, "OMP_NUM_THREADS": "1"}
+
+
+@pytest.fixture(scope="module")
+def reference(inputs, tmp_path_factory):
+    """The uninterrupted run (its own checkpoints every 5 steps change nothing)."""
+    out = tmp_path_factory.mktemp("reference") / "run.h5"
+    assert grow.main(command(inputs, out, "--checkpoint-every", "5")) == 0
+    return out
+
+
+def start(inputs, output, *extra):
+    return subprocess.Popen([PYTHON, "-m", "hyper.grow", *command(inputs, output, *extra)], cwd=ROOT, env=env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def wait_for(path: Path, proc, timeout=120.0) -> None:
+    end = time.monotonic() + timeout
+    while not path.exists():
+        assert proc.poll() is None, f"the run ended before {path} appeared:\n{proc.stdout.read()}"
+        assert time.monotonic() < end, f"no {path} after {timeout} s"
+        time.sleep(0.01)
+
+
+def same_series(a: Path, b: Path, rtol: float) -> None:
+    sa, sb = io.read_series(a), io.read_series(b)
+    assert len(sa["t"]) == len(sb["t"]) == STEPS + 1
+    np.testing.assert_array_equal(sa["t"], sb["t"])
+    for name in ("csa_ratio", "volume_ratio", "kM", "N"):
+        np.testing.assert_allclose(sb[name], sa[name], rtol=rtol, atol=0, err_msg=name)
+
+
+def fields(path: Path) -> dict:
+    import h5py
+
+    out = {}
+    with h5py.File(path, "r") as f:
+        f.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+    return out
+
+
+def attrs(path: Path) -> dict:
+    with h5py.File(path, "r") as f:
+        return dict(f.attrs)
+
+
+@pytest.fixture(scope="module")
+def killed(inputs, tmp_path_factory):
+    """A run killed by SIGKILL once its first checkpoint (step 3) exists, and a copy of
+    that checkpoint for the tests that resume it elsewhere."""
+    out = tmp_path_factory.mktemp("killed") / "run.h5"
+    proc = start(inputs, out, "--checkpoint-every", "3")
+    try:
+        wait_for(grow.checkpoint_path(out), proc)
+        proc.send_signal(signal.SIGKILL)
+        assert proc.wait(60) == -signal.SIGKILL
+    finally:
+        proc.kill()
+        proc.wait()
+    assert not out.exists()
+    pristine = tmp_path_factory.mktemp("pristine") / "one_rank.ckpt.h5"
+    shutil.copy(grow.checkpoint_path(out), pristine)
+    return out, pristine
+
+
+def test_sigkill_then_rerun_continues_bit_for_bit(inputs, reference, killed):
+    out, _ = killed
+    saved = attrs(grow.checkpoint_path(out))
+    assert saved["step"] == 3 and saved["status"] == "running" and saved["ranks"] == 1 and saved["complete"]
+
+    assert grow.main(command(inputs, out, "--checkpoint-every", "3")) == 0
+    same_series(reference, out, rtol=1e-12)
+    np.testing.assert_array_equal(io.read_series(out)["csa_ratio"], io.read_series(reference)["csa_ratio"])
+    # the resumed run's XDMF holds every snapshot, the same as the uninterrupted run's
+    ref_fields = fields(grow.fields_path(reference).with_suffix(".h5"))
+    new_fields = fields(grow.fields_path(out).with_suffix(".h5"))
+    assert sorted(ref_fields) == sorted(new_fields) and len(ref_fields) > 6
+    for name in ref_fields:
+        np.testing.assert_array_equal(new_fields[name], ref_fields[name])
+    # what the kill left (checkpoint, stale lock file, XDMF staging folder) is gone
+    assert sorted(p.name for p in out.parent.iterdir()) == ["run.h5", "run.png", "run_fields.h5", "run_fields.xdmf"]
+
+
+def test_sigterm_saves_at_the_next_step_boundary_and_exits_143(inputs, reference, tmp_path):
+    out = tmp_path / "run.h5"
+    proc = start(inputs, out, "--checkpoint-every", "3")
+    try:
+        wait_for(grow.checkpoint_path(out), proc)
+        proc.send_signal(signal.SIGTERM)
+        log = proc.communicate(timeout=120)[0]
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == grow.EXIT_TERMINATED == 143, log
+    status = ckpt.read_status(grow.status_path(out))
+    assert status["state"] == "interrupted" and status["reason"] == "SIGTERM"
+    with h5py.File(grow.checkpoint_path(out), "r") as f:
+        assert f.attrs["status"] == "interrupted" and f.attrs["complete"]
+        assert f.attrs["step"] == status["step"] > 3  # after the periodic checkpoint at step 3
+        assert len(f["series/t"]) == status["step"] + 1
+    assert not out.exists() and not grow.fields_path(out).exists()
+
+    assert grow.main(command(inputs, out, "--checkpoint-every", "3")) == 0
+    same_series(reference, out, rtol=1e-12)
+    assert not grow.status_path(out).exists() and not grow.checkpoint_path(out).exists()
+    assert attrs(out)["segments"] == 2
+
+
+@pytest.mark.skipif(not Path(MPIRUN).exists(), reason="needs the venv's mpirun")
+def test_two_ranks_resume_what_one_rank_wrote(inputs, reference, killed, tmp_path):
+    out = tmp_path / "run.h5"
+    shutil.copy(killed[1], grow.checkpoint_path(out))
+    result = subprocess.run([MPIRUN, "-n", "2", PYTHON, "-m", "hyper.grow", *command(inputs, out)],
+                            cwd=ROOT, env=env(), capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "at step 3" in result.stdout and "written on 1 rank(s)" in result.stdout
+    same_series(reference, out, rtol=1e-8)
+    assert attrs(out)["ranks"] == 2
+
+
+def test_failed_newton_solves_cut_the_step(inputs, tmp_path):
+    """Two Newton iterations are not enough for a 24 h step: it is cut, and the cut run
+    lands close to the uncut one."""
+    cut, plain = tmp_path / "cut.h5", tmp_path / "plain.h5"
+    assert grow.main(command(inputs, cut, "--growth-dt", "24", "--petsc-option", "snes_max_it=2")) == 0
+    assert grow.main(command(inputs, plain, "--growth-dt", "24")) == 0
+    s, p = io.read_series(cut), io.read_series(plain)
+    assert s["halvings"].max() >= 1 and p["halvings"].max() == 0
+    assert s["newton_iterations"].max() <= 8  # two per (sub)solve
+    np.testing.assert_allclose(s["csa_ratio"], p["csa_ratio"], rtol=1e-4)
+
+
+def test_unrecoverable_failure_saves_the_last_step_and_the_reason(inputs, tmp_path, capsys):
+    out = tmp_path / "run.h5"
+    failing = command(inputs, out, "--growth-dt", "24", "--petsc-option", "snes_max_it=2", "--max-halvings", "0")
+    assert grow.main(failing) == grow.EXIT_FAILED == 3
+    err = capsys.readouterr().err
+    assert "Newton did not converge" in err and "run.status.json" in err
+    status = ckpt.read_status(grow.status_path(out))
+    assert status["state"] == "failed"
+    # step 1 is the first session (0-1 h), step 2 the first half of the rest after it
+    assert status["failed_step"] == 2 and status["from_h"] == 1.0 and status["to_h"] == 24.5
+    assert "DIVERGED_MAX_IT" in status["reason"]
+    assert status["settings"]["growth_dt"] == 24.0 and status["petsc_options"] == {"snes_max_it": "2"}
+    saved = attrs(grow.checkpoint_path(out))
+    assert saved["status"] == "failed" and saved["step"] == 1 and saved["t"] == 1.0
+    assert not out.exists() and not grow.fields_path(out).exists()
+    assert not Path(str(out) + ".lock").exists()
+
+    # Allowed to cut the step, the same run goes on from the saved step 1.
+    assert grow.main(failing[:-1] + ["4"]) == 0
+    assert "resuming" in capsys.readouterr().out
+    s = io.read_series(out)
+    assert s["halvings"][2] >= 1
+    assert not grow.status_path(out).exists() and not grow.checkpoint_path(out).exists()
+
+
+def test_a_second_run_on_the_same_output_stops_at_once(inputs, tmp_path, capsys):
+    out = tmp_path / "results" / "run.h5"
+    lock = ckpt.OutputLock(out)
+    lock.acquire()
+    try:
+        assert grow.main(command(inputs, out)) == grow.EXIT_BUSY == 4
+    finally:
+        lock.release()
+    err = capsys.readouterr().err
+    assert "another run is writing this output" in err and f"pid {os.getpid()}" in err
+    assert sorted(p.name for p in out.parent.iterdir()) == []
+
+
+def test_checkpoint_of_other_settings_is_refused(inputs, killed, tmp_path, capsys):
+    out = tmp_path / "run.h5"
+    shutil.copy(killed[1], grow.checkpoint_path(out))
+    before = sorted((p.name, p.stat().st_mtime_ns) for p in tmp_path.iterdir())
+    assert grow.main(command(inputs, out, "--growth-dt", "12")) == 2
+    assert "belongs to another run" in capsys.readouterr().err
+    assert sorted((p.name, p.stat().st_mtime_ns) for p in tmp_path.iterdir()) == before
+    # the same run with more cuts allowed may resume it (checked without running)
+    grow.plan(MPI.COMM_WORLD, command(inputs, out, "--max-halvings", "6"))
