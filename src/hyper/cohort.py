@@ -45,6 +45,7 @@ import math
 import sys
 import threading
 import time
+import traceback
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
@@ -246,7 +247,7 @@ def write_csv(rows: list[dict], path: Path) -> None:
         writer.writeheader()
         for row in rows:
             writer.writerow({k: ("" if isinstance(v, float) and math.isnan(v) else
-                                 f"{v:.12g}" if isinstance(v, float) else v) for k, v in row.items()})
+                                 repr(v) if isinstance(v, float) else v) for k, v in row.items()})
 
 
 def read_csv(path: Path) -> list[dict]:
@@ -497,6 +498,8 @@ def _check(args, comm) -> tuple[list[Run], GrowthSettings]:
     if args.ranks_per_job < 1 or comm.size % args.ranks_per_job:
         raise InputError(f"--ranks-per-job must be >= 1 and divide the number of MPI ranks ({comm.size}), "
                          f"got {args.ranks_per_job}")
+    if args.picture not in geo.GEOMETRIES:
+        raise InputError(f"--picture: unknown geometry {args.picture!r}; known: {', '.join(geo.GEOMETRIES)}")
     if args.snapshot_every < 1:
         raise InputError(f"--snapshot-every must be a positive integer, got {args.snapshot_every}")
     try:
@@ -546,7 +549,8 @@ def _finish(args, runs: list[Run], results, settings: GrowthSettings, elapsed: f
                f"{'V/V0':>8} {'wall':>8} status")
     for r in rows:
         info(None, f"{r['geometry']:<16} {r['protocol']:<11} {r['csa0_cm2']:>8.3f} {r['volume0_cm3']:>8.2f} "
-                   f"{r['final_csa_ratio']:>9.5f} {r['final_volume_ratio']:>8.5f} {hms(r['wall_s']):>8} {r['status']}")
+                   f"{r['final_csa_ratio']:>9.5f} {r['final_volume_ratio']:>8.5f} "
+                   f"{hms(r['wall_s']) if r['status'] == 'done' else '-':>8} {r['status']}")
     info(None, "\n" + table)
     info(None, farm.summary_line(results) + f"; cohort wall time {hms(elapsed)} ({elapsed:.0f} s)")
     if failed:
@@ -571,7 +575,13 @@ def main(argv=None) -> int:
                f"output {args.output}")
     results = run_cohort(comm, runs, args.output, settings=settings, snapshot_every=args.snapshot_every,
                          ranks_per_job=args.ranks_per_job)
-    code = _finish(args, runs, results, settings, time.perf_counter() - start) if comm.rank == 0 else 0
+    code = 0
+    if comm.rank == 0:
+        try:
+            code = _finish(args, runs, results, settings, time.perf_counter() - start)
+        except Exception:  # noqa: BLE001 - the other ranks wait below: report, never leave them hanging
+            traceback.print_exc()
+            code = 1
     _idle_barrier(comm)
     return int(comm.bcast(code, root=0))
 
