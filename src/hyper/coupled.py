@@ -200,10 +200,10 @@ class CoupledModel:
         self.growth = growth.GrowthField(geometry.mesh, a0, geometry.quadrature_degree)
         kwargs = {} if material is None else {"material": material}
         options = dict(petsc_options or {})
-        lag = _jacobian_lag(options.pop(LAG_OPTION, JACOBIAN_LAG))
+        lag = jacobian_lag(options.pop(LAG_OPTION, JACOBIAN_LAG))
         with _taken_from_database(MECHANICS_PREFIX + LAG_OPTION) as value:
             if value is not None:
-                lag = _jacobian_lag(value)
+                lag = jacobian_lag(value)
             self.problem = MechanicsProblem(
                 geometry,
                 a0,
@@ -483,7 +483,8 @@ class CoupledModel:
 MECHANICS_PREFIX = "mechanics_"
 
 
-def _jacobian_lag(value) -> int:
+def jacobian_lag(value) -> int:
+    """The Newton matrix refresh interval from an option value (InputError if invalid)."""
     try:
         lag = int(value)
     except (TypeError, ValueError):

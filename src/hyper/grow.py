@@ -54,7 +54,7 @@ from mpi4py import MPI
 from hyper import checkpoint as ckpt
 from hyper import geometry as geo
 from hyper import growth, io, protocols, signaling
-from hyper.coupled import CoupledModel, GrowthFailure, GrowthSettings
+from hyper.coupled import LAG_OPTION, CoupledModel, GrowthFailure, GrowthSettings, jacobian_lag
 from hyper.log import Progress, hms, info
 from hyper.params import InputError, as_attributes
 
@@ -119,8 +119,9 @@ class MeshFile:
         geometry = geo.load_file(self.path, comm, name=self.path.stem, tags=self.tags, ends=(1, 2), lateral=3,
                                  scale=MESH_UNITS[self.unit])
         x = geometry.mesh.geometry.x
-        lo = comm.allreduce(x.min(axis=0) if len(x) else np.full(3, np.inf), op=MPI.MIN)
-        hi = comm.allreduce(x.max(axis=0) if len(x) else np.full(3, -np.inf), op=MPI.MAX)
+        lo, hi = np.empty(3), np.empty(3)
+        comm.Allreduce(x.min(axis=0) if len(x) else np.full(3, np.inf), lo, op=MPI.MIN)
+        comm.Allreduce(x.max(axis=0) if len(x) else np.full(3, -np.inf), hi, op=MPI.MAX)
         length = float(np.max(hi - lo))
         low, high = MUSCLE_LENGTH_M
         if not low <= length <= high:
@@ -376,8 +377,9 @@ def parse_args(argv):
                    help="a tetrahedral XDMF mesh of your own instead of --geometry (facet tags 'ft_small': 1, 2 "
                         "the ends, 3 the lateral surface; fibres along its principal axis)")
     p.add_argument("--mesh-unit", default="m", help="length unit of --mesh: m or mm (default m)")
-    p.add_argument("--protocol", default="mwf",
-                   help=f"named protocol ({', '.join(protocols.NAMES)}) or 'all' for {', '.join(PAPER_PROTOCOLS)}")
+    p.add_argument("--protocol",
+                   help=f"named protocol ({', '.join(protocols.NAMES)}; default mwf) or 'all' for "
+                        f"{', '.join(PAPER_PROTOCOLS)}")
     p.add_argument("--protocol-file", type=Path, help="TOML protocol file (replaces --protocol)")
     p.add_argument("--params", type=Path, help="TOML file overriding signaling parameters")
     p.add_argument("--output", type=Path, default=Path("results/grow"),
@@ -442,13 +444,15 @@ def plan(comm, argv) -> Plan:
             if not ckpt.on_rank0(comm, lambda: io.is_complete(fpath)):
                 raise InputError(f"--geometry {geometry}: {fpath}: no complete fibre file; compute it with "
                                  f"`python -m hyper.fibers --geometries {geometry}`")
+    if args.protocol_file is not None and args.protocol is not None:
+        raise InputError("--protocol and --protocol-file exclude each other: give one of them")
     if args.protocol_file is not None:
         runs = [protocols.load(args.protocol_file)]
     elif args.protocol == "all":
         runs = [protocols.named(n) for n in PAPER_PROTOCOLS]
     else:
         try:
-            runs = [protocols.named(args.protocol)]
+            runs = [protocols.named(args.protocol or "mwf")]
         except InputError as err:
             raise InputError(f"--protocol: {err}, or 'all'; or give a TOML file with --protocol-file") from None
     params = signaling.load_params(args.params) if args.params else signaling.SignalingParams()
@@ -467,6 +471,8 @@ def plan(comm, argv) -> Plan:
     except InputError as err:
         raise InputError(f"--{str(err).replace('_', '-')}") from None
     petsc_options = dict(_petsc_option(text) for text in args.petsc_option)
+    if LAG_OPTION in petsc_options:
+        jacobian_lag(petsc_options[LAG_OPTION])
     for name in ("snapshot_every", "checkpoint_every"):
         value, least = getattr(args, name), 1 if name == "snapshot_every" else 0
         if value < least:
