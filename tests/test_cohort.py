@@ -109,8 +109,17 @@ def test_boundary_faces_of_a_cube_point_outwards():
     assert np.all(np.isin(faces, cells[owner]).reshape(-1, 3))
 
 
+def test_stale_checkpoint_is_dropped(tmp_path):
+    path = tmp_path / "run.ckpt.h5"
+    path.write_text("not a checkpoint")
+    cohort.drop_stale_checkpoint(path, "0" * 64)
+    assert not path.exists()
+    cohort.drop_stale_checkpoint(path, "0" * 64)  # nothing there: nothing to do
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--growth-dt", "-1"], "--growth-dt"),
+    (["--max-halvings", "-1"], "--max-halvings"),
     (["--geometries", "nowhere"], "unknown nowhere"),
     (["--protocols", "daily"], "unknown protocol"),
     (["--snapshot-every", "0"], "--snapshot-every"),
@@ -177,6 +186,7 @@ def test_mpi_small_cohort_failure_rerun_and_skip(tmp_path, monkeypatch):
     assert cohort.main([*argv, "--ranks-per-job", "2"]) == 0
     assert cylinder.stat().st_mtime_ns == stamp
     assert not (out / "failures.txt").exists()
+    assert not list((out / "runs").glob("*.ckpt.h5"))  # stored runs delete their checkpoints
     rows = read_rows(out / "summary.csv")
     assert [r["status"] for r in rows] == ["done", "done"]
     for r in rows:

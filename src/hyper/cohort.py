@@ -28,19 +28,22 @@ nothing left to do writes the same summary):
     table.md        the results against the paper (MODEL.md §8)
 
 Rerunning the same command skips every run whose .h5 is complete and was computed with
-the same geometry, protocol, signaling parameters and settings (the `run_digest`
-attribute); the others, failed or interrupted ones included, run again. Files appear
-only when whole (hyper.io), so a killed cohort is resumed by running it again. The exit
-status is 1 if any run failed, 2 for bad options (nothing written), 0 otherwise.
+the same geometry, protocol, signaling parameters and settings (hyper.grow's
+`run_digest`); the others run again. Each run saves a checkpoint every
+hyper.grow.CHECKPOINT_EVERY growth steps (runs/GEOMETRY_PROTOCOL.ckpt.h5, deleted when
+its series is stored), so after a kill (Ctrl-C, a Slurm time limit) the same command
+resumes the interrupted runs where they were; a run that failed keeps its checkpoint
+and resumes from it. Files appear only when whole (hyper.io). One cohort at a time
+writes an output folder (the lock OUTPUT.lock). Exit status: 0 all runs done, 1 some
+failed (see failures.txt), 2 bad options (nothing written), 4 the output is locked.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import dataclasses
-import hashlib
-import json
 import math
 import sys
 import threading
@@ -53,6 +56,7 @@ import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
 from mpi4py import MPI
 
+from hyper import checkpoint as ckpt
 from hyper import farm, io, protocols, signaling
 from hyper import geometry as geo
 from hyper import grow
@@ -114,21 +118,12 @@ def growth_steps(protocol: Protocol, growth_dt: float) -> int:
 
 
 def run_digest(run: Run, params, settings: GrowthSettings) -> str:
-    """What a run's results depend on, hashed: a complete file with another digest is stale."""
-    text = json.dumps(
-        {"geometry": run.geometry, "protocol": run.protocol.to_attributes(),
-         "signaling": as_attributes(params), "settings": dataclasses.asdict(settings)},
-        sort_keys=True, default=lambda v: np.asarray(v).tolist(),
-    )
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+    """What a run's result depends on, hashed as hyper.grow does (its `run_digest`)."""
+    return ckpt.digest(grow.describe(run.geometry, run.protocol, params, settings))
 
 
 def series_path(output: Path, run: Run) -> Path:
     return Path(output) / "runs" / f"{run.key}.h5"
-
-
-def fields_path(output: Path, run: Run) -> Path:
-    return Path(output) / "runs" / f"{run.key}_fields.xdmf"
 
 
 def is_current(path: Path, digest: str) -> bool:
@@ -139,6 +134,16 @@ def is_current(path: Path, digest: str) -> bool:
         return False
     with h5py.File(path, "r") as f:
         return f.attrs.get("run_digest") == digest
+
+
+def drop_stale_checkpoint(path: Path, digest: str) -> None:
+    """Remove a checkpoint that another run (other settings) left, or a broken one: the
+    cohort starts that run afresh rather than failing on it."""
+    if path.is_file():
+        try:
+            ckpt.inspect(path, digest)
+        except InputError:
+            path.unlink()
 
 
 class _RunLog:
@@ -170,7 +175,11 @@ class _RunLog:
 
 def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: GrowthSettings | None = None,
                snapshot_every: int = 10, ranks_per_job: int = 1) -> list[farm.JobResult]:
-    """Run every run not done before on the farm; collective over ``comm``."""
+    """Run every run not done before on the farm; collective over ``comm``.
+
+    Each run checkpoints every grow.CHECKPOINT_EVERY growth steps (runs/KEY.ckpt.h5) and
+    resumes from its checkpoint, so a killed cohort loses at most that much per run.
+    """
     params = signaling.SignalingParams() if params is None else params
     settings = GrowthSettings() if settings is None else settings
     output = Path(output)
@@ -186,22 +195,21 @@ def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: Gr
     def work(subcomm, job):
         run: Run = job.payload
         h5 = series_path(output, run)
-        log = h5.with_suffix(".log")
-        if subcomm.rank == 0:
-            with _RunLog(log):
-                series, meta = grow.run_one(subcomm, run.geometry, run.protocol, params, settings,
-                                            snapshot_every=snapshot_every, xdmf_path=fields_path(output, run))
-            io.write_series(
-                h5, series,
-                attrs={**meta, **member(run.geometry), "protocol": run.protocol.name,
-                       "run_digest": digests[run.key]},
-                groups={"signaling": as_attributes(params), "protocol": run.protocol.to_attributes(),
-                        "settings": dataclasses.asdict(settings)},
-            )
-            return {"csa_ratio": float(series["csa_ratio"][-1]), "volume_ratio": float(series["volume_ratio"][-1])}
-        grow.run_one(subcomm, run.geometry, run.protocol, params, settings,
-                     snapshot_every=snapshot_every, xdmf_path=fields_path(output, run))
-        return None
+        saved = grow.checkpoint_path(h5)
+        ckpt.on_rank0(subcomm, lambda: drop_stale_checkpoint(saved, digests[run.key]))
+        with _RunLog(h5.with_suffix(".log")) if subcomm.rank == 0 else contextlib.nullcontext():
+            series, meta = grow.run_one(subcomm, run.geometry, run.protocol, params, settings,
+                                        snapshot_every=snapshot_every, xdmf_path=grow.fields_path(h5),
+                                        checkpoint=saved)
+        if subcomm.rank != 0:
+            return None
+        io.write_series(
+            h5, series, attrs={**meta, **member(run.geometry), "protocol": run.protocol.name},
+            groups={"signaling": as_attributes(params), "protocol": run.protocol.to_attributes(),
+                    "settings": dataclasses.asdict(settings)},
+        )
+        saved.unlink(missing_ok=True)
+        return {"csa_ratio": float(series["csa_ratio"][-1]), "volume_ratio": float(series["volume_ratio"][-1])}
 
     return farm.run(comm, jobs, work, ranks_per_job=ranks_per_job, is_done=is_done, label="cohort")
 
@@ -485,6 +493,9 @@ def parse_args(argv):
                    help="MPI ranks per run; must divide the number of ranks (default 1)")
     p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt,
                    help=f"growth step Δtg in h, the accuracy option (default {GrowthSettings.growth_dt:g})")
+    p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
+                   help="cuts of a growth step whose Newton solve fails before the run fails; a failed run "
+                        "resumes from its checkpoint with a larger value (default %(default)s)")
     p.add_argument("--snapshot-every", type=int, default=10, help="XDMF snapshot every K growth steps (default 10)")
     p.add_argument("--picture", default="BFLH_VHF_Left", metavar="ID",
                    help="geometry of the shape picture (default BFLH_VHF_Left, the paper's Fig. 6A)")
@@ -503,9 +514,9 @@ def _check(args, comm) -> tuple[list[Run], GrowthSettings]:
     if args.snapshot_every < 1:
         raise InputError(f"--snapshot-every must be a positive integer, got {args.snapshot_every}")
     try:
-        settings = GrowthSettings(growth_dt=args.growth_dt)
+        settings = GrowthSettings(growth_dt=args.growth_dt, max_halvings=args.max_halvings)
     except InputError as err:
-        raise InputError(f"--growth-dt: {err}") from None
+        raise InputError(f"--{str(err).replace('_', '-')}") from None
     runs = plan(args.geometries, [protocols.resolve(p) for p in args.protocols])
     return runs, settings
 
@@ -535,7 +546,7 @@ def _finish(args, runs: list[Run], results, settings: GrowthSettings, elapsed: f
     if done:
         ratio_figure(done, output / "ratios.png")
         written.append(output / "ratios.png")
-    pictured = {r.protocol.name: fields_path(output, r) for r in runs if r.geometry == args.picture}
+    pictured = {r.protocol.name: grow.fields_path(series_path(output, r)) for r in runs if r.geometry == args.picture}
     pictured = {name: p for name, p in pictured.items() if p.is_file()}
     if pictured:
         shape_figure({name: final_fields(p) for name, p in pictured.items()}, output / "shape.png", args.picture)
@@ -570,19 +581,31 @@ def main(argv=None) -> int:
         if comm.rank == 0:
             print(f"error: {err}", file=sys.stderr)
         return 2
-    info(comm, f"cohort: {len(runs)} runs ({len(args.geometries)} geometries × {len(args.protocols)} protocols) "
-               f"on {comm.size} rank(s) in groups of {args.ranks_per_job}, growth step {settings.growth_dt:g} h, "
-               f"output {args.output}")
-    results = run_cohort(comm, runs, args.output, settings=settings, snapshot_every=args.snapshot_every,
-                         ranks_per_job=args.ranks_per_job)
-    code = 0
-    if comm.rank == 0:
-        try:
-            code = _finish(args, runs, results, settings, time.perf_counter() - start)
-        except Exception:  # noqa: BLE001 - the other ranks wait below: report, never leave them hanging
-            traceback.print_exc()
-            code = 1
-    _idle_barrier(comm)
+    with contextlib.ExitStack() as held:
+        busy = None
+        if comm.rank == 0:
+            try:
+                held.enter_context(ckpt.locked([args.output]))
+            except ckpt.Busy as err:
+                busy = str(err)
+        busy = comm.bcast(busy, root=0)
+        if busy is not None:
+            if comm.rank == 0:
+                print(f"error: {busy}", file=sys.stderr)
+            return 4
+        info(comm, f"cohort: {len(runs)} runs ({len(args.geometries)} geometries × {len(args.protocols)} "
+                   f"protocols) on {comm.size} rank(s) in groups of {args.ranks_per_job}, growth step "
+                   f"{settings.growth_dt:g} h, output {args.output}")
+        results = run_cohort(comm, runs, args.output, settings=settings, snapshot_every=args.snapshot_every,
+                             ranks_per_job=args.ranks_per_job)
+        code = 0
+        if comm.rank == 0:
+            try:
+                code = _finish(args, runs, results, settings, time.perf_counter() - start)
+            except Exception:  # noqa: BLE001 - the other ranks wait below: report, never leave them hanging
+                traceback.print_exc()
+                code = 1
+        _idle_barrier(comm)
     return int(comm.bcast(code, root=0))
 
 
