@@ -223,8 +223,9 @@ def cell_midpoints(mesh) -> np.ndarray:
 def matern_grid(mesh, spec: Heterogeneity) -> MaternGrid:
     """The grid for a mesh: its global bounding box, the same on every rank."""
     x = mesh.geometry.x
-    lower = mesh.comm.allreduce(x.min(axis=0) if len(x) else np.full(3, np.inf), op=MPI.MIN)
-    upper = mesh.comm.allreduce(x.max(axis=0) if len(x) else np.full(3, -np.inf), op=MPI.MAX)
+    lower, upper = np.empty(3), np.empty(3)
+    mesh.comm.Allreduce(x.min(axis=0) if len(x) else np.full(3, np.inf), lower, op=MPI.MIN)
+    mesh.comm.Allreduce(x.max(axis=0) if len(x) else np.full(3, -np.inf), upper, op=MPI.MAX)
     return MaternGrid(lower, upper, spec.length, spec.nu)
 
 
