@@ -285,3 +285,66 @@ def test_grow_array_script_stops_requeues_and_resumes(inputs, tmp_path):
     s = io.read_series(result)
     assert attrs(result)["segments"] == 2 and s["t"][-1] == 480.0 and np.all(np.diff(s["t"]) > 0)
     assert not grow.checkpoint_path(result).exists()
+
+
+# ----------------------------------------------------------------- heterogeneous state
+
+
+def heterogeneous_model(comm):
+    """The cylinder with a per-cell synthesis rate (a field over the mesh file's cells):
+    growth, Ḡ, A and the stress then differ from cell to cell and point to point."""
+    from hyper import geometry as geo
+    from hyper import protocols, signaling
+    from hyper.coupled import CoupledModel, GrowthSettings
+
+    g = geo.load("cylinder", comm)
+    original = np.asarray(g.mesh.topology.original_cell_index)[: g.mesh.topology.index_map(3).size_local]
+    params = signaling.SignalingParams(thetaM=0.46, kM=0.01 * (1.0 + 0.5 * np.sin(original)))
+    protocol = protocols.Protocol((protocols.Session(0.0, 1.0, 0.8),), end=49.0, name="one")
+    return CoupledModel(g, geo.fiber_field(g), protocol, params=params, settings=GrowthSettings(growth_dt=8.0))
+
+
+def measures(model, until=None) -> list:
+    out = []
+    for r in model.run():
+        out.append((r.t, r.csa_ratio, r.volume_ratio, *r.states))
+        if r.step == until:
+            break
+    return out
+
+
+def save_state(comm, model, path):
+    ckpt.write(comm, path, *model.local_state(), series={}, attrs={"run_digest": "test"})
+
+
+def resumed(comm, path) -> list:
+    model = heterogeneous_model(comm)
+    saved = ckpt.read(comm, path, "test", model.local_original_cells())
+    model.set_local_state(saved.rows, saved.glob)
+    return measures(model)
+
+
+def test_heterogeneous_state_resumes_bit_for_bit(tmp_path):
+    comm = MPI.COMM_SELF
+    reference = measures(heterogeneous_model(comm))
+    model = heterogeneous_model(comm)
+    first = measures(model, until=3)
+    assert model.growth.Gbar.std(axis=(0, 1)).max() > 1e-4  # Ḡ differs between points
+    save_state(comm, model, tmp_path / "state.h5")
+    assert first + resumed(comm, tmp_path / "state.h5") == reference
+
+
+@pytest.mark.mpi
+def test_heterogeneous_state_of_one_rank_resumes_on_two(tmp_path_factory):
+    world = MPI.COMM_WORLD
+    assert world.size == 2
+    reference = np.array(measures(heterogeneous_model(MPI.COMM_SELF)))
+    path = Path(world.bcast(str(tmp_path_factory.mktemp("state") / "state.h5") if world.rank == 0 else None))
+    if world.rank == 0:
+        model = heterogeneous_model(MPI.COMM_SELF)
+        first = measures(model, until=3)
+        save_state(MPI.COMM_SELF, model, path)
+    first = world.bcast(first if world.rank == 0 else None)
+    both = np.array(first + resumed(world, path))
+    np.testing.assert_array_equal(both[:, 0], reference[:, 0])
+    np.testing.assert_allclose(both[:, 1:], reference[:, 1:], rtol=1e-8)

@@ -372,6 +372,12 @@ class CoupledModel:
 
     # -- restart -----------------------------------------------------------------------
 
+    def local_original_cells(self) -> np.ndarray:
+        """The original (mesh file) index of each local cell, owned then ghost."""
+        mesh = self.geometry.mesh
+        imap = mesh.topology.index_map(mesh.topology.dim)
+        return np.asarray(mesh.topology.original_cell_index, dtype=np.int64)[: imap.size_local + imap.num_ghosts]
+
     def local_state(self) -> tuple[np.ndarray, dict, dict]:
         """(original index of each owned cell, per-cell arrays, global values).
 
@@ -382,7 +388,7 @@ class CoupledModel:
         point of the cell, whose points are placed by the same vertex order.
         """
         cells = self.growth.cells
-        original = np.asarray(self.geometry.mesh.topology.original_cell_index, dtype=np.int64)[cells]
+        original = self.local_original_cells()[cells]
         wdofs = self.problem.W.dofmap.list[cells]
         gdofs = self._growth_dofs
         per_cell = {
@@ -442,7 +448,9 @@ class CoupledModel:
         self.problem.multipliers = np.array(glob["multipliers"], dtype=float)
         self._set_growth(np.array(rows("Gbar")[:nowned]), np.array(rows("A")[:nowned]))
 
-        params = {name.split(".", 1)[1]: rows(name)[:nowned] for name in _param_names(self.params) if rows(name) is not None}
+        # per-cell parameters (random fields) come from the state: they are part of it
+        params = {name.split(".", 1)[1]: rows(name)[:nowned]
+                  for name in _param_names(self.params) if rows(name) is not None}
         if params:
             self.params = dataclasses.replace(self.params, **params)
             self.kM0 = self.params.kM

@@ -142,10 +142,13 @@ class MeshFile:
 def describe(geometry_name: str, protocol, params, settings: GrowthSettings, petsc_options=None,
              mesh: MeshFile | None = None) -> dict:
     """Everything that defines a run's result: the run digest is its hash."""
+    # Per-cell parameter arrays are in a rank's own cell order; the checkpoint carries
+    # them keyed by cell, so the description only says that they are per cell.
+    described = {k: ("per cell" if isinstance(v, np.ndarray) else v) for k, v in as_attributes(params).items()}
     return {
         "geometry": geometry_name if mesh is None else mesh.identity(),
         "protocol": protocol.to_attributes(),
-        "params": as_attributes(params),
+        "params": described,
         "settings": settings.model_attributes(),
         "petsc_options": dict(petsc_options or {}),
     }
@@ -215,12 +218,6 @@ class Snapshots:
             yield float(t), (self.u, self.det, self.a0)
 
 
-def _local_original(model: CoupledModel) -> np.ndarray:
-    mesh = model.geometry.mesh
-    n = mesh.topology.index_map(mesh.topology.dim)
-    return np.asarray(mesh.topology.original_cell_index, dtype=np.int64)[: n.size_local + n.num_ghosts]
-
-
 def run_one(comm, geometry_name: str, protocol, params, settings, *, snapshot_every: int, xdmf_path,
             checkpoint: Path | None = None, checkpoint_every: int = CHECKPOINT_EVERY,
             stop: Callable[[], bool] | None = None, petsc_options: dict | None = None,
@@ -246,7 +243,7 @@ def run_one(comm, geometry_name: str, protocol, params, settings, *, snapshot_ev
         # a checkpoint write killed halfway leaves its temporary file: never read, remove it
         ckpt.on_rank0(comm, lambda: Path(str(checkpoint) + io.PARTIAL).unlink(missing_ok=True))
     if checkpoint is not None and ckpt.on_rank0(comm, Path(checkpoint).is_file):
-        saved = ckpt.read(comm, Path(checkpoint), run_digest, _local_original(model))
+        saved = ckpt.read(comm, Path(checkpoint), run_digest, model.local_original_cells())
         model.set_local_state(saved.rows, saved.glob)
         series = {name: list(saved.series[name]) for name in SERIES}
         segments = int(saved.attrs["segments"]) + 1
