@@ -79,9 +79,11 @@ BAD_OPTIONS = {
     "signaling_dt_above_growth_dt": (["--growth-dt", "8", "--signaling-dt", "12"],
                                      r"--signaling-dt \(12 h\) must not exceed growth-dt \(8 h\)"),
     "feedback": (["--feedback", "cubic"], r"argument --feedback: invalid choice: 'cubic'"),
-    "snapshot_every": (["--snapshot-every", "0"], r"--snapshot-every: expected an integer >= 1 \(growth steps\), got 0"),
+    "snapshot_every": (["--snapshot-every", "0"],
+                       r"--snapshot-every: expected an integer >= 1 \(growth steps\), got 0"),
     "checkpoint_every": (["--checkpoint-every", "-2"], r"--checkpoint-every: expected an integer >= 0"),
-    "checkpoint_every_fraction": (["--checkpoint-every", "2.5"], r"argument --checkpoint-every: invalid int value: '2.5'"),
+    "checkpoint_every_fraction": (["--checkpoint-every", "2.5"],
+                                  r"argument --checkpoint-every: invalid int value: '2.5'"),
     "max_halvings": (["--max-halvings", "40"], r"--max-halvings must be an integer in \[0, 12\], got 40"),
     "petsc_option_no_value": (["--petsc-option", "snes_max_it"], r"--petsc-option 'snes_max_it': expected KEY=VALUE"),
     "petsc_option_dash": (["--petsc-option=-snes_max_it=3"], r"--petsc-option '-snes_max_it=3': expected KEY=VALUE"),
@@ -103,7 +105,8 @@ BAD_OPTIONS = {
                              r"its length unit is not 'm'; declare the file's unit with --mesh-unit"),
     "mesh_in_m_read_as_mm": (["--mesh", "{d}/muscle_m.xdmf", "--mesh-unit", "mm"],
                              r"muscle_m.xdmf: the mesh is 0.2 mm long .*i.e. 0.0002 m, outside"),
-    "mesh_unit": (["--mesh", "{d}/muscle_m.xdmf", "--mesh-unit", "cm"], r"--mesh-unit: expected one of m, mm, got 'cm'"),
+    "mesh_unit": (["--mesh", "{d}/muscle_m.xdmf", "--mesh-unit", "cm"],
+                  r"--mesh-unit: expected one of m, mm, got 'cm'"),
     "mesh_missing_end_tag": (["--mesh", "{d}/missing_end.xdmf"],
                              r"missing_end.xdmf: facet tag 2 \(end\) is missing; the file has tags \[1, 3\]"),
     "mesh_not_xdmf": (["--mesh", "{d}/muscle.msh"], r"muscle.msh: expected an XDMF mesh file"),
@@ -156,7 +159,8 @@ def write_inputs(d: Path) -> None:
 
 def base(files, out, protocol_file=True):
     protocol = ["--protocol-file", str(files / "protocol.toml")] if protocol_file else []
-    return ["--geometry", "cylinder", *protocol, "--params", str(files / "params.toml"), "--output", str(out / "run.h5")]
+    return ["--geometry", "cylinder", *protocol, "--params", str(files / "params.toml"),
+            "--output", str(out / "run.h5")]
 
 
 def cases():

@@ -60,7 +60,7 @@ from hyper.params import InputError, as_attributes
 
 PAPER_PROTOCOLS = ("mwf", "every3days", "weekly")
 SERIES = ("t", "csa_ratio", "volume_ratio", "kM", *signaling.STATES, "newton_iterations", "halvings", "wall_s")
-CHECKPOINT_EVERY = 10  # growth steps; a checkpoint costs about one step's assembly
+CHECKPOINT_EVERY = 10  # growth steps; writing one took 0.3 s on BFLH_VHF_Left (8512 cells, 30 MB), a step 7 s
 
 EXIT_OK = 0
 EXIT_INPUT = 2
