@@ -348,3 +348,15 @@ def test_heterogeneous_state_of_one_rank_resumes_on_two(tmp_path_factory):
     both = np.array(first + resumed(world, path))
     np.testing.assert_array_equal(both[:, 0], reference[:, 0])
     np.testing.assert_allclose(both[:, 1:], reference[:, 1:], rtol=1e-8)
+
+
+def test_lock_without_file_system_locks_is_reported_not_fatal(tmp_path, monkeypatch):
+    import errno
+
+    def no_locks(fd, operation):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(ckpt.fcntl, "flock", no_locks)
+    with ckpt.locked([tmp_path / "a.h5", tmp_path / "b.h5"]) as unlocked:
+        assert unlocked == [tmp_path / "a.h5.lock", tmp_path / "b.h5.lock"]
+    assert list(tmp_path.iterdir()) == []

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import errno
 import fcntl
 import hashlib
 import json
@@ -218,7 +219,8 @@ class OutputLock:
         self.path = Path(str(output) + ".lock")
         self._fd: int | None = None
 
-    def acquire(self) -> None:
+    def acquire(self) -> bool:
+        """Take the lock; False where the file system has no locks (then none is held)."""
         self.path.parent.mkdir(parents=True, exist_ok=True)
         while True:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
@@ -229,6 +231,13 @@ class OutputLock:
                 os.close(fd)
                 raise Busy(f"{self.path}: another run is writing this output ({holder}); "
                            "wait for it to finish, or choose another --output") from None
+            except OSError as err:  # e.g. a Lustre mount without flock support
+                if err.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
+                    os.close(fd)
+                    raise
+                os.close(fd)
+                self.path.unlink(missing_ok=True)
+                return False
             try:
                 same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
             except FileNotFoundError:
@@ -240,6 +249,7 @@ class OutputLock:
         started = datetime.datetime.now().isoformat(timespec="seconds")
         os.write(fd, f"host {socket.gethostname()}, pid {os.getpid()}, since {started}\n".encode())
         self._fd = fd
+        return True
 
     def release(self) -> None:
         if self._fd is None:
@@ -250,13 +260,12 @@ class OutputLock:
 
 
 @contextlib.contextmanager
-def locked(outputs: list[Path]) -> Iterator[None]:
-    """Hold the locks of all ``outputs`` (call on one rank); Busy if any is held."""
+def locked(outputs: list[Path]) -> Iterator[list[Path]]:
+    """Hold the locks of all ``outputs`` (call on one rank); Busy if any is held.
+    Yields the lock files that could not be taken because the file system has no locks."""
     locks = [OutputLock(p) for p in outputs]
     try:
-        for lock in locks:
-            lock.acquire()
-        yield
+        yield [lock.path for lock in locks if not lock.acquire()]
     finally:
         for lock in reversed(locks):
             lock.release()

@@ -503,7 +503,7 @@ def plan(comm, argv) -> Plan:
                 args.snapshot_every, args.checkpoint_every, args.restart)
 
 
-class _StopOnTerm:
+class StopOnTerm:
     """SIGTERM sets a flag that the run reads at its step boundaries (main thread only)."""
 
     def __init__(self):
@@ -533,7 +533,7 @@ def _error(comm, message: str) -> None:
 
 def main(argv=None) -> int:
     comm = MPI.COMM_WORLD
-    with _StopOnTerm() as stop:
+    with StopOnTerm() as stop:
         try:
             work = plan(comm, sys.argv[1:] if argv is None else argv)
         except InputError as err:
@@ -543,9 +543,13 @@ def main(argv=None) -> int:
             busy = None
             if comm.rank == 0:
                 try:
-                    held.enter_context(ckpt.locked(work.outputs))
+                    unlocked = held.enter_context(ckpt.locked(work.outputs))
                 except ckpt.Busy as err:
                     busy = str(err)
+                else:
+                    for path in unlocked:
+                        print(f"warning: {path}: the file system takes no locks; nothing keeps another run "
+                              "from writing the same output", file=sys.stderr, flush=True)
             busy = comm.bcast(busy, root=0)
             if busy is not None:
                 _error(comm, busy)
