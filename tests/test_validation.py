@@ -99,6 +99,9 @@ BAD_OPTIONS = {
     "output_under_a_file": (["--output", "{d}/a_file/run.h5"], r"a_file is a file, not a folder"),
     "plot_not_png": (["--plot", "{out}/figure.pdf"], r"--plot .*figure.pdf: expected a .png file"),
     "unknown_option": (["--bogus"], r"unrecognized arguments: --bogus"),
+    "mesh_and_geometry": (["--mesh", "{d}/muscle_m.xdmf", "--geometry", "idealized"],
+                          r"--geometry and --mesh exclude each other"),
+    "mesh_unit_without_mesh": (["--mesh-unit", "mm"], r"--mesh-unit declares the length unit of a --mesh file"),
     "mesh_absent": (["--mesh", "{d}/absent.xdmf"], r"absent.xdmf: no such mesh file"),
     "mesh_in_mm_read_as_m": (["--mesh", "{d}/muscle_mm.xdmf"],
                              r"muscle_mm.xdmf: the mesh is 200 m long .*outside the 0.01-1 m of a muscle: "
@@ -157,10 +160,17 @@ def write_inputs(d: Path) -> None:
     (d / "muscle.msh").write_text("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n")
 
 
-def base(files, out, protocol_file=True):
+def base(files, out, protocol_file=True, geometry=True):
     protocol = ["--protocol-file", str(files / "protocol.toml")] if protocol_file else []
-    return ["--geometry", "cylinder", *protocol, "--params", str(files / "params.toml"),
+    return [*(["--geometry", "cylinder"] if geometry else []), *protocol, "--params", str(files / "params.toml"),
             "--output", str(out / "run.h5")]
+
+
+def argv_for(files, out, options):
+    """The base command with ``options``; a --mesh or --protocol there replaces the base's
+    --geometry or --protocol-file."""
+    return base(files, out, protocol_file="--protocol" not in options, geometry="--mesh" not in options) + [
+        o.format(d=files, out=out) for o in options]
 
 
 def cases():
@@ -180,8 +190,7 @@ def _cases():
 @pytest.mark.parametrize("options, message", cases())
 def test_malformed_input_is_refused_before_anything_is_written(files, tmp_path, capsys, options, message):
     out = tmp_path / "results"
-    argv = base(files, out, protocol_file="--protocol" not in options) + [o.format(d=files, out=out) for o in options]
-    assert grow.main(argv) == 2
+    assert grow.main(argv_for(files, out, options)) == 2
     captured = capsys.readouterr()
     lines = [line for line in captured.err.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: "), captured.err
@@ -234,7 +243,7 @@ def test_a_checkpoint_that_is_not_this_runs_is_refused(files, tmp_path, capsys, 
 ], ids=["files", "mesh_mm", "mesh_m", "all"])
 def test_good_inputs_pass_the_checks_and_write_nothing(files, tmp_path, extra):
     out = tmp_path / "results"
-    argv = base(files, out, protocol_file="all" not in extra) + [o.format(d=files, out=out) for o in extra]
+    argv = argv_for(files, out, extra)
     work = grow.plan(MPI.COMM_WORLD, argv)
     assert len(work.outputs) == (3 if "all" in extra else 1)
     if "--mesh" in extra:
@@ -251,7 +260,7 @@ def test_every_rank_refuses_alike(files, tmp_path_factory, capsys, name):
     comm = MPI.COMM_WORLD
     out = Path(comm.bcast(str(tmp_path_factory.mktemp("results")) if comm.rank == 0 else None, root=0)) / "results"
     options = dict((p.id, p.values[0]) for p in cases())[name]
-    assert grow.main(base(files, out) + [o.format(d=files, out=out) for o in options]) == 2
+    assert grow.main(argv_for(files, out, options)) == 2
     err = capsys.readouterr().err
     assert (err.startswith("error: ") and err.count("\n") == 1) if comm.rank == 0 else err == ""
     comm.barrier()

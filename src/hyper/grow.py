@@ -369,11 +369,11 @@ def _petsc_option(text: str) -> tuple[str, str]:
 
 def parse_args(argv):
     p = _Parser(prog="python -m hyper.grow", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--geometry", default="idealized", help="geometry id (idealized, cylinder, BFLH_VHF_Left, …)")
+    p.add_argument("--geometry", help="geometry id (idealized, cylinder, BFLH_VHF_Left, …; default idealized)")
     p.add_argument("--mesh", type=Path,
                    help="a tetrahedral XDMF mesh of your own instead of --geometry (facet tags 'ft_small': 1, 2 "
                         "the ends, 3 the lateral surface; fibres along its principal axis)")
-    p.add_argument("--mesh-unit", default="m", help="length unit of --mesh: m or mm (default m)")
+    p.add_argument("--mesh-unit", help="length unit of --mesh: m or mm (default m)")
     p.add_argument("--protocol",
                    help=f"named protocol ({', '.join(protocols.NAMES)}; default mwf) or 'all' for "
                         f"{', '.join(PAPER_PROTOCOLS)}")
@@ -424,10 +424,15 @@ def plan(comm, argv) -> Plan:
     """Parse and check every input; raises InputError before anything is written."""
     args = parse_args(argv)
     mesh = None
+    if args.mesh is not None and args.geometry is not None:
+        raise InputError("--geometry and --mesh exclude each other: give one of them")
+    if args.mesh_unit is not None and args.mesh is None:
+        raise InputError("--mesh-unit declares the length unit of a --mesh file; there is none")
     if args.mesh is not None:
-        mesh = MeshFile(args.mesh, args.mesh_unit)
+        mesh = MeshFile(args.mesh, args.mesh_unit or "m")
         geometry = args.mesh.stem
     else:
+        args.geometry = args.geometry or "idealized"
         if args.geometry not in geo.GEOMETRIES:
             raise InputError(f"--geometry: unknown geometry {args.geometry!r}; known: {', '.join(geo.GEOMETRIES)}")
         geometry = args.geometry
