@@ -155,7 +155,7 @@ class _RunLog:
         self.path = path
 
     def __enter__(self):
-        self.file = open(self.path, "w")
+        self.file = open(self.path, "a")  # a resumed run adds to its log
         self.thread = threading.get_ident()
         self.terminal = sys.stdout
         sys.stdout = self
