@@ -211,3 +211,57 @@ def test_mpi_small_cohort_failure_rerun_and_skip(tmp_path, monkeypatch):
     # 4. another growth step is another result: the runs are done again
     assert cohort.main([*argv, "--growth-dt", "48"]) == 0
     assert cylinder.stat().st_mtime_ns != stamp
+
+
+class StopAfter:
+    """A stop() that turns true at its n-th call (run_one asks at each step boundary)."""
+
+    def __init__(self, n):
+        self.n = n
+        self.calls = 0
+
+    def __call__(self):
+        self.calls += 1
+        return self.calls >= self.n
+
+
+@pytest.mark.mpi
+def test_mpi_interrupted_run_resumes_to_the_uninterrupted_result(tmp_path):
+    from hyper import protocols
+
+    comm = MPI.COMM_WORLD
+    folder = shared_tmp(comm, tmp_path)
+    if comm.rank == 0:
+        (folder / "short.toml").write_text(SHORT_PROTOCOL)
+    comm.barrier()
+    run = cohort.Run("cylinder", protocols.load(folder / "short.toml"))
+    whole = cohort.run_cohort(comm, [run], folder / "whole", ranks_per_job=2)
+    assert whole[0].status == "done"
+
+    # stopped after its 2nd growth step (stop() is asked at the start and after each step):
+    # a checkpoint, no result
+    out = folder / "cut"
+    stopped = cohort.run_cohort(comm, [run], out, ranks_per_job=2, stop=StopAfter(3))
+    assert stopped[0].status == "done"
+    h5 = cohort.series_path(out, run)
+    assert not h5.exists() and grow.checkpoint_path(h5).is_file()
+    # a run that has not started when the stop comes is not started at all
+    other = cohort.Run("idealized", run.protocol)
+    never = cohort.run_cohort(comm, [other], out, stop=lambda: True)
+    assert not (out / "runs" / "idealized_short.log").exists()
+    if comm.rank == 0:
+        assert stopped[0].result == {"interrupted": True}
+        assert never[0].result == {"interrupted": True}
+        rows = cohort.summarize(out, [run, other], {}, {run.key, other.key})
+        assert [r["status"] for r in rows] == ["interrupted", "interrupted"]
+
+    # resumed on two groups of one rank: the result of the run that was never stopped
+    resumed = cohort.run_cohort(comm, [run], out, ranks_per_job=1)
+    assert resumed[0].status == "done"
+    assert not grow.checkpoint_path(h5).exists()
+    assert "resuming from" in (out / "runs" / "cylinder_short.log").read_text()
+    a = cohort.io.read_series(cohort.series_path(folder / "whole", run))
+    b = cohort.io.read_series(h5)
+    assert np.array_equal(a["t"], b["t"])
+    np.testing.assert_allclose(b["csa_ratio"], a["csa_ratio"], rtol=1e-12, atol=0)
+    np.testing.assert_allclose(b["volume_ratio"], a["volume_ratio"], rtol=1e-12, atol=0)

@@ -34,8 +34,11 @@ hyper.grow.CHECKPOINT_EVERY growth steps (runs/GEOMETRY_PROTOCOL.ckpt.h5, delete
 its series is stored), so after a kill (Ctrl-C, a Slurm time limit) the same command
 resumes the interrupted runs where they were; a run that failed keeps its checkpoint
 and resumes from it. Files appear only when whole (hyper.io). One cohort at a time
-writes an output folder (the lock OUTPUT.lock). Exit status: 0 all runs done, 1 some
-failed (see failures.txt), 2 bad options (nothing written), 4 the output is locked.
+writes an output folder (the lock OUTPUT.lock). On SIGTERM (what Slurm sends before a
+time limit) the running runs stop at their next growth step with a checkpoint, the
+others are not started, and the summary marks them `interrupted`. Exit status: 0 all
+runs done, 1 some failed (see failures.txt), 2 bad options (nothing written), 4 the
+output is locked, 143 stopped by SIGTERM (run the same command again to continue).
 """
 
 from __future__ import annotations
@@ -174,11 +177,14 @@ class _RunLog:
 
 
 def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: GrowthSettings | None = None,
-               snapshot_every: int = 10, ranks_per_job: int = 1) -> list[farm.JobResult]:
+               snapshot_every: int = 10, ranks_per_job: int = 1, stop=None) -> list[farm.JobResult]:
     """Run every run not done before on the farm; collective over ``comm``.
 
     Each run checkpoints every grow.CHECKPOINT_EVERY growth steps (runs/KEY.ckpt.h5) and
     resumes from its checkpoint, so a killed cohort loses at most that much per run.
+    ``stop()`` turning true (grow.StopOnTerm: SIGTERM) stops the running runs at their
+    next step boundary with a checkpoint, and the runs not started yet at once; their
+    results are ``{"interrupted": True}``.
     """
     params = signaling.SignalingParams() if params is None else params
     settings = GrowthSettings() if settings is None else settings
@@ -194,13 +200,19 @@ def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: Gr
 
     def work(subcomm, job):
         run: Run = job.payload
+        interrupted = {"interrupted": True} if subcomm.rank == 0 else None
+        if subcomm.allreduce(bool(stop is not None and stop()), op=MPI.LOR):
+            return interrupted
         h5 = series_path(output, run)
         saved = grow.checkpoint_path(h5)
         ckpt.on_rank0(subcomm, lambda: drop_stale_checkpoint(saved, digests[run.key]))
-        with _RunLog(h5.with_suffix(".log")) if subcomm.rank == 0 else contextlib.nullcontext():
-            series, meta = grow.run_one(subcomm, run.geometry, run.protocol, params, settings,
-                                        snapshot_every=snapshot_every, xdmf_path=grow.fields_path(h5),
-                                        checkpoint=saved)
+        try:
+            with _RunLog(h5.with_suffix(".log")) if subcomm.rank == 0 else contextlib.nullcontext():
+                series, meta = grow.run_one(subcomm, run.geometry, run.protocol, params, settings,
+                                            snapshot_every=snapshot_every, xdmf_path=grow.fields_path(h5),
+                                            checkpoint=saved, stop=stop)
+        except grow.Interrupted:
+            return interrupted
         if subcomm.rank != 0:
             return None
         io.write_series(
@@ -233,9 +245,9 @@ def summary_row(path: Path) -> dict:
         }
 
 
-def summarize(output: Path, runs: list[Run], failed: dict[str, str]) -> list[dict]:
+def summarize(output: Path, runs: list[Run], failed: dict[str, str], interrupted=()) -> list[dict]:
     """One row per run, in the order of ``runs``: read back from its complete file, or
-    marked failed (``failed``: run key -> error) or missing, with blank numbers."""
+    marked failed (``failed``: run key -> error), interrupted or missing, with blank numbers."""
     rows = []
     for run in runs:
         path = series_path(output, run)
@@ -244,7 +256,7 @@ def summarize(output: Path, runs: list[Run], failed: dict[str, str]) -> list[dic
             continue
         row = dict.fromkeys(COLUMNS, float("nan"))
         row.update(geometry=run.geometry, protocol=run.protocol.name, **member(run.geometry),
-                   status="failed" if run.key in failed else "missing")
+                   status="failed" if run.key in failed else "interrupted" if run.key in interrupted else "missing")
         rows.append(row)
     return rows
 
@@ -533,7 +545,8 @@ def _finish(args, runs: list[Run], results, settings: GrowthSettings, elapsed: f
     """Rank 0: summary, failures, figures, table. Returns the exit status."""
     output = args.output
     failed = {r.key: r.error for r in results if r.status == "failed"}
-    rows = summarize(output, runs, failed)
+    interrupted = {r.key for r in results if r.status == "done" and r.result and r.result.get("interrupted")}
+    rows = summarize(output, runs, failed, interrupted)
     write_csv(rows, output / "summary.csv")
     failures = output / "failures.txt"
     if failed:
@@ -567,8 +580,11 @@ def _finish(args, runs: list[Run], results, settings: GrowthSettings, elapsed: f
     if failed:
         written.append(failures)
         info(None, f"errors in {failures}; rerun the same command to retry only the failed runs")
+    if interrupted:
+        info(None, f"stopped by SIGTERM: {len(interrupted)} run(s) not finished ({', '.join(sorted(interrupted))}); "
+                   "rerun the same command to continue them from their checkpoints")
     info(None, "wrote " + ", ".join(str(p) for p in written))
-    return 1 if failed else 0
+    return grow.EXIT_TERMINATED if interrupted else 1 if failed else 0
 
 
 def main(argv=None) -> int:
@@ -596,8 +612,9 @@ def main(argv=None) -> int:
         info(comm, f"cohort: {len(runs)} runs ({len(args.geometries)} geometries × {len(args.protocols)} "
                    f"protocols) on {comm.size} rank(s) in groups of {args.ranks_per_job}, growth step "
                    f"{settings.growth_dt:g} h, output {args.output}")
-        results = run_cohort(comm, runs, args.output, settings=settings, snapshot_every=args.snapshot_every,
-                             ranks_per_job=args.ranks_per_job)
+        with grow.StopOnTerm() as stop:
+            results = run_cohort(comm, runs, args.output, settings=settings, snapshot_every=args.snapshot_every,
+                                 ranks_per_job=args.ranks_per_job, stop=stop)
         code = 0
         if comm.rank == 0:
             try:
