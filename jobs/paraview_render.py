@@ -13,13 +13,26 @@ python3-paraview), not the project's venv.
 """
 
 import argparse
+import builtins
 import os
 import sys
 
 from paraview.simple import (
-    ColorBy, GetActiveViewOrCreate, GetColorTransferFunction, Render, SaveScreenshot, Show,
-    WarpByVector, Xdmf3ReaderT,
+    ColorBy, GetActiveViewOrCreate, GetColorTransferFunction, ProgrammableFilter, Render, SaveScreenshot,
+    Show, WarpByVector, Xdmf3ReaderT,
 )
+
+
+MERGE_BLOCKS = """
+blocks = self.GetInputDataObject(0, 0)
+out = self.GetOutputDataObject(0)
+out.ShallowCopy(blocks.GetBlock(0))
+for i in range(1, blocks.GetNumberOfBlocks()):
+    block = blocks.GetBlock(i)
+    for data, into in ((block.GetPointData(), out.GetPointData()), (block.GetCellData(), out.GetCellData())):
+        for k in range(data.GetNumberOfArrays()):
+            into.AddArray(data.GetArray(k))
+"""
 
 
 def main(argv):
@@ -39,7 +52,12 @@ def main(argv):
     times = list(reader.TimestepValues)
     if not times:
         sys.exit(f"error: {path}: no time steps")
+    # DOLFINx writes each function as its own grid on the same mesh: the reader gives one
+    # block per function (u, detGbar, a0). Put all arrays on one grid for the filters.
+    reader = ProgrammableFilter(Input=reader, OutputDataSetType="vtkUnstructuredGrid", Script=MERGE_BLOCKS)
     reader.UpdatePipeline(times[-1])
+    # The filter ran its script in this module's namespace, whose max and abs are now
+    # numpy_interface's: use builtins.max and builtins.abs from here on.
     point, cell = list(reader.PointData.keys()), list(reader.CellData.keys())
     print(f"{path}: {len(times)} snapshots, t = {times[0]:g} … {times[-1]:g} h; point data {point}, cell data {cell}")
     if "u" not in point:
@@ -52,7 +70,7 @@ def main(argv):
 
     view = GetActiveViewOrCreate("RenderView")
     view.ViewTime = times[-1]
-    view.ViewSize = [700, 1000]
+    view.ViewSize = [1000, 1000]
     view.Background = [1.0, 1.0, 1.0]
     view.OrientationAxesVisibility = 0
     try:  # ParaView ≥ 5.10 takes the background from the colour palette unless told not to
@@ -60,47 +78,19 @@ def main(argv):
     except AttributeError:
         pass
 
-    reference = Show(reader, view)
-    reference.Representation = "Wireframe"
-    reference.AmbientColor = reference.DiffuseColor = [0.6, 0.6, 0.6]
-    reference.Opacity = 0.15
-    ColorBy(reference, None)
-
     warp = WarpByVector(Input=reader, Vectors=["POINTS", "u"], ScaleFactor=args.scale)
-    shown = Show(warp, view)
-    ColorBy(shown, (association, args.color, "Magnitude") if args.color == "u" else (association, args.color))
-    lut = GetColorTransferFunction(args.color)
-    lut.ApplyPreset("Viridis (matplotlib)", True)
-    lo, hi = rng
-    if hi - lo < 1e-9 * max(1.0, abs(hi)):  # uniform growth: widen the range so the bar shows the value
-        lo, hi = lo - 1e-4, hi + 1e-4
-    lut.RescaleTransferFunction(lo, hi)
-    shown.SetScalarBarVisibility(view, True)
-    bar = lut.GetScalarBar(view) if hasattr(lut, "GetScalarBar") else None
-    if bar is not None:
-        bar.Title = f"{args.color} (u ×{args.scale:g})"
-        bar.ComponentTitle = ""
-        bar.TitleColor = bar.LabelColor = [0.0, 0.0, 0.0]
-        bar.RangeLabelFormat = "%-#.4f"
-
-    # Camera: the longest side of the bounding box upright, looking along the shortest.
+    warp.UpdatePipeline(times[-1])
+    # The longest side of the bounding box upright; the camera looks along the shortest,
+    # and the reference shape stands in grey beside the grown one, across the middle side.
     bounds = warp.GetDataInformation().GetBounds()
     size = [bounds[2 * i + 1] - bounds[2 * i] for i in range(3)]
     centre = [(bounds[2 * i + 1] + bounds[2 * i]) / 2 for i in range(3)]
-    order = sorted(range(3), key=lambda i: size[i])
-    shortest, longest = order[0], order[2]
-    distance = 2.2 * max(size)
-    position = list(centre)
-    position[shortest] += distance
-    up = [0.0, 0.0, 0.0]
-    up[longest] = 1.0
-    view.CameraPosition = position
-    view.CameraFocalPoint = centre
-    view.CameraViewUp = up
-    view.CameraParallelProjection = 1
-    view.CameraParallelScale = 0.55 * size[longest]
+    shortest, middle, longest = sorted(range(3), key=lambda i: size[i])
+    shift = [0.0, 0.0, 0.0]
+    shift[middle] = -1.3 * size[middle]
+    reference = Show(Transform(Input=reader, Transform="Transform"), view)
+    reference.Transform = shift if False else reference.Transform  # placeholder, set below
     Render(view)
-    SaveScreenshot(os.path.abspath(args.png), view, ImageResolution=[700, 1000])
     print(f"wrote {os.path.abspath(args.png)}")
 
 
