@@ -18,8 +18,8 @@ import os
 import sys
 
 from paraview.simple import (
-    ColorBy, GetActiveViewOrCreate, GetColorTransferFunction, ProgrammableFilter, Render, SaveScreenshot,
-    Show, WarpByVector, Xdmf3ReaderT,
+    ColorBy, GetActiveViewOrCreate, GetColorTransferFunction, GetScalarBar, ProgrammableFilter, Render,
+    SaveScreenshot, Show, Text, WarpByVector, Xdmf3ReaderT,
 )
 
 
@@ -88,9 +88,47 @@ def main(argv):
     shortest, middle, longest = sorted(range(3), key=lambda i: size[i])
     shift = [0.0, 0.0, 0.0]
     shift[middle] = -1.3 * size[middle]
-    reference = Show(Transform(Input=reader, Transform="Transform"), view)
-    reference.Transform = shift if False else reference.Transform  # placeholder, set below
+    reference = Show(reader, view)
+    reference.Position = shift  # a display offset: the data stay where they are
+    reference.ColorArrayName = ["POINTS", ""]  # solid grey
+    reference.AmbientColor = reference.DiffuseColor = [0.7, 0.7, 0.7]
+
+    shown = Show(warp, view)
+    ColorBy(shown, (association, args.color, "Magnitude") if args.color == "u" else (association, args.color))
+    lut = GetColorTransferFunction(args.color)
+    lut.ApplyPreset("Viridis (matplotlib)", True)
+    lo, hi = rng
+    if hi - lo < 1e-9 * builtins.abs(hi):  # uniform growth: widen the range so the bar shows the value
+        lo, hi = lo - 1e-4, hi + 1e-4
+    lut.RescaleTransferFunction(lo, hi)
+    shown.SetScalarBarVisibility(view, True)
+    bar = GetScalarBar(lut, view)
+    bar.Title = "u magnitude (m)" if args.color == "u" else args.color
+    bar.ComponentTitle = ""
+    bar.TitleColor = bar.LabelColor = [0.0, 0.0, 0.0]
+    bar.RangeLabelFormat = "%-#.6g"
+    bar.WindowLocation = "Any Location"
+    bar.Position = [0.85, 0.1]
+    text = Text(Text=f"{os.path.basename(path)}, t = {times[-1]:g} h\n"
+                     f"grey: reference; colour: grown, u x{args.scale:g}")
+    label = Show(text, view)
+    label.Color = [0.0, 0.0, 0.0]
+    label.FontSize = 14
+    label.WindowLocation = "Upper Left Corner"
+
+    focus = list(centre)
+    focus[middle] += shift[middle] / 2
+    position = list(focus)
+    position[shortest] += 3.0 * size[longest]
+    up = [0.0, 0.0, 0.0]
+    up[longest] = 1.0
+    view.CameraPosition = position
+    view.CameraFocalPoint = focus
+    view.CameraViewUp = up
+    view.CameraParallelProjection = 1
+    view.CameraParallelScale = 0.6 * size[longest]
     Render(view)
+    SaveScreenshot(os.path.abspath(args.png), view, ImageResolution=[1000, 1000])
     print(f"wrote {os.path.abspath(args.png)}")
 
 
