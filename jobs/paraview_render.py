@@ -4,9 +4,11 @@
         results/cohort/BFLH_VHF_Left_mwf_paraview.png [--scale 10] [--color detGbar]
 
 Reads the last snapshot with Xdmf3ReaderT (DOLFINx writes XDMF 3; the legacy XDMF
-reader crashes on it), warps the mesh by u times --scale, colours it by a cell or point
-array (default detGbar, the growth det Ḡ) and draws the reference shape as a grey
-wireframe. The camera looks across the muscle's longest side, which is drawn upright.
+reader crashes on it), merges the per-function blocks that DOLFINx writes into one
+grid, warps it by u times --scale and colours it by a cell or point array (default
+detGbar, the growth det Ḡ; --color u for the displacement magnitude), with the
+reference shape in grey beside it. The longest side of the bounding box is drawn
+upright and the camera looks along the shortest.
 Prints the arrays and times found and checks that u and the colour array are there,
 so a broken file fails loudly. Runs with ParaView's own Python (Debian: paraview,
 python3-paraview), not the project's venv.
