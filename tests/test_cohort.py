@@ -109,6 +109,25 @@ def test_boundary_faces_of_a_cube_point_outwards():
     assert np.all(np.isin(faces, cells[owner]).reshape(-1, 3))
 
 
+def test_final_fields_reads_the_last_snapshot(tmp_path):
+    from dolfinx import fem, io, mesh
+
+    m = mesh.create_unit_cube(MPI.COMM_SELF, 1, 1, 1)
+    u = fem.Function(fem.functionspace(m, ("Lagrange", 1, (3,))), name="u")
+    det = fem.Function(fem.functionspace(m, ("DG", 0)), name="detGbar")
+    with io.XDMFFile(MPI.COMM_SELF, str(tmp_path / "f.xdmf"), "w") as xdmf:
+        xdmf.write_mesh(m)
+        for t in (0.0, 12.5, 2.25, 100.0 / 3):  # stored as "12_5", "33_333333333333336", …
+            u.x.array[:] = t
+            det.x.array[:] = 1 + t
+            xdmf.write_function(u, t)
+            xdmf.write_function(det, t)
+    f = cohort.final_fields(tmp_path / "f.xdmf")
+    assert f["t"] == pytest.approx(100.0 / 3, rel=1e-14)
+    assert np.all(f["u"] == pytest.approx(100.0 / 3)) and np.all(f["detGbar"] == pytest.approx(1 + 100.0 / 3))
+    assert f["cells"].shape == (6, 4) and f["x"].shape == (8, 3)
+
+
 def test_stale_checkpoint_is_dropped(tmp_path):
     path = tmp_path / "run.ckpt.h5"
     path.write_text("not a checkpoint")

@@ -429,12 +429,15 @@ def final_fields(xdmf: Path) -> dict:
     """Mesh and the last snapshot of u and det Ḡ from a run's XDMF output (its .h5)."""
     import h5py
 
+    def hours(name: str) -> float:
+        return float(name.replace("_", "."))  # DOLFINx names a snapshot by its time, "." as "_"
+
     with h5py.File(Path(xdmf).with_suffix(".h5"), "r") as f:
         mesh = f["Mesh"][next(iter(f["Mesh"]))]  # one mesh, named after the mesh read
-        last = max(f["Function/u"], key=float)
+        last = max(f["Function/u"], key=hours)
         return {"x": mesh["geometry"][()], "cells": mesh["topology"][()].astype(np.int64),
                 "u": f["Function/u"][last][()], "detGbar": f["Function/detGbar"][last][()].ravel(),
-                "t": float(last)}
+                "t": hours(last)}
 
 
 def boundary_faces(x: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
