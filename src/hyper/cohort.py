@@ -470,7 +470,7 @@ def shape_figure(fields: dict[str, dict], path: Path, title: str) -> None:
     frame = vectors[:, ::-1][:, [1, 2, 0]]  # (second, third, first) axis -> (x, y, z)
     top = max(float(np.linalg.norm(f["u"], axis=1).max()) for f in fields.values()) * 1e3
     norm = colors.Normalize(0.0, top)
-    fig = plt.figure(figsize=(4 * len(fields) + 1, 6), layout="constrained")
+    fig = plt.figure(figsize=(2.4 * len(fields) + 1.2, 6), layout="constrained")
     for k, (name, f) in enumerate(fields.items()):
         faces, _ = boundary_faces(f["x"], f["cells"])
         y = (f["x"] + PICTURE_SCALE * f["u"] - centre) @ frame * 1e2  # cm
@@ -479,14 +479,12 @@ def shape_figure(fields: dict[str, dict], path: Path, title: str) -> None:
         ax.add_collection3d(Poly3DCollection(y[faces], facecolors=cm.viridis(norm(speed)), linewidths=0,
                                              shade=True, lightsource=colors.LightSource(azdeg=225, altdeg=45)))
         lo, hi = y.min(axis=0), y.max(axis=0)
-        mid, half = (lo + hi) / 2, (hi - lo).max() / 2
-        ax.set(xlim=(mid[0] - half, mid[0] + half), ylim=(mid[1] - half, mid[1] + half),
-               zlim=(mid[2] - half, mid[2] + half), xlabel="cm", zlabel="cm")
-        ax.set_box_aspect((1, 1, 1))
+        ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), zlim=(lo[2], hi[2]), xticks=[], yticks=[])
+        ax.set_box_aspect(hi - lo)  # equal scales on the three axes
         ax.view_init(elev=15, azim=-60)
         ax.set_title(f"{name}, day {f['t'] / 24:.0f}\nmean det Ḡ {f['detGbar'].mean():.4f}", fontsize=10)
     fig.colorbar(cm.ScalarMappable(norm=norm, cmap="viridis"), ax=fig.axes, shrink=0.6, label="|u| (mm)")
-    fig.suptitle(f"{title}: grown shape, displacement ×{PICTURE_SCALE:g}")
+    fig.suptitle(f"{title}: grown shape, displacement ×{PICTURE_SCALE:g} (axis: cm along the muscle)")
     _save(fig, path)
     plt.close(fig)
 
