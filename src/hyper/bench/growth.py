@@ -339,7 +339,9 @@ def pareto_chart(path: Path, result: dict) -> None:
     plt = _plt()
     fig, ax = plt.subplots(figsize=(7.5, 5.2))
     rows = [r for r in result["sweep"] if "errors" in r and not r["reference"]]
-    floor = result["tolerance"] / 100  # draws an error of zero (to round-off) on the log axis
+    # an error of exactly zero (the same bits as the reference) is drawn at this floor
+    positive = [r["errors"][k] for r in rows for k in ("csa", "volume") if r["errors"][k] > 0]
+    floor = min(positive, default=result["tolerance"]) / 10
     for key, marker, colour, name in (("csa", "o", "tab:blue", "CSA"), ("volume", "s", "tab:orange", "volume")):
         xs = [r["wall_s"] for r in rows]
         ys = [max(r["errors"][key], floor) for r in rows]
@@ -357,7 +359,7 @@ def pareto_chart(path: Path, result: dict) -> None:
     ax.axhline(result["tolerance"], color="k", ls="--", lw=1, label=f"{100 * result['tolerance']:g} % of the growth")
     ref = result["reference"]
     ax.axvline(ref["wall_s"], color="grey", ls=":", lw=1)
-    ax.annotate(f"reference {dt_label(ref['settings']['growth_dt'])}", (ref["wall_s"], result["tolerance"]),
+    ax.annotate(f"reference {dt_label(ref['settings']['growth_dt'])}", (ref["wall_s"], 10 * floor),
                 rotation=90, fontsize=8, color="grey", xytext=(-10, 0), textcoords="offset points", va="bottom")
     default = result.get("default")
     title = (f"{result['geometry']}, {result['protocol']}: default Δtg = {dt_label(default['growth_dt'])}"
@@ -367,7 +369,7 @@ def pareto_chart(path: Path, result: dict) -> None:
     ax.set_xlabel("wall time of the 9-week time loop (s)")
     ax.set_ylabel("error of the final value / growth")
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8, loc="lower left")
+    ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     plt.close(fig)
