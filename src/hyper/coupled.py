@@ -33,7 +33,9 @@ from hyper.signaling import SignalingError
 
 @dataclass(frozen=True)
 class GrowthSettings:
-    growth_dt: float = 24.0  # h, longest growth step; periods are cut into steps no longer
+    # h, longest growth step; periods are cut into steps no longer. 168 h is one step per
+    # period for the paper protocols: 7e-6 of the growth from the 0.5 h answer (bench growth).
+    growth_dt: float = 168.0
     signaling_dt: float = 0.05  # h, RK4 step of the signaling ODEs
     feedback: str = "hill"  # h(CSA/CSA0): hill, linear or none
     grow_during_sessions: bool = True  # False reproduces the original code
