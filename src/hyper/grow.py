@@ -3,11 +3,21 @@
     python -m hyper.grow --geometry idealized --protocol mwf --output results/grow/idealized_mwf.h5
     python -m hyper.grow --geometry idealized --protocol all --output results/grow
     python -m hyper.grow --mesh my_muscle.xdmf --mesh-unit mm --protocol mwf --output results/mine
+    python -m hyper.grow --geometry idealized --protocol mwf --accuracy 1e-3
+    python -m hyper.grow --ask signaling --protocol mwf --accuracy 1e-3 --output results/signaling/mwf.h5
 
 Writes per run an HDF5 time series (t, csa_ratio, volume_ratio, kM, the signaling
 states, Newton iterations, step cuts) with parameters, protocol, settings and versions
 as attributes, and an XDMF file of snapshots (growth displacement, det Ḡ, fibres) for
 ParaView; with several protocols, the paper's Fig. 4C–E analog.
+
+Fidelity (hyper.fidelity). --accuracy A runs the cheapest model and the longest growth
+and RK4 steps whose error, from the tables measured by python -m hyper.bench growth and
+signaling, stays within A of the growth (half for each step); it prints the choice and
+stores it as the result's `fidelity` attributes. --ask signaling answers a question
+about N alone: only the signaling ODEs run (no mesh is built, DOLFINx is not imported),
+and each protocol's series is written as python -m hyper.signaling writes it, with A a
+fraction of N (exit status 3 if the ODEs fail).
 
 Restart. Every --checkpoint-every growth steps, and at the first step boundary after
 a SIGTERM (what Slurm sends before a time limit), the run saves its whole state in
@@ -51,16 +61,17 @@ import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
 from mpi4py import MPI
 
+# The DOLFINx side (geometry, growth, coupled) is imported in the functions that build a
+# mesh: a signaling question (--ask signaling) runs without it.
 from hyper import checkpoint as ckpt
-from hyper import geometry as geo
-from hyper import growth, io, protocols, signaling
-from hyper.coupled import LAG_OPTION, CoupledModel, GrowthFailure, GrowthSettings, jacobian_lag
+from hyper import fidelity, io, protocols, signaling
 from hyper.log import Progress, hms, info
 from hyper.params import InputError, as_attributes
 
 PAPER_PROTOCOLS = ("mwf", "every3days", "weekly")
 SERIES = ("t", "csa_ratio", "volume_ratio", "kM", *signaling.STATES, "newton_iterations", "halvings", "wall_s")
 CHECKPOINT_EVERY = 10  # growth steps; writing one took 0.3 s on BFLH_VHF_Left (8512 cells, 30 MB), a step 7 s
+SIGNALING_SAMPLE_EVERY = 0.5  # h, the series of --ask signaling, as python -m hyper.signaling samples it
 
 EXIT_OK = 0
 EXIT_INPUT = 2
@@ -112,6 +123,8 @@ class MeshFile:
     tags: str = "ft_small"
 
     def load(self, comm) -> geo.Geometry:
+        from hyper import geometry as geo
+
         if self.unit not in MESH_UNITS:
             raise InputError(f"--mesh-unit: expected one of {', '.join(MESH_UNITS)}, got {self.unit!r}")
         if self.path.suffix != ".xdmf":
@@ -231,6 +244,9 @@ def run_one(comm, geometry_name: str, protocol, params, settings, *, snapshot_ev
     (whose ``checkpoint`` attribute names the file). The caller deletes the checkpoint
     once the results are stored. Collective over ``comm``.
     """
+    from hyper import geometry as geo
+    from hyper.coupled import CoupledModel, GrowthFailure
+
     run_digest = ckpt.digest(describe(geometry_name, protocol, params, settings, petsc_options, mesh))
     geometry = mesh.load(comm) if mesh is not None else geo.load(geometry_name, comm)
     a0 = geo.fiber_field(geometry, "principal" if mesh is not None else "auto")
@@ -367,22 +383,46 @@ def _petsc_option(text: str) -> tuple[str, str]:
     return key, value
 
 
+def _scene_options(p) -> None:
+    """The options a signaling question shares with a growth run."""
+    p.add_argument("--ask", choices=fidelity.ASKS, default="growth",
+                   help="what the run answers: 'growth' (default; CSA and volume, the coupled model on a mesh) or "
+                        "'signaling' (N and the signaling states: the ODEs alone, no mesh, no DOLFINx; takes "
+                        "--protocol, --protocol-file, --params, --output, --signaling-dt and --accuracy)")
+    p.add_argument("--accuracy", type=float, nargs="?", const=fidelity.DEFAULT_ACCURACY, metavar="A",
+                   help="run the cheapest model and the longest steps whose error, from the error tables that "
+                        "python -m hyper.bench growth and signaling measured, stays within A: a fraction of the "
+                        "growth (of x - 1 for x = CSA/CSA0 or V/V0) or, for --ask signaling, of N; A in "
+                        f"(0, 0.5), {fidelity.DEFAULT_ACCURACY:g} when A is left out. Prints the choice "
+                        "(fidelity: …) and stores it in the result's 'fidelity' attributes; an explicit "
+                        "--growth-dt or --signaling-dt wins over it. Without --accuracy the fixed default steps "
+                        "run, as before: the choice for 0.001 takes a longer RK4 step, so it is another run "
+                        "(its own results and checkpoints)")
+    p.add_argument("--protocol",
+                   help=f"named protocol ({', '.join(protocols.NAMES)}; default mwf) or 'all' for "
+                        f"{', '.join(PAPER_PROTOCOLS)}")
+    p.add_argument("--protocol-file", type=Path, help="TOML protocol file (replaces --protocol)")
+    p.add_argument("--params", type=Path, help="TOML file overriding signaling parameters")
+    p.add_argument("--signaling-dt", type=float,
+                   help=f"RK4 step (h; default {fidelity.SIGNALING_DT0:g}, or chosen by --accuracy)")
+
+
 def parse_args(argv):
+    from hyper import growth
+    from hyper.coupled import GrowthSettings
+
     p = _Parser(prog="python -m hyper.grow", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--geometry", help="geometry id (idealized, cylinder, BFLH_VHF_Left, …; default idealized)")
     p.add_argument("--mesh", type=Path,
                    help="a tetrahedral XDMF mesh of your own instead of --geometry (facet tags 'ft_small': 1, 2 "
                         "the ends, 3 the lateral surface; fibres along its principal axis)")
     p.add_argument("--mesh-unit", help="length unit of --mesh: m or mm (default m)")
-    p.add_argument("--protocol",
-                   help=f"named protocol ({', '.join(protocols.NAMES)}; default mwf) or 'all' for "
-                        f"{', '.join(PAPER_PROTOCOLS)}")
-    p.add_argument("--protocol-file", type=Path, help="TOML protocol file (replaces --protocol)")
-    p.add_argument("--params", type=Path, help="TOML file overriding signaling parameters")
+    _scene_options(p)
     p.add_argument("--output", type=Path, default=Path("results/grow"),
-                   help="an .h5 file (one protocol) or a folder (default results/grow)")
-    p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step Δtg (h)")
-    p.add_argument("--signaling-dt", type=float, default=GrowthSettings.signaling_dt, help="RK4 step (h)")
+                   help="an .h5 file (one protocol) or a folder (default results/grow; results/signaling for "
+                        "--ask signaling)")
+    p.add_argument("--growth-dt", type=float,
+                   help=f"growth step Δtg (h; default {GrowthSettings.growth_dt:g}, or chosen by --accuracy)")
     p.add_argument("--feedback", choices=growth.FEEDBACK_LAWS, default="hill")
     p.add_argument("--skip-sessions", action="store_true",
                    help="no growth during sessions (the original code's choice)")
@@ -400,6 +440,28 @@ def parse_args(argv):
     return p.parse_args(argv)
 
 
+def parse_signaling_args(argv):
+    """The options of --ask signaling; any other is an error that names it."""
+    p = _Parser(prog="python -m hyper.grow --ask signaling",
+                description="A signaling question: the signaling ODEs alone for each protocol (no mesh, no "
+                            "DOLFINx), written as python -m hyper.signaling writes them, with the fidelity choice "
+                            "as attributes.")
+    _scene_options(p)
+    p.add_argument("--output", type=Path, default=Path("results/signaling"),
+                   help="an .h5 file (one protocol) or a folder (default results/signaling)")
+    args, rest = p.parse_known_args(argv)
+    if rest:
+        raise InputError(f"--ask signaling builds no mesh and grows nothing: {' '.join(rest)} does not apply")
+    return args
+
+
+def _ask(argv) -> str:
+    """--ask, read before the other options: a signaling question needs neither a mesh nor DOLFINx."""
+    p = _Parser(add_help=False, allow_abbrev=False)
+    p.add_argument("--ask", choices=fidelity.ASKS, default="growth")
+    return p.parse_known_args(argv)[0].ask
+
+
 @dataclasses.dataclass
 class Plan:
     """The validated command: what to run and where the results go."""
@@ -415,13 +477,61 @@ class Plan:
     snapshot_every: int
     checkpoint_every: int
     restart: bool
+    choice: fidelity.Choice | None  # from --accuracy; None: the fixed steps
 
 
 _FILE_SUFFIXES = (".hdf5", ".xdmf", ".png", ".csv", ".json", ".toml", ".txt", ".npy")
 
 
+def _protocols(args) -> list:
+    if args.protocol_file is not None and args.protocol is not None:
+        raise InputError("--protocol and --protocol-file exclude each other: give one of them")
+    if args.protocol_file is not None:
+        return [protocols.load(args.protocol_file)]
+    if args.protocol == "all":
+        return [protocols.named(n) for n in PAPER_PROTOCOLS]
+    try:
+        return [protocols.named(args.protocol or "mwf")]
+    except InputError as err:
+        raise InputError(f"--protocol: {err}, or 'all'; or give a TOML file with --protocol-file") from None
+
+
+def _check_steps(growth_dt: float | None, signaling_dt: float | None) -> None:
+    for name, value in (("--growth-dt", growth_dt), ("--signaling-dt", signaling_dt)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise InputError(f"{name}: expected a finite number of hours > 0, got {value:g}")
+
+
+def _choose(scene: fidelity.Scene, accuracy: float, growth_dt: float | None,
+            signaling_dt: float | None) -> fidelity.Choice:
+    try:
+        return fidelity.choose(scene, accuracy, growth_dt=growth_dt, signaling_dt=signaling_dt)
+    except InputError as err:
+        raise InputError(f"--accuracy {accuracy:g}: {err}") from None
+
+
+def _outputs(out: Path, stems: list[str]) -> list[Path]:
+    """The result files: ``out`` itself (an .h5 file, one run) or STEM.h5 per run in the folder ``out``."""
+    single_file = out.suffix == ".h5"
+    if single_file and len(stems) > 1:
+        raise InputError(f"--output {out}: several protocols need a folder, not an .h5 file")
+    if out.suffix.lower() in _FILE_SUFFIXES:
+        raise InputError(f"--output {out}: expected an .h5 file or a folder, got a {out.suffix} file")
+    if not single_file and out.exists() and not out.is_dir():
+        raise InputError(f"--output {out}: exists and is not a folder")
+    if single_file and out.is_dir():
+        raise InputError(f"--output {out}: is a folder; give the result file a name that ends in .h5")
+    for parent in (out if not single_file else out.parent, *out.parents):
+        if parent.exists() and not parent.is_dir():
+            raise InputError(f"--output {out}: {parent} is a file, not a folder")
+    return [out] if single_file else [out / f"{stem}.h5" for stem in stems]
+
+
 def plan(comm, argv) -> Plan:
     """Parse and check every input; raises InputError before anything is written."""
+    from hyper import geometry as geo
+    from hyper.coupled import LAG_OPTION, GrowthSettings, jacobian_lag
+
     args = parse_args(argv)
     mesh = None
     if args.mesh is not None and args.geometry is not None:
@@ -446,25 +556,21 @@ def plan(comm, argv) -> Plan:
             if not ckpt.on_rank0(comm, lambda: io.is_complete(fpath)):
                 raise InputError(f"--geometry {geometry}: {fpath}: no complete fibre file; compute it with "
                                  f"`python -m hyper.fibers --geometries {geometry}`")
-    if args.protocol_file is not None and args.protocol is not None:
-        raise InputError("--protocol and --protocol-file exclude each other: give one of them")
-    if args.protocol_file is not None:
-        runs = [protocols.load(args.protocol_file)]
-    elif args.protocol == "all":
-        runs = [protocols.named(n) for n in PAPER_PROTOCOLS]
-    else:
-        try:
-            runs = [protocols.named(args.protocol or "mwf")]
-        except InputError as err:
-            raise InputError(f"--protocol: {err}, or 'all'; or give a TOML file with --protocol-file") from None
+    runs = _protocols(args)
     params = signaling.load_params(args.params) if args.params else signaling.SignalingParams()
-    for name, value in (("--growth-dt", args.growth_dt), ("--signaling-dt", args.signaling_dt)):
-        if not (math.isfinite(value) and value > 0):
-            raise InputError(f"{name}: expected a finite number of hours > 0, got {value:g}")
+    _check_steps(args.growth_dt, args.signaling_dt)
+    growth_dt = GrowthSettings.growth_dt if args.growth_dt is None else args.growth_dt
+    signaling_dt = GrowthSettings.signaling_dt if args.signaling_dt is None else args.signaling_dt
+    choice = None
+    if args.accuracy is not None:
+        # hyper.grow takes uniform parameters only (per-cell ones are hyper.ensemble's)
+        scene = fidelity.Scene(geometry, ",".join(p.name for p in runs), heterogeneous=False, ask="growth")
+        choice = _choose(scene, args.accuracy, args.growth_dt, args.signaling_dt)
+        growth_dt, signaling_dt = choice.growth_dt, choice.signaling_dt
     try:
         settings = GrowthSettings(
-            growth_dt=args.growth_dt,
-            signaling_dt=args.signaling_dt,
+            growth_dt=growth_dt,
+            signaling_dt=signaling_dt,
             feedback=args.feedback,
             grow_during_sessions=not args.skip_sessions,
             consistent_stress=not args.fe_stress,
@@ -481,20 +587,8 @@ def plan(comm, argv) -> Plan:
             raise InputError(f"--{name.replace('_', '-')}: expected an integer >= {least} (growth steps), got {value}")
 
     out = args.output
-    single_file = out.suffix == ".h5"
-    if single_file and len(runs) > 1:
-        raise InputError(f"--output {out}: several protocols need a folder, not an .h5 file")
-    if out.suffix.lower() in _FILE_SUFFIXES:
-        raise InputError(f"--output {out}: expected an .h5 file or a folder, got a {out.suffix} file")
-    if not single_file and out.exists() and not out.is_dir():
-        raise InputError(f"--output {out}: exists and is not a folder")
-    if single_file and out.is_dir():
-        raise InputError(f"--output {out}: is a folder; give the result file a name that ends in .h5")
-    for parent in (out if not single_file else out.parent, *out.parents):
-        if parent.exists() and not parent.is_dir():
-            raise InputError(f"--output {out}: {parent} is a file, not a folder")
-    outputs = [out] if single_file else [out / f"{geometry}_{p.name}.h5" for p in runs]
-    plot = args.plot or (out.with_suffix(".png") if single_file else out / f"{geometry}_growth.png")
+    outputs = _outputs(out, [f"{geometry}_{p.name}" for p in runs])
+    plot = args.plot or (out.with_suffix(".png") if out.suffix == ".h5" else out / f"{geometry}_growth.png")
     if plot.suffix != ".png":
         raise InputError(f"--plot {plot}: expected a .png file")
     if mesh is not None:
@@ -505,7 +599,7 @@ def plan(comm, argv) -> Plan:
             digest = ckpt.digest(describe(geometry, protocol, params, settings, petsc_options, mesh))
             ckpt.on_rank0(comm, lambda: path.is_file() and ckpt.inspect(path, digest))
     return Plan(geometry, mesh, runs, params, settings, petsc_options, outputs, plot,
-                args.snapshot_every, args.checkpoint_every, args.restart)
+                args.snapshot_every, args.checkpoint_every, args.restart, choice)
 
 
 class StopOnTerm:
@@ -536,11 +630,59 @@ def _error(comm, message: str) -> None:
         print(f"error: {message}", file=sys.stderr, flush=True)
 
 
+def answer_signaling(comm, argv) -> int:
+    """--ask signaling: the signaling ODEs alone for each protocol, on rank 0; no mesh."""
+    try:
+        args = parse_signaling_args(argv)
+        runs = _protocols(args)
+        params = signaling.load_params(args.params) if args.params else signaling.SignalingParams()
+        _check_steps(None, args.signaling_dt)
+        scene = fidelity.Scene(None, ",".join(p.name for p in runs), heterogeneous=False, ask="signaling")
+        if args.accuracy is not None:
+            choice = _choose(scene, args.accuracy, None, args.signaling_dt)
+        else:
+            choice = fidelity.assess(scene, None, fidelity.SIGNALING_DT0 if args.signaling_dt is None
+                                     else args.signaling_dt)
+        outputs = _outputs(args.output, [p.name for p in runs])
+    except InputError as err:
+        _error(comm, str(err))
+        return EXIT_INPUT
+    info(comm, f"fidelity: {choice.describe()}")
+
+    def answer():
+        for protocol, h5 in zip(runs, outputs):
+            series = signaling.run(params, protocol, choice.signaling_dt, SIGNALING_SAMPLE_EVERY)
+            io.write_series(
+                h5, series,
+                attrs={"model": "signaling (MODEL.md §1)", "integrator": "RK4", "dt": choice.signaling_dt,
+                       "sample_every": SIGNALING_SAMPLE_EVERY, "N_final": float(series["N"][-1])},
+                groups={"parameters": as_attributes(params), "protocol": protocol.to_attributes(),
+                        "fidelity": choice.as_attributes()},
+            )
+            print(f"{protocol.name}: N({protocol.end:g} h) = {series['N'][-1]:.6f}; no mesh built -> {h5}",
+                  flush=True)
+
+    try:
+        ckpt.on_rank0(comm, answer)
+    except signaling.SignalingError as err:
+        _error(comm, str(err))
+        return EXIT_FAILED
+    return EXIT_OK
+
+
 def main(argv=None) -> int:
     comm = MPI.COMM_WORLD
+    command = sys.argv[1:] if argv is None else argv
+    try:
+        ask = _ask(command)
+    except InputError as err:
+        _error(comm, str(err))
+        return EXIT_INPUT
+    if ask == "signaling":
+        return answer_signaling(comm, command)
     with StopOnTerm() as stop:
         try:
-            work = plan(comm, sys.argv[1:] if argv is None else argv)
+            work = plan(comm, command)
         except InputError as err:
             _error(comm, str(err))
             return EXIT_INPUT
@@ -563,6 +705,10 @@ def main(argv=None) -> int:
 
 
 def _run(comm, work: Plan, stop, argv) -> int:
+    from hyper.coupled import GrowthFailure
+
+    if work.choice is not None:
+        info(comm, f"fidelity: {work.choice.describe()}")
     results = {}
     for protocol, h5 in zip(work.runs, work.outputs):
         xdmf, saved, status = fields_path(h5), checkpoint_path(h5), status_path(h5)
@@ -595,11 +741,11 @@ def _run(comm, work: Plan, stop, argv) -> int:
             return EXIT_FAILED
 
         def store():
-            io.write_series(
-                h5, series, attrs=meta,
-                groups={"signaling": as_attributes(work.params), "protocol": protocol.to_attributes(),
-                        "settings": dataclasses.asdict(work.settings)},
-            )
+            groups = {"signaling": as_attributes(work.params), "protocol": protocol.to_attributes(),
+                      "settings": dataclasses.asdict(work.settings)}
+            if work.choice is not None:
+                groups["fidelity"] = work.choice.as_attributes()
+            io.write_series(h5, series, attrs=meta, groups=groups)
             saved.unlink(missing_ok=True)
             status.unlink(missing_ok=True)
 
