@@ -244,7 +244,9 @@ def run_case(comm, case: dict) -> dict:
 
     comm.barrier()
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    geometry = geo.load(case["geometry"], comm)
+    geometry = geo.load(case["geometry"], comm, quadrature_degree=case.get("quadrature_degree", 4))
+    for _ in range(case.get("refine", 0)):
+        geometry = geo.refine(geometry)
     model = CoupledModel(geometry, geo.fiber_field(geometry), protocol, settings=settings)
     setup_wall = time.perf_counter() - wall0
 
