@@ -58,6 +58,7 @@ STABLE_DT = 0.65  # h, the largest RK4 step measured stable on mwf
 # loses 2.6 % of N).
 SIGNALING_LADDER = (0.01, 0.02, 0.025, 0.05, 0.1, 0.125, 0.25, 0.5)
 
+
 @dataclass(frozen=True)
 class Scene:
     """What a run is asked. ``protocol`` names the protocol (a command that runs several
