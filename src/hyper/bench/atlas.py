@@ -222,6 +222,12 @@ def _error(row: dict) -> float | None:
     return max(errors["csa"], errors["volume"])
 
 
+def matplotlib_ticker():
+    import matplotlib.ticker
+
+    return matplotlib.ticker
+
+
 def pareto_chart(path: Path, result: dict) -> None:
     plt = growth_bench._plt()
     panels = [(name, rows) for name, rows in result["dimensions"].items()]
@@ -271,6 +277,7 @@ def pareto_chart(path: Path, result: dict) -> None:
             ax.set_title(name)
             ax.set_ylabel(f"error / growth (floor {floor:g})")
         ax.set_xlabel("wall s" if name != "growth_dt" else "CPU s")
+        ax.xaxis.set_minor_formatter(matplotlib_ticker().NullFormatter())
         ax.grid(True, which="major", alpha=0.3)
     for ax in list(axes.flat)[len(panels):]:
         ax.axis("off")
@@ -322,13 +329,20 @@ def failure_chart(path: Path, result: dict) -> None:
         ax.axhline(fit["memory_gib"], color="k", lw=1)
         ax.axvline(fit["unknowns_at_limit"], color="r", ls=":")
         ax.set_title(f"LU out of memory beyond ≈ {fit['unknowns_at_limit'] / 1e3:.0f}k unknowns "
-                     f"({fit['memory_gib']:g} GiB); GAMG fieldsplit: no convergence at any size", fontsize=9)
+                     f"({fit['memory_gib']:g} GiB)\nGAMG fieldsplit: no convergence at any size tried", fontsize=9)
         ax.set_xlabel("unknowns")
         ax.set_ylabel("GiB")
         ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120, format="png")
     plt.close(fig)
+
+
+def _charts(output: Path, result: dict, io) -> None:
+    with io.atomic_path(output / "atlas.png") as tmp:
+        pareto_chart(tmp, result)
+    with io.atomic_path(output / "failure_map.png") as tmp:
+        failure_chart(tmp, result)
 
 
 # -------------------------------------------------------------------------------- main
@@ -342,10 +356,18 @@ def main(argv=None) -> int:
     parser.add_argument("--protocol", default="mwf", help="named protocol (default mwf)")
     parser.add_argument("--timeout", type=float, default=1800.0, help="seconds per run before it counts as failed")
     parser.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    parser.add_argument("--replot", action="store_true", help="redraw the charts from OUTPUT/atlas.json, run nothing")
     args = parser.parse_args(argv)
 
+    from hyper import io
+
+    if args.replot:
+        result = json.loads((args.output / "atlas.json").read_text())
+        _charts(args.output, result, io)
+        return 0
+
     from hyper import geometry as geo
-    from hyper import io, protocols
+    from hyper import protocols
     from hyper.params import InputError
 
     geometries = [g for g in args.geometries.split(",") if g]
@@ -370,10 +392,7 @@ def main(argv=None) -> int:
     args.output.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(args.output / "atlas.json") as tmp:
         tmp.write_text(json.dumps(result, indent=2, default=float) + "\n")
-    with io.atomic_path(args.output / "atlas.png") as tmp:
-        pareto_chart(tmp, result)
-    with io.atomic_path(args.output / "failure_map.png") as tmp:
-        failure_chart(tmp, result)
+    _charts(args.output, result, io)
     for name, rows in dimensions.items():
         for row in rows:
             err = _error(row)
