@@ -680,6 +680,10 @@ def main(argv=None) -> int:
         return EXIT_INPUT
     if ask == "signaling":
         return answer_signaling(comm, command)
+    # PETSc installs its own SIGTERM handler (which aborts) when it starts: start it
+    # before ours, so that ours is the one in place.
+    import dolfinx_solver  # noqa: F401
+    from petsc4py import PETSc  # noqa: F401
     with StopOnTerm() as stop:
         try:
             work = plan(comm, command)
