@@ -145,3 +145,39 @@ def test_grow_ask_signaling_runs_the_odes_alone_without_dolfinx(tmp_path):
     assert "growth_dt" not in chosen and "no mesh" in chosen["reasons"]
     direct = signaling.run(signaling.SignalingParams(), protocols.named("mwf"), 0.25)
     assert abs(n_end - direct["N"][-1]) <= 1e-12
+
+
+def test_lu_memory_law_passes_through_its_measurements_and_grows_faster_than_the_unknowns():
+    for n, m in fidelity.LU_MEMORY_MB:
+        assert fidelity.lu_memory_mb(n) == pytest.approx(m, rel=1e-12)
+    n0, n1 = fidelity.LU_MEMORY_MB[0][0], fidelity.LU_MEMORY_MB[1][0]
+    exponent = math.log(fidelity.lu_memory_mb(n1) / fidelity.lu_memory_mb(n0)) / math.log(n1 / n0)
+    assert 1.0 < exponent < 2.0  # 3-D nested dissection: n^(4/3) in theory
+
+
+def test_the_linear_solver_is_lu_while_it_fits_and_iterative_beyond():
+    gib = 1024.0
+    solver, why = fidelity.linear_solver(78120, 22 * gib)
+    assert solver == "lu" and "MUMPS LU" in why
+    # the largest mesh LU may take on 22 GiB, and one unknown in a hundred more
+    limit = fidelity.LU_MEMORY_MB[1][0] * (fidelity.LU_MEMORY_SHARE * 22 * gib / fidelity.LU_MEMORY_MB[1][1]) ** (
+        1 / (math.log(fidelity.LU_MEMORY_MB[1][1] / fidelity.LU_MEMORY_MB[0][1])
+             / math.log(fidelity.LU_MEMORY_MB[1][0] / fidelity.LU_MEMORY_MB[0][0])))
+    assert fidelity.linear_solver(int(limit * 0.99), 22 * gib)[0] == "lu"
+    solver, why = fidelity.linear_solver(int(limit * 1.01), 22 * gib)
+    assert solver == "iterative" and "GMRES" in why and "may not fit" not in why
+    solver, why = fidelity.linear_solver(20_000_000, 22 * gib)
+    assert solver == "iterative" and "may not fit" in why
+
+
+def test_grow_takes_the_linear_solver_asked_for_or_auto_with_accuracy(tmp_path):
+    from mpi4py import MPI
+
+    from hyper import grow
+
+    out = ["--geometry", "idealized", "--output", str(tmp_path / "run.h5")]
+    assert grow.plan(MPI.COMM_WORLD, out).linear_solver == "lu"
+    assert grow.plan(MPI.COMM_WORLD, [*out, "--accuracy"]).linear_solver == "auto"
+    assert grow.plan(MPI.COMM_WORLD, [*out, "--accuracy", "--linear-solver", "lu"]).linear_solver == "lu"
+    assert grow.plan(MPI.COMM_WORLD, [*out, "--linear-solver", "iterative"]).linear_solver == "iterative"
+    assert grow.available_memory_mb(MPI.COMM_WORLD) > 100.0

@@ -194,3 +194,62 @@ def test_two_ranks_give_the_serial_reaction_force():
     serial = _idealized_reaction(MPI.COMM_SELF)
     assert np.allclose(parallel, serial, rtol=1e-8, atol=0)
     assert parallel[-1, 0] == pytest.approx(0.38785, rel=1e-4)  # N, full activation (see report)
+
+
+def _lu_and_iterative(comm):
+    """Both linear solvers on the idealized shape grown transversely by 10 % and then
+    activated to α = 0.3 (free rigid modes, so multipliers in the system)."""
+    geometry = geo_mod.load("idealized", comm)
+    a0 = geo_mod.fiber_field(geometry)
+    unit = a0 / ufl.sqrt(ufl.dot(a0, a0))
+    theta = fem.Constant(geometry.mesh, 1.1)
+    I = ufl.Identity(3)
+    Fg = I + (theta - 1.0) * (I - ufl.outer(unit, unit))
+    out = {}
+    for solver in ("lu", "iterative"):
+        problem = MechanicsProblem(geometry, a0, growth=Fg, petsc_options=TIGHT, linear_solver=solver)
+        newton = problem.solve()
+        problem.alpha.value = 0.3
+        newton += problem.solve()
+        factor = problem.snes.getKSP().getPC().getFactorMatrix()
+        out[solver] = (problem.w.x.array.copy(), problem.volume(), newton, problem.linear_iterations(),
+                       factor.getMumpsIcntl(35), factor.getMumpsCntl(7))
+    return out
+
+
+def _check_iterative(comm):
+    from hyper.mechanics import BLR_PRECISION
+
+    out = _lu_and_iterative(comm)
+    w_lu, v_lu, _, _, blr_lu, _ = out["lu"]
+    w_it, v_it, _, _, blr_it, precision = out["iterative"]
+    assert (blr_lu, blr_it, precision) == (0, 2, BLR_PRECISION)  # MUMPS got the BLR controls
+    difference = comm.allreduce(np.abs(w_it - w_lu).max(), op=MPI.MAX)
+    scale = comm.allreduce(np.abs(w_lu).max(), op=MPI.MAX)
+    assert difference < 1e-9 * scale
+    assert v_it == pytest.approx(v_lu, rel=1e-12)
+
+
+def test_iterative_solver_gives_the_lu_answer():
+    _check_iterative(MPI.COMM_WORLD)
+
+
+@pytest.mark.mpi
+def test_iterative_solver_gives_the_lu_answer_in_parallel():
+    _check_iterative(MPI.COMM_WORLD)
+
+
+def test_unknown_linear_solver_is_refused():
+    geometry = geo_mod.load("cylinder", MPI.COMM_SELF)
+    with pytest.raises(ValueError, match="linear_solver"):
+        MechanicsProblem(geometry, geo_mod.fiber_field(geometry), linear_solver="cg")
+    with pytest.raises(ValueError, match="blr_precision"):
+        MechanicsProblem(geometry, geo_mod.fiber_field(geometry), linear_solver="iterative", blr_precision=2.0)
+
+
+def test_taylor_hood_unknowns_counts_the_space_without_building_it():
+    from hyper.mechanics import taylor_hood_unknowns
+
+    geometry = geo_mod.load("cylinder", MPI.COMM_WORLD)
+    problem = MechanicsProblem(geometry, geo_mod.fiber_field(geometry))
+    assert taylor_hood_unknowns(geometry.mesh) == problem.num_dofs - len(problem.rigid.modes)

@@ -193,6 +193,7 @@ class CoupledModel:
         material=None,
         settings: GrowthSettings = GrowthSettings(),
         petsc_options: dict | None = None,
+        linear_solver: str = "lu",
     ):
         self.geometry = geometry
         self.comm = geometry.mesh.comm
@@ -213,6 +214,7 @@ class CoupledModel:
                 consistent_stress=settings.consistent_stress,
                 petsc_options=options,
                 options_prefix=MECHANICS_PREFIX,
+                linear_solver=linear_solver,
                 **kwargs,
             )
         self.growth.set_deformation(self.problem.F)

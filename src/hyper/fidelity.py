@@ -17,6 +17,11 @@ error tables below, stays within the accuracy:
 
 The predicted error of a choice is the sum of the table's estimates, without the safety
 factors; the choice keeps each estimate times its factor within its share.
+
+The linear solver is chosen once the mesh is known (`linear_solver`): MUMPS's LU while
+its memory, predicted from the measured growth with the number of unknowns, fits in the
+memory available; GMRES with a block low-rank preconditioner beyond. Both answer to the
+Newton tolerance, so the choice changes the cost, not the answer.
 """
 
 from __future__ import annotations
@@ -234,3 +239,38 @@ def assess(scene: Scene, growth_dt: float | None, signaling_dt: float) -> Choice
     reasons = (why, *_where(scene), "steps given, no accuracy asked", *_unstable(signaling_dt))
     growth_dt = None if growth_dt is None else float(growth_dt)
     return Choice(model, growth_dt, float(signaling_dt), _predicted(scene.ask, growth_dt, signaling_dt), reasons)
+
+
+# ----------------------------------------------------------------------- linear solver
+
+# The memory MUMPS's LU used (INFOG 22, MB summed over 2 ranks) on the idealized shape
+# refined once and twice, in the growth solve of `python -m hyper.bench solvers`
+# (results/bench/solvers.json, levels[]): a power law through the two, m = a n^b.
+LU_MEMORY_MB = ((78120, 871.0), (577993, 11946.0))  # exponent 1.31
+# The BLR preconditioned GMRES's memory against LU's at the larger of the two (7177 MB
+# against 11946 MB; 0.91 at the smaller: compression pays on large fronts, so 0.6 is
+# conservative for larger meshes).
+ITERATIVE_MEMORY_RATIO = 0.60
+# LU runs while its predicted memory is within this share of the memory available: the
+# mesh, forms, fields and MUMPS's own workspace estimate (up to 20 % above its use) need the rest.
+LU_MEMORY_SHARE = 0.7
+
+
+def lu_memory_mb(unknowns: int) -> float:
+    """MUMPS LU's memory (MB, all ranks together) for a Taylor–Hood system of ``unknowns``."""
+    (n0, m0), (n1, m1) = LU_MEMORY_MB
+    exponent = math.log(m1 / m0) / math.log(n1 / n0)
+    return m1 * (unknowns / n1) ** exponent
+
+
+def linear_solver(unknowns: int, available_mb: float) -> tuple[str, str]:
+    """LU while it fits in the memory available, else the iterative solver; and why."""
+    lu = lu_memory_mb(unknowns)
+    if lu <= LU_MEMORY_SHARE * available_mb:
+        return "lu", (f"MUMPS LU: {unknowns} unknowns need about {lu / 1024:.2g} GiB, within "
+                      f"{LU_MEMORY_SHARE:g} x {available_mb / 1024:.3g} GiB available")
+    iterative = ITERATIVE_MEMORY_RATIO * lu
+    fits = "" if iterative <= LU_MEMORY_SHARE * available_mb else "; it may not fit either: use more nodes"
+    return "iterative", (f"GMRES with a BLR preconditioner: LU would need about {lu / 1024:.3g} GiB for {unknowns} "
+                         f"unknowns, more than {LU_MEMORY_SHARE:g} x {available_mb / 1024:.3g} GiB available; "
+                         f"the iterative solver about {iterative / 1024:.3g} GiB{fits}")

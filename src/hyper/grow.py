@@ -231,10 +231,24 @@ class Snapshots:
             yield float(t), (self.u, self.det, self.a0)
 
 
+def available_memory_mb(comm) -> float:
+    """MemAvailable of every node the ranks of ``comm`` run on, summed (MB). Collective."""
+    node = comm.Split_type(MPI.COMM_TYPE_SHARED)
+    try:
+        mine = 0.0
+        if node.rank == 0:
+            meminfo = Path("/proc/meminfo").read_text().splitlines()
+            line = next(text for text in meminfo if text.startswith("MemAvailable:"))
+            mine = float(line.split()[1]) / 1024.0
+        return comm.allreduce(mine, op=MPI.SUM)
+    finally:
+        node.Free()
+
+
 def run_one(comm, geometry_name: str, protocol, params, settings, *, snapshot_every: int, xdmf_path,
             checkpoint: Path | None = None, checkpoint_every: int = CHECKPOINT_EVERY,
             stop: Callable[[], bool] | None = None, petsc_options: dict | None = None,
-            mesh: MeshFile | None = None):
+            mesh: MeshFile | None = None, linear_solver: str = "lu"):
     """Run one coupled simulation; return the series and the model's metadata.
 
     With ``checkpoint`` (a path), the run resumes from that file if it exists (it must
@@ -242,15 +256,24 @@ def run_one(comm, geometry_name: str, protocol, params, settings, *, snapshot_ev
     ``checkpoint_every`` growth steps (0: never on schedule), when ``stop()`` turns true
     on some rank (then raises `Interrupted`) and before a `GrowthFailure` propagates
     (whose ``checkpoint`` attribute names the file). The caller deletes the checkpoint
-    once the results are stored. Collective over ``comm``.
+    once the results are stored. ``linear_solver`` is "lu", "iterative" or "auto" (chosen
+    by `fidelity.linear_solver` from the unknowns and the memory available). Collective
+    over ``comm``.
     """
     from hyper import geometry as geo
     from hyper.coupled import CoupledModel, GrowthFailure
+    from hyper.mechanics import taylor_hood_unknowns
 
     run_digest = ckpt.digest(describe(geometry_name, protocol, params, settings, petsc_options, mesh))
     geometry = mesh.load(comm) if mesh is not None else geo.load(geometry_name, comm)
     a0 = geo.fiber_field(geometry, "principal" if mesh is not None else "auto")
-    model = CoupledModel(geometry, a0, protocol, params=params, settings=settings, petsc_options=petsc_options)
+    unknowns = taylor_hood_unknowns(geometry.mesh)
+    solver_reason = "asked for (--linear-solver)"
+    if linear_solver == "auto":
+        linear_solver, solver_reason = fidelity.linear_solver(unknowns, available_memory_mb(comm))
+        info(comm, f"fidelity: {solver_reason}")
+    model = CoupledModel(geometry, a0, protocol, params=params, settings=settings, petsc_options=petsc_options,
+                         linear_solver=linear_solver)
     snaps = Snapshots(model, a0)
     series = {name: [] for name in SERIES}
     segments, wall0 = 1, 0.0
@@ -329,6 +352,9 @@ def run_one(comm, geometry_name: str, protocol, params, settings, *, snapshot_ev
         "wall_s": wall0 + time.perf_counter() - start,
         "segments": segments,
         "run_digest": run_digest,
+        "unknowns": model.problem.num_dofs,
+        "linear_solver": linear_solver,
+        "linear_solver_reason": solver_reason,
     }
     return {k: np.asarray(v) for k, v in series.items()}, meta
 
@@ -430,6 +456,11 @@ def parse_args(argv):
                    help="use P = Fe S (the original code) instead of the consistent det(Fg) Fe S Fg⁻ᵀ")
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run stops (default %(default)s)")
+    p.add_argument("--linear-solver", choices=("lu", "iterative", "auto"),
+                   help="the Newton step's linear solver: 'lu' (MUMPS; the default without --accuracy), "
+                        "'iterative' (GMRES with MUMPS's block low-rank factorisation as preconditioner: less "
+                        "memory, same answer to the Newton tolerance) or 'auto' (the default with --accuracy: LU "
+                        "while its memory, predicted from the unknowns, fits in the memory available)")
     p.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
                    help="a PETSc option of the mechanics solver, e.g. snes_max_it=50 (repeatable)")
     p.add_argument("--snapshot-every", type=int, default=10, help="XDMF snapshot every K growth steps")
@@ -478,6 +509,7 @@ class Plan:
     checkpoint_every: int
     restart: bool
     choice: fidelity.Choice | None  # from --accuracy; None: the fixed steps
+    linear_solver: str = "lu"  # lu, iterative, or auto (chosen once the mesh is loaded)
 
 
 _FILE_SUFFIXES = (".hdf5", ".xdmf", ".png", ".csv", ".json", ".toml", ".txt", ".npy")
@@ -598,8 +630,9 @@ def plan(comm, argv) -> Plan:
             path = checkpoint_path(h5)
             digest = ckpt.digest(describe(geometry, protocol, params, settings, petsc_options, mesh))
             ckpt.on_rank0(comm, lambda: path.is_file() and ckpt.inspect(path, digest))
+    linear_solver = args.linear_solver or ("auto" if args.accuracy is not None else "lu")
     return Plan(geometry, mesh, runs, params, settings, petsc_options, outputs, plot,
-                args.snapshot_every, args.checkpoint_every, args.restart, choice)
+                args.snapshot_every, args.checkpoint_every, args.restart, choice, linear_solver)
 
 
 class StopOnTerm:
@@ -722,7 +755,8 @@ def _run(comm, work: Plan, stop, argv) -> int:
             series, meta = run_one(comm, work.geometry, protocol, work.params, work.settings,
                                    snapshot_every=work.snapshot_every, xdmf_path=xdmf, checkpoint=saved,
                                    checkpoint_every=work.checkpoint_every, stop=stop,
-                                   petsc_options=work.petsc_options, mesh=work.mesh)
+                                   petsc_options=work.petsc_options, mesh=work.mesh,
+                                   linear_solver=work.linear_solver)
         except InputError as err:
             _error(comm, str(err))
             return EXIT_INPUT

@@ -28,6 +28,18 @@ the axis (the cylinder mesh has none), and on Γ1, where the reaction force is
 measured, their point load shifted it by 10 % on the idealized mesh. The multipliers
 are global unknowns: the Newton matrix is [[J, B], [Bᵀ, 0]] in one AIJ matrix (its
 sparsity taken once from a PETSc nest), factorised by MUMPS.
+
+Linear solvers (``linear_solver``). "lu": MUMPS's exact factorisation, one solve per
+Newton step. "iterative": GMRES, right-preconditioned by MUMPS's block low-rank (BLR)
+factorisation at precision 1e-4 with compressed contribution blocks, to a relative
+residual of 1e-10: the factors of the off-diagonal blocks of every front are stored as
+low-rank products, which saves memory (the bench `solvers` measures how much) and the
+Krylov iterations recover the accuracy. Why not algebraic multigrid: a Schur-complement
+fieldsplit with GAMG on the displacement block needs 117 GMRES iterations per
+Newton step on the 48k-unknown TA mesh at rest (22 with an exact displacement solve) and
+breaks down on the idealized shape, whose displacement block is singular (the free rigid
+motions live in the multipliers); hypre is not in the PETSc wheel. Measured in
+`python -m hyper.bench solvers`.
 """
 
 from __future__ import annotations
@@ -59,6 +71,23 @@ DEFAULT_PETSC_OPTIONS = {
     "pc_type": "lu",
     "pc_factor_mat_solver_type": "mumps",
 }
+
+LINEAR_SOLVERS = ("lu", "iterative")
+ITERATIVE_PETSC_OPTIONS = {
+    "ksp_type": "gmres",
+    "ksp_gmres_restart": 100,
+    "ksp_pc_side": "right",
+    "ksp_rtol": 1e-10,
+    "ksp_atol": 0.0,
+    "ksp_max_it": 200,
+}
+# MUMPS controls of the BLR preconditioner: ICNTL(35) = 2 BLR factors, ICNTL(37) = 1
+# compressed contribution blocks; its dropping precision CNTL(7) is ``blr_precision``.
+# On the idealized shape refined once (78k unknowns, 2 ranks) GMRES needs 11 iterations
+# per Newton step at 1e-4, 73 at 1e-3, 159 at 1e-2 and fails at 1e-1; at 578k unknowns
+# and 1e-4, 24 per step, with 0.60x LU's memory (python -m hyper.bench solvers).
+BLR_ICNTL = {35: 2, 37: 1}
+BLR_PRECISION = 1e-4
 
 # Free rigid modes are those whose spring stiffness is below this fraction of the largest.
 FREE_MODE_RATIO = 1e-8
@@ -96,7 +125,14 @@ class MechanicsProblem:
         consistent_stress: bool = True,
         petsc_options: dict | None = None,
         options_prefix: str = "mechanics_",
+        linear_solver: str = "lu",
+        blr_precision: float = BLR_PRECISION,
     ):
+        if linear_solver not in LINEAR_SOLVERS:
+            raise ValueError(f"linear_solver must be one of {', '.join(LINEAR_SOLVERS)}, got {linear_solver!r}")
+        if not 0 < blr_precision < 1:
+            raise ValueError(f"blr_precision must be in (0, 1), got {blr_precision!r}")
+        self.linear_solver = linear_solver
         self.geometry = geometry
         self.material = material
         # A nodal fibre field is unit only at its nodes; the law needs unit fibres
@@ -155,7 +191,10 @@ class MechanicsProblem:
         self.snes.setFunction(self._assemble_residual, self._F)
         self.snes.setJacobian(self._assemble_jacobian, self._K, self._K)
         self.snes.setOptionsPrefix(options_prefix)
-        _set_options(self.snes, options_prefix, {**DEFAULT_PETSC_OPTIONS, **(petsc_options or {})})
+        preset = ITERATIVE_PETSC_OPTIONS if linear_solver == "iterative" else {}
+        _set_options(self.snes, options_prefix, {**DEFAULT_PETSC_OPTIONS, **preset, **(petsc_options or {})})
+        if linear_solver == "iterative":
+            self._set_blr(blr_precision)
 
         sigma = self.P * self.F.T / ufl.det(self.F)
         gamma1 = ds(geometry.ends[0])
@@ -212,6 +251,36 @@ class MechanicsProblem:
             # The nest's layouts are shared with K: keep its blocks alive with it.
             self._blocks = (nest, A, B, BT)
         self._x, self._F = self._K.createVecs()
+
+    def _set_blr(self, precision: float) -> None:
+        """Ask MUMPS for BLR factors. MUMPS reads its -mat_mumps_ options at the first
+        factorisation, long after `_set_options` has taken them out of the database, so
+        the controls go straight to the factor object, made now for the purpose."""
+        ksp = self.snes.getKSP()
+        pc = ksp.getPC()
+        if pc.getType() != "lu" or pc.getFactorSolverType() != "mumps":
+            return  # the options asked for another preconditioner: it wins
+        ksp.setOperators(self._K, self._K)
+        pc.setFactorSetUpSolverType()
+        factor = pc.getFactorMatrix()
+        for key, value in BLR_ICNTL.items():
+            factor.setMumpsIcntl(key, value)
+        factor.setMumpsCntl(7, precision)
+
+    def linear_iterations(self) -> int:
+        """Krylov iterations of the last solve (one per Newton step with LU)."""
+        return self.snes.getLinearSolveIterations()
+
+    def mumps_memory(self) -> dict:
+        """MUMPS's account of the last factorisation, summed over ranks: memory its
+        analysis estimated and the memory it used (MB, INFOG 17 and 22), the entries a
+        full-rank factor would have (INFOG 29) and those stored (INFOG 35, fewer with BLR)."""
+        pc = self.snes.getKSP().getPC()
+        if pc.getType() != "lu" or pc.getFactorSolverType() != "mumps":
+            return {}
+        factor = pc.getFactorMatrix()
+        return {"mumps_estimated_mb": factor.getMumpsInfog(17), "mumps_used_mb": factor.getMumpsInfog(22),
+                "factor_entries": factor.getMumpsInfog(29), "factor_entries_stored": factor.getMumpsInfog(35)}
 
     def _set_state(self, x) -> None:
         arr = x.getArray(readonly=True)
@@ -320,6 +389,15 @@ class MechanicsProblem:
     def volume(self) -> float:
         """∫ det F dX (m³)."""
         return self._sum(self._volume)
+
+
+def taylor_hood_unknowns(mesh) -> int:
+    """Displacement and pressure unknowns of P2-P1 on ``mesh``, without building the space
+    (the multipliers of free rigid motions, at most three, not counted). Collective."""
+    mesh.topology.create_entities(1)
+    vertices = mesh.topology.index_map(0).size_global
+    edges = mesh.topology.index_map(1).size_global
+    return 3 * (vertices + edges) + vertices
 
 
 def _set_options(snes, prefix: str, options: dict) -> None:

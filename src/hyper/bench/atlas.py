@@ -19,6 +19,9 @@ those first; the atlas says which are missing):
 - ode_dt:     `python -m hyper.bench signaling` (RK4 dt against DOP853 at rtol 1e-13)
 - growth_dt:  `python -m hyper.bench growth` (Δtg against 0.5 h, and the paper's settings)
 - mesh size and LU memory: `python -m hyper.bench refinement` (three levels)
+- linear solver: `python -m hyper.bench solvers` (MUMPS LU against GMRES with a BLR
+              preconditioner on the idealized shape at 11k, 78k and 578k unknowns,
+              2 ranks; error: the largest difference of u and p from LU's, relative)
 Failure map (data, not anecdotes):
 - RK4 stability limit in dt (from the signaling benchmark);
 - the largest growth step Newton converges for: one transverse growth increment
@@ -26,7 +29,9 @@ Failure map (data, not anecdotes):
   ladder of ϑ, with no step cutting and with up to 4 halvings (run here); a default
   growth step grows ϑ by at most about 0.5 %;
 - the mesh size at which MUMPS's LU needs the machine's memory (from refinement.json);
-- the iterative solver: see `iterative` in the JSON (what was tried and where it stalls).
+- the iterative solvers (from solvers.json): GMRES iterations against unknowns and the
+  BLR precision (where it stops converging), and GAMG fieldsplit's iterations or breakdown;
+  the hand-measured active (α = 1) cases are in `iterative` in the JSON.
 
 Writes results/bench/atlas.json, atlas.png (Pareto charts) and failure_map.png.
 """
@@ -47,9 +52,9 @@ from hyper.bench import growth as growth_bench
 THETAS = (1.005, 1.05, 1.2, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, 10.0)
 
 # Measured by hand on the active (α = 1) idealized and TA_VHF_Left Jacobians (commit
-# message of this file's first version); kept as data for the failure map because no
-# Krylov method reached the LU answer: GMRES with a Schur-complement fieldsplit
-# (u | p, rigid-mode multipliers), selfp, Jacobi on the Schur block.
+# message of this file's first version): GMRES with a Schur-complement fieldsplit
+# (u | p, rigid-mode multipliers), selfp, Jacobi on the Schur block. The growth solves
+# at rest are measured by `python -m hyper.bench solvers`.
 ITERATIVE_FINDINGS = {
     "tried": "GMRES(200), right preconditioning, rtol 1e-8; PCFIELDSPLIT Schur (u | p + multipliers), "
              "schur_precondition selfp, Jacobi on the Schur block",
@@ -209,6 +214,15 @@ def collect(bench_dir: Path) -> dict:
     else:
         out["refinement"] = {"levels": refinement["levels"], "forces": refinement["forces"],
                              "lu_memory": refinement["lu_memory"]}
+    solvers = _load(bench_dir / "solvers.json")
+    if solvers is None:
+        out["missing"].append("python -m hyper.bench solvers")
+    else:
+        keep = ("solver", "level", "unknowns", "ranks", "newton_iterations", "krylov_iterations", "solve_s",
+                "mumps_used_mb", "peak_rss_mb_sum", "difference_from_lu", "memory_ratio", "time_ratio", "failed",
+                "precision", "geometry", "last_ksp_reason")
+        out["solvers"] = {key: [{k: r[k] for k in keep if k in r} for r in solvers[key]]
+                          for key in ("levels", "precision", "gamg")}
     return out
 
 
@@ -236,6 +250,8 @@ def pareto_chart(path: Path, result: dict) -> None:
         panels.append(("ode_dt", None))
     if "growth_dt" in collected:
         panels.append(("growth_dt", None))
+    if "solvers" in collected:
+        panels.append(("solvers", None))
     cols = 3
     nrows = math.ceil(len(panels) / cols)
     fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, 3.6 * nrows), squeeze=False)
@@ -261,6 +277,20 @@ def pareto_chart(path: Path, result: dict) -> None:
                 ax.loglog([p["cpu_s"]], [max(p["errors"].values())], "s", label="paper's settings")
             ax.set_title("growth step Δtg (idealized, CPU s)")
             ax.set_ylabel("error / growth")
+            ax.legend(fontsize=7)
+        elif name == "solvers":
+            floor = 1e-16
+            rows = [r for r in collected["solvers"]["levels"] if "failed" not in r]
+            for solver, marker in (("lu", "o"), ("iterative", "s")):
+                mine = [r for r in rows if r["solver"] == solver]
+                errs = [max(max(r["difference_from_lu"]["u"], r["difference_from_lu"]["p"]), floor)
+                        if "difference_from_lu" in r else floor for r in mine]
+                ax.loglog([r["solve_s"] for r in mine], errs, marker + "-",
+                          label="MUMPS LU (reference, at the floor)" if solver == "lu" else "GMRES + BLR")
+                for r, e in zip(mine, errs):
+                    ax.annotate(f"{r['unknowns'] / 1e3:.0f}k", (r["solve_s"], e), fontsize=7)
+            ax.set_title("linear solver (idealized, 2 ranks)")
+            ax.set_ylabel(f"max |Δ(u, p)| / max, vs LU (floor {floor:g})")
             ax.legend(fontsize=7)
         else:
             ok = [r for r in rows if "failed" not in r and not r.get("reference")]
@@ -289,7 +319,7 @@ def pareto_chart(path: Path, result: dict) -> None:
 
 def failure_chart(path: Path, result: dict) -> None:
     plt = growth_bench._plt()
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    fig, axes = plt.subplots(1, 4, figsize=(20, 4.2))
     collected = result["collected"]
     ax = axes[0]
     if "ode_dt" in collected:
@@ -328,11 +358,38 @@ def failure_chart(path: Path, result: dict) -> None:
         ax.loglog(grid, fit["coefficient_mb"] * grid ** fit["exponent"] / 1024, "--", label=f"∝ n^{fit['exponent']:.2f}")
         ax.axhline(fit["memory_gib"], color="k", lw=1)
         ax.axvline(fit["unknowns_at_limit"], color="r", ls=":")
+        if "solvers" in collected:
+            blr = [r for r in collected["solvers"]["levels"] if r["solver"] == "iterative" and "failed" not in r]
+            ax.loglog([r["unknowns"] for r in blr], [r["mumps_used_mb"] / 1024 for r in blr], "s",
+                      label="GMRES + BLR LU (2 ranks), measured")
         ax.set_title(f"LU out of memory beyond ≈ {fit['unknowns_at_limit'] / 1e3:.0f}k unknowns "
-                     f"({fit['memory_gib']:g} GiB)\nGAMG fieldsplit: no convergence at any size tried", fontsize=9)
+                     f"({fit['memory_gib']:g} GiB)", fontsize=9)
         ax.set_xlabel("unknowns")
         ax.set_ylabel("GiB")
         ax.legend(fontsize=8)
+    ax = axes[3]
+    if "solvers" in collected:
+        sol = collected["solvers"]
+        blr = [r for r in sol["levels"] if r["solver"] == "iterative" and "failed" not in r]
+        ax.semilogx([r["unknowns"] for r in blr], [r["krylov_iterations"] / r["newton_iterations"] for r in blr],
+                    "s-", label="GMRES + BLR 1e-4, idealized")
+        for r in sol["gamg"]:
+            if "failed" in r:
+                ax.plot([r["unknowns"]], [0], "rx", ms=9, label=f"GAMG fieldsplit, {r['geometry']}: fails")
+            else:
+                ax.plot([r["unknowns"]], [r["krylov_iterations"] / r["newton_iterations"]], "^", ms=9,
+                        label=f"GAMG fieldsplit, {r['geometry']}")
+        prec = sol["precision"]
+        failed = [r["precision"] for r in prec if "failed" in r]
+        ok = [r for r in prec if "failed" not in r]
+        ax.set_title("Krylov iterations per Newton step (growth solve at rest)\nBLR precision "
+                     + ", ".join(f"{r['precision']:g}: {r['krylov_iterations'] / r['newton_iterations']:.0f}" for r in ok)
+                     + (f"; fails at {', '.join(f'{p:g}' for p in failed)}" if failed else ""), fontsize=9)
+        ax.set_xlabel("unknowns")
+        ax.set_ylabel("iterations per Newton step (red at 0: failed)")
+        ax.legend(fontsize=7)
+    else:
+        ax.axis("off")
     fig.tight_layout()
     fig.savefig(path, dpi=120, format="png")
     plt.close(fig)

@@ -51,13 +51,6 @@ def spring_force(problem) -> float:
     return problem.comm.allreduce(fem.assemble_scalar(form), op=MPI.SUM)
 
 
-def mumps_memory(problem) -> dict:
-    """MUMPS's own account of the last LU factorisation, summed over ranks (MB)."""
-    factor = problem.snes.getKSP().getPC().getFactorMatrix()
-    return {"mumps_estimated_mb": factor.getMumpsInfog(17), "mumps_used_mb": factor.getMumpsInfog(22),
-            "factor_entries": factor.getMumpsInfog(29)}
-
-
 def run_levels(comm, levels: int, log=print) -> list[dict]:
     import dolfinx_solver  # noqa: F401
 
@@ -87,7 +80,7 @@ def run_levels(comm, levels: int, log=print) -> list[dict]:
                "reaction_force": problem.reaction_force(), "reaction_force_current": problem.reaction_force_current(),
                "spring_force": spring_force(problem), "newton_iterations": iterations,
                "setup_s": comm.allreduce(setup_s, op=MPI.MAX), "solve_s": comm.allreduce(solve_s, op=MPI.MAX),
-               "peak_rss_mb_sum": rss_mb, **mumps_memory(problem)}
+               "peak_rss_mb_sum": rss_mb, **problem.mumps_memory()}
         rows.append(row)
         log(f"level {level}: {row['unknowns']} unknowns, R {row['reaction_force']:.6f} N, "
             f"R along n {row['reaction_force_current']:.6f} N, spring {row['spring_force']:.6f} N, "

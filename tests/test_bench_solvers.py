@@ -1,0 +1,34 @@
+"""The solver benchmark's own arithmetic: the memory law and the comparison of solutions."""
+
+import numpy as np
+import pytest
+
+from hyper import material as mat
+from hyper.bench import solvers
+
+
+def test_memory_fit_recovers_a_power_law_through_the_two_largest_runs():
+    rows = [{"unknowns": n, "mumps_used_mb": 3.0 * n**1.3} for n in (1e4, 8e4, 6e5)]
+    rows.append({"unknowns": 5e6, "failed": "out of memory"})
+    fit = solvers.memory_fit(rows)
+    assert fit["exponent"] == pytest.approx(1.3, rel=1e-12)
+    assert fit["coefficient_mb"] == pytest.approx(3.0, rel=1e-9)
+    assert solvers.memory_fit(rows[:1]) is None
+
+
+def test_compare_measures_u_against_u_and_p_against_its_change_from_rest(tmp_path):
+    p0 = mat.reference_pressure(mat.MaterialParams())
+    ref, new = tmp_path / "ref", tmp_path / "new"
+    ref.mkdir(), new.mkdir()
+    for rank in range(2):
+        w = np.array([1e-3, -2e-3, p0 + 100.0, 4e-4, p0 - 50.0])
+        p_dofs = np.array([2, 4])
+        np.save(ref / f"w_{rank}.npy", w)
+        np.save(ref / f"p_{rank}.npy", p_dofs)
+        moved = w.copy()
+        moved[1] += 2e-9 * (rank + 1)  # u: largest change 4e-9 against max |u| 2e-3
+        moved[4] += 1e-3  # p: 1e-3 Pa against max |p - p0| = 100 Pa
+        np.save(new / f"w_{rank}.npy", moved)
+    diff = solvers.compare(ref, new, 2)
+    assert diff["u"] == pytest.approx(2e-6, rel=1e-6)
+    assert diff["p"] == pytest.approx(1e-5, rel=1e-6)
