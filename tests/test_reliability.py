@@ -360,3 +360,15 @@ def test_lock_without_file_system_locks_is_reported_not_fatal(tmp_path, monkeypa
     with ckpt.locked([tmp_path / "a.h5", tmp_path / "b.h5"]) as unlocked:
         assert unlocked == [tmp_path / "a.h5.lock", tmp_path / "b.h5.lock"]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_iterative_linear_solver_run_lands_on_the_lu_run(inputs, reference, tmp_path):
+    """--linear-solver iterative changes the cost, not the answer; the choice is recorded."""
+    out = tmp_path / "iterative.h5"
+    assert grow.main(command(inputs, out, "--linear-solver", "iterative")) == 0
+    s, ref = io.read_series(out), io.read_series(reference)
+    for name in ("csa_ratio", "volume_ratio"):
+        np.testing.assert_allclose(s[name], ref[name], rtol=1e-10)
+    with h5py.File(out) as f, h5py.File(reference) as g:
+        assert f.attrs["linear_solver"] == "iterative" and g.attrs["linear_solver"] == "lu"
+        assert f.attrs["unknowns"] == g.attrs["unknowns"] > 1000

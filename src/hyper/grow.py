@@ -19,6 +19,14 @@ about N alone: only the signaling ODEs run (no mesh is built, DOLFINx is not imp
 and each protocol's series is written as python -m hyper.signaling writes it, with A a
 fraction of N (exit status 3 if the ODEs fail).
 
+Linear solver. --linear-solver lu (the default) factorises the Newton matrix with MUMPS;
+iterative runs GMRES preconditioned by MUMPS's block low-rank factorisation (0.6x the
+memory at 578k unknowns, the same answer to the Newton tolerance); auto, the default
+with --accuracy, takes LU while its memory, predicted from the unknowns by the law
+python -m hyper.bench solvers measured, fits in the memory available on the run's
+nodes. The choice and its reason are printed and stored as attributes (linear_solver,
+linear_solver_reason).
+
 Restart. Every --checkpoint-every growth steps, and at the first step boundary after
 a SIGTERM (what Slurm sends before a time limit), the run saves its whole state in
 RESULT.ckpt.h5 next to its result RESULT.h5 (atomically: a kill leaves the previous
