@@ -372,3 +372,18 @@ def test_iterative_linear_solver_run_lands_on_the_lu_run(inputs, reference, tmp_
     with h5py.File(out) as f, h5py.File(reference) as g:
         assert f.attrs["linear_solver"] == "iterative" and g.attrs["linear_solver"] == "lu"
         assert f.attrs["unknowns"] == g.attrs["unknowns"] > 1000
+
+
+def test_accuracy_takes_lu_while_it_fits_and_the_iterative_solver_when_memory_is_short(inputs, tmp_path, monkeypatch):
+    runs = {}
+    for name, available in (("roomy", None), ("short", 1.0)):
+        if available is not None:
+            monkeypatch.setattr(grow, "available_memory_mb", lambda comm: available)  # MB
+        out = tmp_path / f"{name}.h5"
+        assert grow.main(command(inputs, out, "--accuracy", "1e-3")) == 0
+        with h5py.File(out) as f:
+            runs[name] = (f.attrs["linear_solver"], f.attrs["linear_solver_reason"])
+        runs[name] += (io.read_series(out)["csa_ratio"],)
+    assert runs["roomy"][0] == "lu" and "MUMPS LU" in runs["roomy"][1]
+    assert runs["short"][0] == "iterative" and "may not fit" in runs["short"][1]
+    np.testing.assert_allclose(runs["short"][2], runs["roomy"][2], rtol=1e-10)
