@@ -4,16 +4,16 @@ import numpy as np
 import pytest
 
 from hyper import material as mat
-from hyper.bench import solvers
+from hyper.bench import refinement, solvers
 
 
 def test_memory_fit_recovers_a_power_law_through_the_two_largest_runs():
     rows = [{"unknowns": n, "mumps_used_mb": 3.0 * n**1.3} for n in (1e4, 8e4, 6e5)]
     rows.append({"unknowns": 5e6, "failed": "out of memory"})
-    fit = solvers.memory_fit(rows)
+    fit = refinement.memory_fit(rows)
     assert fit["exponent"] == pytest.approx(1.3, rel=1e-12)
     assert fit["coefficient_mb"] == pytest.approx(3.0, rel=1e-9)
-    assert solvers.memory_fit(rows[:1]) is None
+    assert refinement.memory_fit(rows[:1]) is None
 
 
 def test_compare_measures_u_against_u_and_p_against_its_change_from_rest(tmp_path):

@@ -275,9 +275,9 @@ def run_one(comm, geometry_name: str, protocol, params, settings, *, snapshot_ev
     run_digest = ckpt.digest(describe(geometry_name, protocol, params, settings, petsc_options, mesh))
     geometry = mesh.load(comm) if mesh is not None else geo.load(geometry_name, comm)
     a0 = geo.fiber_field(geometry, "principal" if mesh is not None else "auto")
-    unknowns = taylor_hood_unknowns(geometry.mesh)
     solver_reason = "asked for (--linear-solver)"
     if linear_solver == "auto":
+        unknowns = taylor_hood_unknowns(geometry.mesh)
         linear_solver, solver_reason = fidelity.linear_solver(unknowns, available_memory_mb(comm))
         info(comm, f"fidelity: {solver_reason}")
     model = CoupledModel(geometry, a0, protocol, params=params, settings=settings, petsc_options=petsc_options,

@@ -258,7 +258,7 @@ class MechanicsProblem:
         the controls go straight to the factor object, made now for the purpose."""
         ksp = self.snes.getKSP()
         pc = ksp.getPC()
-        if pc.getType() != "lu" or pc.getFactorSolverType() != "mumps":
+        if not _is_mumps_lu(pc):
             return  # the options asked for another preconditioner: it wins
         ksp.setOperators(self._K, self._K)
         pc.setFactorSetUpSolverType()
@@ -276,7 +276,7 @@ class MechanicsProblem:
         analysis estimated and the memory it used (MB, INFOG 17 and 22), the entries a
         full-rank factor would have (INFOG 29) and those stored (INFOG 35, fewer with BLR)."""
         pc = self.snes.getKSP().getPC()
-        if pc.getType() != "lu" or pc.getFactorSolverType() != "mumps":
+        if not _is_mumps_lu(pc):
             return {}
         factor = pc.getFactorMatrix()
         return {"mumps_estimated_mb": factor.getMumpsInfog(17), "mumps_used_mb": factor.getMumpsInfog(22),
@@ -389,6 +389,10 @@ class MechanicsProblem:
     def volume(self) -> float:
         """∫ det F dX (m³)."""
         return self._sum(self._volume)
+
+
+def _is_mumps_lu(pc) -> bool:
+    return pc.getType() == "lu" and pc.getFactorSolverType() == "mumps"
 
 
 def taylor_hood_unknowns(mesh) -> int:

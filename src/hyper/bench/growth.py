@@ -302,11 +302,12 @@ def run_case(comm, case: dict) -> dict:
     }
 
 
-def _run_worker(case: dict, ranks: int, timeout: float) -> dict:
-    """``run_case`` in a fresh process (under mpirun for several ranks)."""
+def _run_worker(case: dict, ranks: int, timeout: float, bench: str = "growth", extra: tuple = ()) -> dict:
+    """``python -m hyper.bench BENCH --worker CASE`` (``run_case``) in a fresh process, under
+    mpirun for several ranks; ``extra`` are further arguments of the worker."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "result.json"
-        cmd = [sys.executable, "-m", "hyper.bench", "growth", "--worker", json.dumps(case), "--json", str(out)]
+        cmd = [sys.executable, "-m", "hyper.bench", bench, "--worker", json.dumps(case), "--json", str(out), *extra]
         if ranks > 1:
             mpirun = Path(sys.executable).with_name("mpirun")
             cmd = [str(mpirun), "-n", str(ranks), *cmd]

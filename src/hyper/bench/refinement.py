@@ -103,14 +103,23 @@ def observed_orders(rows: list[dict], key: str) -> dict:
     return out
 
 
+def memory_fit(rows: list[dict], key: str = "mumps_used_mb") -> dict | None:
+    """m = a n^b through the two largest runs that have ``key`` (the asymptotic slope)."""
+    rows = sorted((r for r in rows if key in r and "failed" not in r), key=lambda r: r["unknowns"])
+    if len(rows) < 2:
+        return None
+    n = np.log([rows[-2]["unknowns"], rows[-1]["unknowns"]])
+    m = np.log([rows[-2][key], rows[-1][key]])
+    b = (m[1] - m[0]) / (n[1] - n[0])
+    return {"exponent": float(b), "coefficient_mb": float(np.exp(m[1] - b * n[1]))}
+
+
 def memory_limit(rows: list[dict], memory_gib: float) -> dict:
     """Fit m = a n^b to the measured factorisation memory and solve m(n) = memory."""
-    n = np.array([r["unknowns"] for r in rows], dtype=float)
-    m = np.array([r["mumps_used_mb"] for r in rows], dtype=float)
-    b, log_a = np.polyfit(np.log(n[-2:]), np.log(m[-2:]), 1)  # the finest two: the asymptotic slope
+    fit = memory_fit(rows)
     limit_mb = memory_gib * 1024.0
-    return {"exponent": float(b), "coefficient_mb": float(np.exp(log_a)), "memory_gib": memory_gib,
-            "unknowns_at_limit": float((limit_mb / np.exp(log_a)) ** (1.0 / b))}
+    return {**fit, "memory_gib": memory_gib,
+            "unknowns_at_limit": float((limit_mb / fit["coefficient_mb"]) ** (1.0 / fit["exponent"]))}
 
 
 def chart(path: Path, result: dict) -> None:

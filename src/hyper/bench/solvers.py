@@ -34,16 +34,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import resource
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from hyper.bench.refinement import memory_fit
 
 THETA = 1.05
 PRECISIONS = (1e-4, 1e-3, 1e-2, 1e-1)
@@ -113,6 +112,7 @@ def run_case(case: dict, comm, save: Path | None) -> dict:
     from mpi4py import MPI
 
     from hyper import geometry as geo
+    from hyper import growth
     from hyper.mechanics import BLR_PRECISION, MechanicsProblem, SolverError
 
     geometry = geo.load(case["geometry"], comm)
@@ -120,9 +120,8 @@ def run_case(case: dict, comm, save: Path | None) -> dict:
         geometry = geo.refine(geometry)
     a0 = geo.fiber_field(geometry)
     unit = a0 / ufl.sqrt(ufl.dot(a0, a0))
-    theta = fem.Constant(geometry.mesh, 1.0)
-    I = ufl.Identity(3)
-    Fg = I + (theta - 1.0) * (I - ufl.outer(unit, unit))
+    theta = fem.Constant(geometry.mesh, 1.0)  # transverse stretch: area growth ϑ²
+    Fg = growth.transverse_growth_ufl(theta**2, unit)
     solver = case["solver"]
     kwargs = {}
     if solver == "iterative":
@@ -158,24 +157,11 @@ def run_case(case: dict, comm, save: Path | None) -> dict:
 
 
 def _run_worker(case: dict, ranks: int, timeout: float, save: Path | None) -> dict:
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "result.json"
-        cmd = [sys.executable, "-m", "hyper.bench", "solvers", "--worker", json.dumps(case), "--json", str(out)]
-        if save is not None:
-            cmd += ["--save", str(save)]
-        if ranks > 1:
-            cmd = [str(Path(sys.executable).with_name("mpirun")), "-n", str(ranks), *cmd]
-        start = time.perf_counter()
-        try:
-            subprocess.run(cmd, check=True, timeout=timeout, env={**os.environ, "OMP_NUM_THREADS": "1"},
-                           stderr=subprocess.PIPE, text=True)
-        except subprocess.TimeoutExpired:
-            return {**case, "ranks": ranks, "failed": f"no result within {timeout:g} s"}
-        except subprocess.CalledProcessError as err:
-            return {**case, "ranks": ranks, "failed": "\n".join((err.stderr or "").strip().splitlines()[-5:])}
-        row = json.loads(out.read_text())
-        row.update(ranks=ranks, process_wall_s=time.perf_counter() - start)
-        return row
+    from hyper.bench.growth import _run_worker as run_worker
+
+    row = run_worker(case, ranks, timeout, bench="solvers", extra=() if save is None else ("--save", str(save)))
+    row["ranks"] = ranks
+    return row
 
 
 def compare(reference: Path, other: Path, ranks: int) -> dict:
@@ -193,17 +179,6 @@ def compare(reference: Path, other: Path, ranks: int) -> dict:
         du, umax = max(du, np.abs(a - b)[is_u].max()), max(umax, np.abs(a[is_u]).max())
         dp, pmax = max(dp, np.abs(a - b)[p].max()), max(pmax, np.abs(a[p] - p0).max())
     return {"u": du / umax, "p": dp / pmax}
-
-
-def memory_fit(rows: list[dict], key: str = "mumps_used_mb") -> dict | None:
-    """m = a n^b through the two largest runs."""
-    rows = sorted((r for r in rows if key in r and "failed" not in r), key=lambda r: r["unknowns"])
-    if len(rows) < 2:
-        return None
-    n = np.log([rows[-2]["unknowns"], rows[-1]["unknowns"]])
-    m = np.log([rows[-2][key], rows[-1][key]])
-    b = (m[1] - m[0]) / (n[1] - n[0])
-    return {"exponent": float(b), "coefficient_mb": float(np.exp(m[1] - b * n[1]))}
 
 
 def chart(path: Path, result: dict) -> None:
