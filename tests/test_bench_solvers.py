@@ -32,3 +32,22 @@ def test_compare_measures_u_against_u_and_p_against_its_change_from_rest(tmp_pat
     diff = solvers.compare(ref, new, 2)
     assert diff["u"] == pytest.approx(2e-6, rel=1e-6)
     assert diff["p"] == pytest.approx(1e-5, rel=1e-6)
+
+
+def test_parts_not_run_are_kept_from_the_previous_results(tmp_path):
+    import json
+
+    failed = {"geometry": "idealized", "unknowns": 11306, "failed": "an earlier run's failure"}
+    old = {"ranks": 2, "levels": [{"solver": "lu", **failed}],
+           "precision": [{"solver": "iterative", "precision": 0.1, **failed}],
+           "gamg": [{"solver": "gamg", "variant": "GAMG", **failed}]}
+    (tmp_path / "solvers.json").write_text(json.dumps(old))
+    assert solvers.main(["--parts", "levels", "--levels", "0", "--output", str(tmp_path)]) == 0
+    new = json.loads((tmp_path / "solvers.json").read_text())
+    assert new["precision"] == old["precision"] and new["gamg"] == old["gamg"]
+    assert [r["solver"] for r in new["levels"]] == ["lu", "iterative"]
+    assert new["levels"][1]["difference_from_lu"]["u"] < 1e-9
+    with pytest.raises(SystemExit):
+        solvers.main(["--parts", "levels,bogus", "--output", str(tmp_path)])
+    with pytest.raises(SystemExit):  # the kept parts ran on 2 ranks
+        solvers.main(["--parts", "levels", "--ranks", "1", "--output", str(tmp_path)])

@@ -35,8 +35,8 @@ factorisation at precision 1e-4 with compressed contribution blocks, to a relati
 residual of 1e-10: the factors of the off-diagonal blocks of every front are stored as
 low-rank products, which saves memory (the bench `solvers` measures how much) and the
 Krylov iterations recover the accuracy. Why not algebraic multigrid: a Schur-complement
-fieldsplit with GAMG on the displacement block needs 117 GMRES iterations per
-Newton step on the 48k-unknown TA mesh at rest (22 with an exact displacement solve) and
+fieldsplit with GAMG on the displacement block needs about 100 GMRES iterations per
+Newton step on the 48k-unknown TA mesh at rest (24 with an exact displacement solve) and
 breaks down on the idealized shape, whose displacement block is singular (the free rigid
 motions live in the multipliers); hypre is not in the PETSc wheel. Measured in
 `python -m hyper.bench solvers`.
@@ -83,9 +83,9 @@ ITERATIVE_PETSC_OPTIONS = {
 }
 # MUMPS controls of the BLR preconditioner: ICNTL(35) = 2 BLR factors, ICNTL(37) = 1
 # compressed contribution blocks; its dropping precision CNTL(7) is ``blr_precision``.
-# On the idealized shape refined once (78k unknowns, 2 ranks) GMRES needs 11 iterations
-# per Newton step at 1e-4, 73 at 1e-3, 159 at 1e-2 and fails at 1e-1; at 578k unknowns
-# and 1e-4, 24 per step, with 0.60x LU's memory (python -m hyper.bench solvers).
+# On the idealized shape refined once (78k unknowns, 2 ranks) GMRES needs 42 iterations
+# over 4 Newton steps at 1e-4, 290 at 1e-3, 635 at 1e-2 and fails at 1e-1; at 578k
+# unknowns and 1e-4, 95 over 4, with 0.60x LU's memory (python -m hyper.bench solvers).
 BLR_ICNTL = {35: 2, 37: 1}
 BLR_PRECISION = 1e-4
 

@@ -220,7 +220,7 @@ def collect(bench_dir: Path) -> dict:
     else:
         keep = ("solver", "level", "unknowns", "ranks", "newton_iterations", "krylov_iterations", "solve_s",
                 "mumps_used_mb", "peak_rss_mb_sum", "difference_from_lu", "memory_ratio", "time_ratio", "failed",
-                "precision", "geometry", "last_ksp_reason")
+                "precision", "geometry", "variant", "last_ksp_reason")
         out["solvers"] = {key: [{k: r[k] for k in keep if k in r} for r in solvers[key]]
                           for key in ("levels", "precision", "gamg")}
     return out
@@ -375,10 +375,11 @@ def failure_chart(path: Path, result: dict) -> None:
                     "s-", label="GMRES + BLR 1e-4, idealized")
         for r in sol["gamg"]:
             if "failed" in r:
-                ax.plot([r["unknowns"]], [0], "rx", ms=9, label=f"GAMG fieldsplit, {r['geometry']}: fails")
+                ax.plot([r["unknowns"]], [0], "rx", ms=9, label=f"{r.get('variant', 'GAMG')} fieldsplit, "
+                                                                f"{r['geometry']}: fails")
             else:
                 ax.plot([r["unknowns"]], [r["krylov_iterations"] / r["newton_iterations"]], "^", ms=9,
-                        label=f"GAMG fieldsplit, {r['geometry']}")
+                        label=f"{r.get('variant', 'GAMG')} fieldsplit, {r['geometry']}")
         prec = sol["precision"]
         failed = [r["precision"] for r in prec if "failed" in r]
         ok = [r for r in prec if "failed" not in r]

@@ -1,6 +1,6 @@
 """Linear solvers side by side: MUMPS LU against GMRES with a BLR preconditioner, and GAMG.
 
-    python -m hyper.bench solvers [--levels 0,1,2] [--ranks 2] [--output results/bench]
+    python -m hyper.bench solvers [--levels 0,1,2] [--ranks 2] [--parts levels,precision,gamg]
 
 The scene is a growth solve: the resting idealized shape (refined `level` times, every
 tetrahedron into eight) takes one transverse growth increment Fg = I + (ϑ - 1)(I - a0⊗a0)
@@ -24,9 +24,12 @@ Where it stalls:
   preconditioner at precisions 1e-4 … 1e-1 (iterations, or where it fails);
 - GAMG: GMRES with a Schur-complement fieldsplit (u | p and the multipliers, selfp,
   Jacobi on the Schur block) and smoothed-aggregation AMG with the rigid-body near null
-  space on the displacement block, on the idealized shape and TA_VHF_Left as given.
+  space on the displacement block, on the idealized shape and TA_VHF_Left as given; on
+  TA_VHF_Left also with tuned GAMG and with an exact (LU) displacement solve, which
+  tells the displacement block's preconditioner from the Schur approximation.
 
-Writes results/bench/solvers.json and solvers.png (memory and time against unknowns,
+--parts runs only some of the three (levels, precision, gamg); the others are kept from
+an existing OUTPUT/solvers.json. Writes results/bench/solvers.json and solvers.png (memory and time against unknowns,
 iterations against unknowns and precision).
 """
 
@@ -46,7 +49,15 @@ from hyper.bench.refinement import memory_fit
 
 THETA = 1.05
 PRECISIONS = (1e-4, 1e-3, 1e-2, 1e-1)
-GAMG_GEOMETRIES = ("idealized", "TA_VHF_Left")
+# (geometry, variant): the variant's options go over GAMG_OPTIONS.
+GAMG_VARIANTS = {
+    "GAMG": {},
+    "GAMG, threshold 0.05, 4 smoothing steps": {"fieldsplit_u_pc_gamg_threshold": 0.05,
+                                                "fieldsplit_u_mg_levels_ksp_max_it": 4},
+    "exact displacement solve (LU)": {"fieldsplit_u_pc_type": "lu", "fieldsplit_u_pc_factor_mat_solver_type": "mumps"},
+}
+GAMG_CASES = (("idealized", "GAMG"), *(("TA_VHF_Left", variant) for variant in GAMG_VARIANTS))
+PARTS = ("levels", "precision", "gamg")
 # The Schur-complement fieldsplit of the GAMG cases; its splits are set in `_fieldsplit`.
 GAMG_OPTIONS = {
     "ksp_type": "gmres", "ksp_gmres_restart": 200, "ksp_pc_side": "right", "ksp_rtol": 1e-10,
@@ -63,7 +74,7 @@ GAMG_OPTIONS = {
 # ------------------------------------------------------------------------------ worker
 
 
-def _fieldsplit(problem, comm) -> None:
+def _fieldsplit(problem, comm, options: dict) -> None:
     """Displacement | pressure and multipliers splits, with the rigid-body near null space
     on the displacement block (its dofs are xyz triplets in the global order)."""
     from petsc4py import PETSc
@@ -99,7 +110,7 @@ def _fieldsplit(problem, comm) -> None:
     db = PETSc.Options()
     # The sub-solvers read their options when the preconditioner is first set up, inside
     # the first solve: they stay in the database for this one-problem process.
-    for key, value in GAMG_OPTIONS.items():
+    for key, value in options.items():
         db.setValue(problem.snes.getOptionsPrefix() + key, value)
     ksp.setFromOptions()
 
@@ -127,10 +138,10 @@ def run_case(case: dict, comm, save: Path | None) -> dict:
     if solver == "iterative":
         kwargs = {"linear_solver": "iterative", "blr_precision": case.get("precision", BLR_PRECISION)}
     start = time.perf_counter()
-    problem = MechanicsProblem(geometry, a0, growth=Fg,
-                               petsc_options=GAMG_OPTIONS if solver == "gamg" else None, **kwargs)
+    options = {**GAMG_OPTIONS, **GAMG_VARIANTS[case["variant"]]} if solver == "gamg" else None
+    problem = MechanicsProblem(geometry, a0, growth=Fg, petsc_options=options, **kwargs)
     if solver == "gamg":
-        _fieldsplit(problem, comm)
+        _fieldsplit(problem, comm, options)
     setup_s = time.perf_counter() - start
     theta.value = THETA
     start = time.perf_counter()
@@ -214,7 +225,7 @@ def chart(path: Path, result: dict) -> None:
         ok = "failed" not in r
         its = r["krylov_iterations"] / max(r.get("newton_iterations") or 1, 1) if ok else 0
         ax.semilogx([r["unknowns"]], [its], "^" if ok else "rx", ms=9,
-                    label=f"GAMG fieldsplit, {r['geometry']}" + ("" if ok else ": breaks down"))
+                    label=f"{r.get('variant', 'GAMG')} fieldsplit, {r['geometry']}" + ("" if ok else ": breaks down"))
     ax.set_xlabel("unknowns")
     ax.set_ylabel("Krylov iterations per Newton step (0: failed)")
     twin = ax.twiny()
@@ -239,7 +250,9 @@ def main(argv=None) -> int:
     parser.add_argument("--levels", default="0,1,2", help="refinement levels of the idealized shape (default 0,1,2)")
     parser.add_argument("--ranks", type=int, default=2, help="MPI ranks per run (default 2)")
     parser.add_argument("--precision-level", type=int, default=1, help="level of the BLR precision ladder (default 1)")
-    parser.add_argument("--no-gamg", action="store_true", help="skip the GAMG fieldsplit runs")
+    parser.add_argument("--parts", default=",".join(PARTS),
+                        help="which parts to run (default levels,precision,gamg); the others are kept from "
+                             "OUTPUT/solvers.json")
     parser.add_argument("--timeout", type=float, default=3600.0, help="seconds per run before it counts as failed")
     parser.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
     parser.add_argument("--replot", action="store_true", help="redraw the chart from OUTPUT/solvers.json, run nothing")
@@ -272,11 +285,19 @@ def main(argv=None) -> int:
         parser.error("--levels: between 0 and 3")
     if args.ranks < 1:
         parser.error("--ranks: at least 1")
+    parts = [p for p in args.parts.split(",") if p]
+    if not parts or set(parts) - set(PARTS):
+        parser.error(f"--parts: comma-separated, from {', '.join(PARTS)}; got {args.parts!r}")
+    previous = json.loads((args.output / "solvers.json").read_text()) if (args.output / "solvers.json").exists() else {}
+    kept = {part: previous.get(part, []) for part in PARTS if part not in parts}
+    if kept and previous.get("ranks", args.ranks) != args.ranks:
+        parser.error(f"--ranks {args.ranks}: the kept parts of {args.output / 'solvers.json'} ran on "
+                     f"{previous['ranks']} ranks; run all parts, or the same ranks")
 
     start = time.perf_counter()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for level in levels:
+        for level in levels if "levels" in parts else ():
             saved = {}
             for solver in ("lu", "iterative"):
                 saved[solver] = Path(tmp) / f"{solver}_{level}"
@@ -299,17 +320,19 @@ def main(argv=None) -> int:
                 print(f"  iterative - LU: {it['difference_from_lu']}; MUMPS memory x{it['memory_ratio']:.2f}, "
                       f"time x{it['time_ratio']:.2f}", flush=True)
     precision = []
-    for eps in PRECISIONS:
+    for eps in PRECISIONS if "precision" in parts else ():
         print(f"solvers: BLR precision {eps:g} on level {args.precision_level} …", flush=True)
         precision.append(_run_worker({"geometry": "idealized", "level": args.precision_level, "solver": "iterative",
                                       "precision": eps}, args.ranks, args.timeout, None))
     gamg = []
-    if not args.no_gamg:
-        for name in GAMG_GEOMETRIES:
-            print(f"solvers: GAMG fieldsplit on {name} …", flush=True)
-            gamg.append(_run_worker({"geometry": name, "level": 0, "solver": "gamg"}, 1, args.timeout, None))
+    for name, variant in GAMG_CASES if "gamg" in parts else ():
+        print(f"solvers: {variant} fieldsplit on {name} …", flush=True)
+        gamg.append(_run_worker({"geometry": name, "level": 0, "solver": "gamg", "variant": variant}, 1,
+                                args.timeout, None))
+    measured = {"levels": rows, "precision": precision, "gamg": gamg}
+    rows, precision, gamg = ({**measured, **kept}[part] for part in PARTS)
     result = {"benchmark": "solvers", "host": platform.node(), "ranks": args.ranks, "theta": THETA,
-              "levels": rows, "precision": precision, "gamg": gamg,
+              "levels": rows, "precision": precision, "gamg": gamg, "parts_run": parts,
               "memory_fit": {s: memory_fit([r for r in rows if r["solver"] == s]) for s in ("lu", "iterative")},
               "versions": io.versions(), "wall_s": time.perf_counter() - start}
     args.output.mkdir(parents=True, exist_ok=True)
@@ -318,7 +341,7 @@ def main(argv=None) -> int:
     with io.atomic_path(args.output / "solvers.png") as tmp:
         chart(tmp, result)
     for r in precision + gamg:
-        print(f"{r['solver']:9s} {r['geometry']:12s} precision {r.get('precision', '-')}: " +
+        print(f"{r.get('variant', r['solver']):40s} {r['geometry']:12s} precision {r.get('precision', '-')}: " +
               (f"FAILED {r['failed']}" if "failed" in r else
                f"{r['newton_iterations']} Newton, {r['krylov_iterations']} Krylov its, {r['solve_s']:.1f} s"))
     print(f"wrote {args.output / 'solvers.json'} and solvers.png")
