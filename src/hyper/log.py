@@ -1,14 +1,23 @@
-"""Progress on rank 0 only: every other rank stays silent."""
+"""Progress on rank 0 only: every other rank stays silent.
+
+Messages go to the ``hyper`` logger (`hyper.cli.setup_logging` sends them to stdout,
+filtered to rank 0 of the communicator each message names).
+"""
 
 from __future__ import annotations
 
-import sys
+import logging
 import time
+
+_logger = logging.getLogger("hyper")
 
 
 def info(comm, *args) -> None:
-    if comm is None or comm.rank == 0:
-        print(*args, flush=True, file=sys.stdout)
+    _logger.info(" ".join(str(a) for a in args), extra={"rank": 0 if comm is None else comm.rank})
+
+
+def debug(comm, *args) -> None:
+    _logger.debug(" ".join(str(a) for a in args), extra={"rank": 0 if comm is None else comm.rank})
 
 
 def hms(seconds: float) -> str:

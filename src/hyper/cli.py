@@ -1,0 +1,195 @@
+"""The command layer of every job: parsing, logging on rank 0, exit codes, output locks.
+
+A job module defines ``parser()`` (a `Parser`) and ``run(comm, args) -> int`` and ends
+with ``main = cli.entry(parser, run)``; ``hyper JOB …`` and ``python -m hyper.JOB …``
+then run the same thing. Bad input anywhere (an `InputError`, on any rank) is one
+``error:`` line on rank 0 and exit status 2; an output another run holds is exit 4.
+
+    hyper grow --geometry idealized --protocol mwf
+    hyper cohort --help
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib
+import logging
+import signal
+import sys
+from importlib import metadata
+from pathlib import Path
+from typing import Callable, Iterator
+
+from hyper.params import InputError
+
+EXIT_OK = 0
+EXIT_SOME_FAILED = 1
+EXIT_INPUT = 2
+EXIT_FAILED = 3
+EXIT_BUSY = 4
+EXIT_TERMINATED = 128 + signal.SIGTERM  # 143, what a shell reports for a TERM-killed job
+
+# `hyper JOB` runs hyper.JOB.main; the benches keep their own dispatcher (hyper bench NAME).
+JOBS = ("grow", "cohort", "ensemble", "signaling", "sobol", "contraction", "fibers", "meshstats", "slurm",
+        "demo", "bench")
+
+LOGGER = "hyper"
+
+
+def version() -> str:
+    try:
+        return metadata.version("hyper")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """The module docstring as written, and every option's default in its help."""
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse for a job: errors are InputErrors (one line on rank 0, exit status 2), every
+    default is shown in --help, and --quiet, --verbose and --version are always there."""
+
+    def __init__(self, job: str, description: str | None = None, **kwargs):
+        super().__init__(prog=f"hyper {job}", description=description, formatter_class=_HelpFormatter,
+                         allow_abbrev=False, **kwargs)
+        talk = self.add_argument_group("logging").add_mutually_exclusive_group()
+        talk.add_argument("--quiet", action="store_true", help="only warnings and errors")
+        talk.add_argument("--verbose", action="store_true", help="also debugging detail")
+        self.add_argument("--version", action="version", version=f"hyper {version()}")
+
+    def error(self, message):
+        raise InputError(message)
+
+
+# ------------------------------------------------------------------------------ logging
+
+
+class _Rank0(logging.Filter):
+    """Pass records of rank 0 of the communicator they name (``extra={"rank": …}``)."""
+
+    def __init__(self, world_rank: int):
+        super().__init__()
+        self.world_rank = world_rank
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return getattr(record, "rank", self.world_rank) == 0
+
+
+class _Stdout(logging.StreamHandler):
+    """Writes to the sys.stdout of the moment: a farm group may redirect it into a run's log."""
+
+    def __init__(self):
+        super().__init__(sys.stdout)
+
+    def emit(self, record):
+        self.setStream(sys.stdout)
+        super().emit(record)
+        self.flush()
+
+
+def setup_logging(world_rank: int, *, quiet: bool = False, verbose: bool = False) -> logging.Logger:
+    logger = logging.getLogger(LOGGER)
+    logger.setLevel(logging.WARNING if quiet else logging.DEBUG if verbose else logging.INFO)
+    for handler in list(logger.handlers):
+        logger.removeHandler(handler)
+    handler = _Stdout()
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    handler.addFilter(_Rank0(world_rank))
+    logger.addHandler(handler)
+    logger.propagate = False
+    return logger
+
+
+def error(comm, message: str) -> None:
+    """The one line a bad input gets: on rank 0 of ``comm``, on stderr."""
+    if comm is None or comm.rank == 0:
+        print(f"error: {message}", file=sys.stderr, flush=True)
+
+
+def warning(comm, message: str) -> None:
+    if comm is None or comm.rank == 0:
+        print(f"warning: {message}", file=sys.stderr, flush=True)
+
+
+# -------------------------------------------------------------------------------- locks
+
+
+@contextlib.contextmanager
+def hold(comm, outputs: list[Path]) -> Iterator[None]:
+    """Hold the output locks of ``outputs`` on rank 0 while the block runs (collective).
+
+    Raises `checkpoint.Busy` on every rank when another run holds one of them.
+    """
+    from hyper import checkpoint as ckpt
+
+    with contextlib.ExitStack() as held:
+        busy = unlocked = None
+        if comm.rank == 0:
+            try:
+                unlocked = held.enter_context(ckpt.locked(list(outputs)))
+            except ckpt.Busy as err:
+                busy = str(err)
+        busy = comm.bcast(busy, root=0)
+        if busy is not None:
+            raise ckpt.Busy(busy)
+        for path in unlocked or ():
+            warning(comm, f"{path}: the file system takes no locks; nothing keeps another run from writing "
+                          "the same output")
+        yield
+
+
+# ---------------------------------------------------------------------------- the entry
+
+
+def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool = True) -> Callable[..., int]:
+    """The ``main(argv=None)`` of a job: parse, set up logging, run, map errors to exit codes.
+
+    ``run(comm, args)`` gets MPI.COMM_WORLD (``world=False``: ``run(None, args)``, for
+    jobs that never start MPI) and returns the exit status.
+    """
+
+    def main(argv=None, comm=None) -> int:
+        from hyper import checkpoint as ckpt
+
+        argv = sys.argv[1:] if argv is None else list(argv)
+        if comm is None and world:
+            from mpi4py import MPI
+
+            comm = MPI.COMM_WORLD
+        rank = comm.rank if comm is not None else 0
+        try:
+            args = parser().parse_args(argv)
+        except InputError as err:
+            error(comm, str(err))
+            return EXIT_INPUT
+        setup_logging(rank, quiet=args.quiet, verbose=args.verbose)
+        try:
+            return int(run(comm, args))
+        except InputError as err:
+            error(comm, str(err))
+            return EXIT_INPUT
+        except ckpt.Busy as err:
+            error(comm, str(err))
+            return EXIT_BUSY
+
+    return main
+
+
+def main(argv=None) -> int:
+    """``hyper JOB [options]``: the job's own ``main`` with the rest of the command line."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in JOBS:
+        return importlib.import_module(f"hyper.{argv[0]}").main(argv[1:]) or 0
+    p = argparse.ArgumentParser(prog="hyper", description="Exercise-driven muscle hypertrophy: one command per job; "
+                                "`hyper JOB --help` shows a job's options.")
+    p.add_argument("job", choices=JOBS, help="the job to run")
+    p.add_argument("--version", action="version", version=f"hyper {version()}")
+    p.parse_args(argv)  # only reached for --help, --version or a bad job name
+    return EXIT_INPUT
+
+
+if __name__ == "__main__":
+    sys.exit(main())
