@@ -26,7 +26,7 @@ from petsc4py import PETSc
 
 from hyper import growth, section, signaling
 from hyper.mechanics import MechanicsProblem, SolverError
-from hyper.params import InputError
+from hyper.params import InputError, positive_hours
 from hyper.protocols import Protocol
 from hyper.signaling import SignalingError
 
@@ -46,20 +46,19 @@ class GrowthSettings:
     MAX_HALVINGS = 12
 
     def __post_init__(self):
-        for name in ("growth_dt", "signaling_dt"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise InputError(f"{name} must be a finite positive number of hours, got {value!r}")
+        positive_hours(self.growth_dt, "growth_dt")
+        positive_hours(self.signaling_dt, "signaling_dt")
         if self.signaling_dt > self.growth_dt:
-            raise InputError(f"signaling_dt ({self.signaling_dt:g} h) must not exceed growth_dt ({self.growth_dt:g} h)")
+            raise InputError(f"{self.signaling_dt:g} h must not exceed the growth step ({self.growth_dt:g} h)",
+                             field="signaling_dt")
         if self.feedback not in growth.FEEDBACK_LAWS:
-            raise InputError(
-                f"feedback must be one of {', '.join(growth.FEEDBACK_LAWS)}, got {self.feedback!r}"
-            )
+            raise InputError(f"must be one of {', '.join(growth.FEEDBACK_LAWS)}, got {self.feedback!r}",
+                             field="feedback")
         if isinstance(self.max_halvings, bool) or not (
             isinstance(self.max_halvings, int) and 0 <= self.max_halvings <= self.MAX_HALVINGS
         ):
-            raise InputError(f"max_halvings must be an integer in [0, {self.MAX_HALVINGS}], got {self.max_halvings!r}")
+            raise InputError(f"must be an integer in [0, {self.MAX_HALVINGS}], got {self.max_halvings!r}",
+                             field="max_halvings")
 
     def model_attributes(self) -> dict:
         """The settings that define the solution; max_halvings only decides how hard a

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from hyper.params import InputError, as_attributes
+from hyper.params import InputError, as_attributes, positive_hours
 
 ASKS = ("growth", "signaling")
 MODELS = ("signaling-only", "uniform", "per-cell")
@@ -169,9 +169,8 @@ def _predicted(ask: str, growth_dt: float | None, signaling_dt: float) -> float:
 
 def _check_steps(scene: Scene, growth_dt, signaling_dt) -> None:
     for name, value in (("growth_dt", growth_dt), ("signaling_dt", signaling_dt)):
-        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
-                                  or not math.isfinite(value) or value <= 0):
-            raise InputError(f"{name} must be a finite positive number of hours, got {value!r}")
+        if value is not None:
+            positive_hours(value, name)
     if scene.ask == "signaling" and growth_dt is not None:
         raise InputError("a signaling question has no growth step: give no growth_dt")
 

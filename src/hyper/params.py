@@ -14,7 +14,35 @@ from typing import Any, Mapping
 
 
 class InputError(ValueError):
-    """A user input (file, field or option) is malformed; the message says where and why."""
+    """A user input (file, field or option) is malformed; the message says where and why.
+
+    ``field`` names the dataclass field at fault, so that a command line can say which
+    of its options set it (`build`).
+    """
+
+    def __init__(self, message: str, *, field: str | None = None):
+        super().__init__(message if field is None else f"{field}: {message}")
+        self.field = field
+        self.reason = message
+
+
+def build(cls, options: Mapping[str, str], **values):
+    """``cls(**values)``, its validation errors naming the option that set the field
+    (``options`` maps field names to option names, e.g. growth_dt to --growth-dt)."""
+    try:
+        return cls(**values)
+    except InputError as err:
+        if err.field in options:
+            raise InputError(f"{options[err.field]}: {err.reason}") from None
+        raise
+
+
+def positive_hours(value: Any, field: str) -> float:
+    """A time step or duration: a finite number of hours > 0 (InputError naming ``field``)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+        shown = f"{value:g}" if isinstance(value, (int, float)) and not isinstance(value, bool) else repr(value)
+        raise InputError(f"expected a finite number of hours > 0, got {shown}", field=field)
+    return float(value)
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:
