@@ -29,3 +29,29 @@ def save(fig, path: str | Path, *, dpi: int = 150) -> Path:
         fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or "png")
     pyplot().close(fig)
     return path
+
+
+def growth_series(results: dict[str, dict], path: str | Path, data: Path | None = None) -> Path:
+    """CSA, volume and kM against time for several protocols (the paper's Fig. 4C–E),
+    with DeFreitas et al.'s CSA (``data``: their CSV) where given."""
+    import numpy as np
+
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), constrained_layout=True)
+    for name, s in results.items():
+        weeks = s["t"] / 168.0
+        axes[0].plot(weeks, 100 * (s["csa_ratio"] - 1), label=name)
+        axes[1].plot(weeks, 100 * (s["volume_ratio"] - 1), label=name)
+        axes[2].plot(weeks, s["kM"], label=name)
+    if data is not None and data.is_file():
+        measured = np.genfromtxt(data, delimiter=",", names=True)
+        axes[0].plot(measured["week"], 100 * (measured["csa"] / measured["csa"][0] - 1), "ko", ms=4,
+                     label="DeFreitas 2011 (mwf)")
+    axes[0].set_ylabel("CSA change (%)")
+    axes[1].set_ylabel("volume change (%)")
+    axes[2].set_ylabel("kM (1/h)")
+    for ax in axes:
+        ax.set_xlabel("time (weeks)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    return save(fig, path)

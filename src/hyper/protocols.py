@@ -184,3 +184,17 @@ def resolve(name_or_path: str | Path) -> Protocol:
     if text.endswith(".toml") or Path(text).is_file():
         return load(text)
     raise InputError(f"unknown protocol {text!r}: give one of {', '.join(NAMES)} or a .toml file")
+
+
+PAPER = ("mwf", "every3days", "weekly")  # the paper's three, in its order of growth
+
+
+def from_option(value: str, option: str = "--protocol") -> list[Protocol]:
+    """The protocols an option names: a built-in name, 'all' for the paper's three, or a TOML file."""
+    if value == "all":
+        return [named(n) for n in PAPER]
+    if value in NAMES:
+        return [named(value)]
+    if str(value).endswith(".toml") or Path(value).is_file():
+        return [load(value)]
+    raise InputError(f"{option}: unknown protocol {value!r}; known: {', '.join(NAMES)}, or 'all', or a TOML file")
