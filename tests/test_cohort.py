@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from hyper import cohort, grow
+from hyper import cohort, run
 from hyper.coupled import GrowthSettings
 
 SHORT_PROTOCOL = """name = "short"
@@ -143,7 +143,7 @@ def test_stale_checkpoint_is_dropped(tmp_path):
     (["--protocols", "daily"], "unknown protocol"),
     (["--snapshot-every", "0"], "--snapshot-every"),
     (["--ranks-per-job", "0"], "--ranks-per-job"),
-    (["--picture", "nowhere"], "--picture"),
+    (["--plot-geometry", "nowhere"], "--plot-geometry"),
 ])
 def test_bad_options_exit_2_and_write_nothing(tmp_path, capsys, argv, message):
     out = tmp_path / "out"
@@ -160,15 +160,15 @@ def shared_tmp(comm, tmp_path):
 
 
 def failing_for(geometry):
-    """grow.run_one, except that it fails (on every rank of the group) for one geometry."""
-    real = grow.run_one
+    """run.execute, except that it fails (on every rank of the group) for one geometry."""
+    real = run.execute
 
-    def run_one(comm, geometry_name, *args, **kwargs):
-        if geometry_name == geometry:
-            raise RuntimeError(f"injected failure for {geometry_name}")
-        return real(comm, geometry_name, *args, **kwargs)
+    def execute(comm, spec, *args, **kwargs):
+        if spec.geometry == geometry:
+            raise RuntimeError(f"injected failure for {spec.geometry}")
+        return real(comm, spec, *args, **kwargs)
 
-    return run_one
+    return execute
 
 
 def read_rows(path):
@@ -186,11 +186,11 @@ def test_mpi_small_cohort_failure_rerun_and_skip(tmp_path, monkeypatch):
     comm.barrier()
     out = folder / "cohort"
     argv = ["--geometries", "cylinder", "idealized", "--protocols", str(protocol), "--output", str(out),
-            "--picture", "cylinder", "--snapshot-every", "2"]
+            "--plot-geometry", "cylinder", "--snapshot-every", "2"]
 
     # 1. two groups of one rank; the idealized run fails, the cylinder run finishes
     with monkeypatch.context() as m:
-        m.setattr(grow, "run_one", failing_for("idealized"))
+        m.setattr(run, "execute", failing_for("idealized"))
         assert cohort.main(argv) == 1
     rows = read_rows(out / "summary.csv")
     assert list(rows[0]) == list(cohort.COLUMNS)
@@ -253,33 +253,33 @@ def test_mpi_interrupted_run_resumes_to_the_uninterrupted_result(tmp_path):
     if comm.rank == 0:
         (folder / "short.toml").write_text(SHORT_PROTOCOL)
     comm.barrier()
-    run = cohort.Run("cylinder", protocols.load(folder / "short.toml"))
-    whole = cohort.run_cohort(comm, [run], folder / "whole", ranks_per_job=2)
+    entry = cohort.Run("cylinder", protocols.load(folder / "short.toml"))
+    whole = cohort.run_cohort(comm, [entry], folder / "whole", ranks_per_job=2)
     assert whole[0].status == "done"
 
     # stopped after its 2nd growth step (stop() is asked at the start and after each step):
     # a checkpoint, no result
     out = folder / "cut"
-    stopped = cohort.run_cohort(comm, [run], out, ranks_per_job=2, stop=StopAfter(3))
+    stopped = cohort.run_cohort(comm, [entry], out, ranks_per_job=2, stop=StopAfter(3))
     assert stopped[0].status == "done"
-    h5 = cohort.series_path(out, run)
-    assert not h5.exists() and grow.checkpoint_path(h5).is_file()
+    h5 = cohort.series_path(out, entry)
+    assert not h5.exists() and run.Outputs(h5).checkpoint.is_file()
     # a run that has not started when the stop comes is not started at all
-    other = cohort.Run("idealized", run.protocol)
+    other = cohort.Run("idealized", entry.protocol)
     never = cohort.run_cohort(comm, [other], out, stop=lambda: True)
     assert not (out / "runs" / "idealized_short.log").exists()
     if comm.rank == 0:
         assert stopped[0].result == {"interrupted": True}
         assert never[0].result == {"interrupted": True}
-        rows = cohort.summarize(out, [run, other], {}, {run.key, other.key})
+        rows = cohort.summarize(out, [entry, other], {}, {entry.key, other.key})
         assert [r["status"] for r in rows] == ["interrupted", "interrupted"]
 
-    # resumed on two groups of one rank: the result of the run that was never stopped
-    resumed = cohort.run_cohort(comm, [run], out, ranks_per_job=1)
+    # resumed on two groups of one rank: the result of the entry that was never stopped
+    resumed = cohort.run_cohort(comm, [entry], out, ranks_per_job=1)
     assert resumed[0].status == "done"
-    assert not grow.checkpoint_path(h5).exists()
+    assert not run.Outputs(h5).checkpoint.exists()
     assert "resuming from" in (out / "runs" / "cylinder_short.log").read_text()
-    a = cohort.io.read_series(cohort.series_path(folder / "whole", run))
+    a = cohort.io.read_series(cohort.series_path(folder / "whole", entry))
     b = cohort.io.read_series(h5)
     assert np.array_equal(a["t"], b["t"])
     np.testing.assert_allclose(b["csa_ratio"], a["csa_ratio"], rtol=1e-12, atol=0)

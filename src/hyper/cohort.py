@@ -5,7 +5,7 @@
     python -m hyper.cohort --geometries BFLH_VHF_Left --protocols mwf my_protocol.toml
 
 Every (geometry, protocol) pair is one job of `hyper.farm` (longest first, by the
-estimate mesh cells × growth steps), run by `hyper.grow.run_one` on its group's
+estimate mesh cells × growth steps), run by `hyper.run.execute` on its group's
 communicator. Per run, under OUTPUT/runs/:
 
     GEOMETRY_PROTOCOL.h5            the time series (as hyper.grow writes it) with the
@@ -23,14 +23,14 @@ nothing left to do writes the same summary):
     failures.txt    the error of every failed run (only when some failed)
     ratios.png      final CSA and volume change by muscle and protocol, mean ± standard
                     error over the four members of each muscle (Fig. 6C–D analog)
-    shape.png       the grown --picture geometry (default BFLH_VHF_Left) per protocol,
+    shape.png       the grown --plot-geometry geometry (default BFLH_VHF_Left) per protocol,
                     displacement amplified 10× (Fig. 6A analog)
     table.md        the results against the paper (MODEL.md §8)
 
 Rerunning the same command skips every run whose .h5 is complete and was computed with
-the same geometry, protocol, signaling parameters and settings (hyper.grow's
-`run_digest`); the others run again. Each run saves a checkpoint every
-hyper.grow.CHECKPOINT_EVERY growth steps (runs/GEOMETRY_PROTOCOL.ckpt.h5, deleted when
+the same geometry, protocol, signaling parameters and settings (hyper.run's
+`RunSpec.digest`); the others run again. Each run saves a checkpoint every
+hyper.run.CHECKPOINT_EVERY growth steps (runs/GEOMETRY_PROTOCOL.ckpt.h5, deleted when
 its series is stored), so after a kill (Ctrl-C, a Slurm time limit) the same command
 resumes the interrupted runs where they were; a run that failed keeps its checkpoint
 and resumes from it. Files appear only when whole (hyper.io). One cohort at a time
@@ -43,7 +43,6 @@ output is locked, 143 stopped by SIGTERM (run the same command again to continue
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import csv
 import dataclasses
@@ -60,17 +59,16 @@ import numpy as np
 from mpi4py import MPI
 
 from hyper import checkpoint as ckpt
-from hyper import farm, io, protocols, signaling
+from hyper import cli, farm, io, plot, protocols, run, signaling
 from hyper import geometry as geo
-from hyper import grow
 from hyper.coupled import GrowthSettings, step_times
 from hyper.log import hms, info
-from hyper.params import InputError, as_attributes
+from hyper.params import InputError, build
 from hyper.protocols import Protocol
 
 COLUMNS = ("geometry", "muscle", "subject", "side", "protocol", "csa0_cm2", "volume0_cm3",
            "final_csa_ratio", "final_volume_ratio", "wall_s", "status")
-PAPER_PROTOCOLS = grow.PAPER_PROTOCOLS  # in the paper's order of growth: mwf > every3days > weekly
+PAPER_PROTOCOLS = protocols.PAPER  # in the paper's order of growth: mwf > every3days > weekly
 # MODEL.md §8, anatomical cohort under mwf: increases in percent (low, high)
 PAPER_MWF_INCREASE = {"volume": (8.0, 9.0), "csa": (3.0, 6.0)}
 PICTURE_SCALE = 10.0  # displacement amplification of the shape picture (the paper's Fig. 6A)
@@ -120,23 +118,12 @@ def growth_steps(protocol: Protocol, growth_dt: float) -> int:
     return sum(len(step_times(t0, t1, growth_dt)) - 1 for t0, t1, _ in protocol.periods())
 
 
-def run_digest(run: Run, params, settings: GrowthSettings) -> str:
-    """What a run's result depends on, hashed as hyper.grow does (its `run_digest`)."""
-    return ckpt.digest(grow.describe(run.geometry, run.protocol, params, settings))
+def spec(entry: Run, params, settings: GrowthSettings) -> run.RunSpec:
+    return run.RunSpec(entry.geometry, entry.protocol, params, settings)
 
 
-def series_path(output: Path, run: Run) -> Path:
-    return Path(output) / "runs" / f"{run.key}.h5"
-
-
-def is_current(path: Path, digest: str) -> bool:
-    """A complete series file computed with the settings that ``digest`` stands for."""
-    import h5py
-
-    if not io.is_complete(path):
-        return False
-    with h5py.File(path, "r") as f:
-        return f.attrs.get("run_digest") == digest
+def series_path(output: Path, entry: Run) -> Path:
+    return Path(output) / "runs" / f"{entry.key}.h5"
 
 
 def drop_stale_checkpoint(path: Path, digest: str) -> None:
@@ -177,51 +164,46 @@ class _RunLog:
 
 
 def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: GrowthSettings | None = None,
-               snapshot_every: int = 10, ranks_per_job: int = 1, stop=None) -> list[farm.JobResult]:
+               snapshot_every: int = run.SNAPSHOT_EVERY, ranks_per_job: int = 1, stop=None) -> list[farm.JobResult]:
     """Run every run not done before on the farm; collective over ``comm``.
 
-    Each run checkpoints every grow.CHECKPOINT_EVERY growth steps (runs/KEY.ckpt.h5) and
+    Each run checkpoints every run.CHECKPOINT_EVERY growth steps (runs/KEY.ckpt.h5) and
     resumes from its checkpoint, so a killed cohort loses at most that much per run.
-    ``stop()`` turning true (grow.StopOnTerm: SIGTERM) stops the running runs at their
+    ``stop()`` turning true (run.StopOnTerm: SIGTERM) stops the running runs at their
     next step boundary with a checkpoint, and the runs not started yet at once; their
     results are ``{"interrupted": True}``.
     """
     params = signaling.SignalingParams() if params is None else params
     settings = GrowthSettings() if settings is None else settings
     output = Path(output)
-    digests = {r.key: run_digest(r, params, settings) for r in runs}
+    specs = {r.key: spec(r, params, settings) for r in runs}
+    digests = {key: s.digest() for key, s in specs.items()}
     jobs = [farm.Job(r.key, cost=float(mesh_cells(r.geometry) * growth_steps(r.protocol, settings.growth_dt)),
                      payload=r) for r in runs]
     if comm.rank == 0:
         (output / "runs").mkdir(parents=True, exist_ok=True)
 
     def is_done(job):
-        return is_current(series_path(output, job.payload), digests[job.key])
+        return run.Outputs(series_path(output, job.payload)).is_current(digests[job.key])
 
     def work(subcomm, job):
-        run: Run = job.payload
+        entry: Run = job.payload
         interrupted = {"interrupted": True} if subcomm.rank == 0 else None
         if subcomm.allreduce(bool(stop is not None and stop()), op=MPI.LOR):
             return interrupted
-        h5 = series_path(output, run)
-        saved = grow.checkpoint_path(h5)
-        ckpt.on_rank0(subcomm, lambda: drop_stale_checkpoint(saved, digests[run.key]))
+        out = run.Outputs(series_path(output, entry))
+        ckpt.on_rank0(subcomm, lambda: drop_stale_checkpoint(out.checkpoint, digests[entry.key]))
         try:
-            with _RunLog(h5.with_suffix(".log")) if subcomm.rank == 0 else contextlib.nullcontext():
-                series, meta = grow.run_one(subcomm, run.geometry, run.protocol, params, settings,
-                                            snapshot_every=snapshot_every, xdmf_path=grow.fields_path(h5),
-                                            checkpoint=saved, stop=stop)
-        except grow.Interrupted:
+            with _RunLog(out.h5.with_suffix(".log")) if subcomm.rank == 0 else contextlib.nullcontext():
+                done = run.execute(subcomm, specs[entry.key], out, snapshot_every=snapshot_every, stop=stop)
+        except run.Interrupted:
             return interrupted
         if subcomm.rank != 0:
             return None
-        io.write_series(
-            h5, series, attrs={**meta, **member(run.geometry), "protocol": run.protocol.name},
-            groups={"signaling": as_attributes(params), "protocol": run.protocol.to_attributes(),
-                    "settings": dataclasses.asdict(settings)},
-        )
-        saved.unlink(missing_ok=True)
-        return {"csa_ratio": float(series["csa_ratio"][-1]), "volume_ratio": float(series["volume_ratio"][-1])}
+        out.store(done.series, {**done.meta, **member(entry.geometry), "protocol": entry.protocol.name},
+                  run.result_groups(specs[entry.key]))
+        return {"csa_ratio": float(done.series["csa_ratio"][-1]),
+                "volume_ratio": float(done.series["volume_ratio"][-1])}
 
     return farm.run(comm, jobs, work, ranks_per_job=ranks_per_job, is_done=is_done, label="cohort")
 
@@ -380,24 +362,10 @@ def markdown(rows: list[dict], settings: GrowthSettings) -> str:
 
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path: Path) -> None:
-    with io.atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=140)
-
-
 def ratio_figure(rows: list[dict], path: Path) -> None:
     """Final CSA and volume change per muscle and protocol: mean ± standard error over the
     members (bars), each member (dots), and the paper's mwf range (grey band)."""
-    plt = _pyplot()
+    plt = plot.pyplot()
     groups = list(dict.fromkeys(group(r) for r in rows))
     names = list(dict.fromkeys(r["protocol"] for r in rows))
     width = 0.8 / len(names)
@@ -421,7 +389,7 @@ def ratio_figure(rows: list[dict], path: Path) -> None:
         ax.set_title(f"final {title}: mean ± standard error, dots: members")
         ax.grid(axis="y", alpha=0.3)
     axes[0].legend(fontsize=8)
-    _save(fig, path)
+    plot.save(fig, path, dpi=140)
     plt.close(fig)
 
 
@@ -461,7 +429,7 @@ def shape_figure(fields: dict[str, dict], path: Path, title: str) -> None:
     from matplotlib import cm, colors
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    plt = _pyplot()
+    plt = plot.pyplot()
     first = next(iter(fields.values()))
     # Upright frame from the reference vertices: the first principal axis vertical.
     x0 = first["x"]
@@ -485,7 +453,7 @@ def shape_figure(fields: dict[str, dict], path: Path, title: str) -> None:
         ax.set_title(f"{name}, day {f['t'] / 24:.0f}\nmean det Ḡ {f['detGbar'].mean():.4f}", fontsize=10)
     fig.colorbar(cm.ScalarMappable(norm=norm, cmap="viridis"), ax=fig.axes, shrink=0.6, label="|u| (mm)")
     fig.suptitle(f"{title}: grown shape, displacement ×{PICTURE_SCALE:g} (axis: cm along the muscle)")
-    _save(fig, path)
+    plot.save(fig, path, dpi=140)
     plt.close(fig)
 
 
@@ -493,44 +461,39 @@ def shape_figure(fields: dict[str, dict], path: Path, title: str) -> None:
 # CLI
 
 
-def parse_args(argv):
-    p = argparse.ArgumentParser(prog="python -m hyper.cohort", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+def parser() -> cli.Parser:
+    p = cli.Parser("cohort", __doc__)
     p.add_argument("--geometries", nargs="+", metavar="ID", default=list(geo.ANATOMICAL),
-                   help="geometry ids (default: the 12 anatomical meshes; idealized and cylinder work too)")
+                   help="geometry ids (the 12 anatomical meshes by default; idealized and cylinder work too)")
     p.add_argument("--protocols", nargs="+", metavar="NAME|FILE", default=list(PAPER_PROTOCOLS),
-                   help=f"named protocols ({', '.join(protocols.NAMES)}) or .toml protocol files "
-                        f"(default: {' '.join(PAPER_PROTOCOLS)})")
-    p.add_argument("--output", type=Path, default=Path("results/cohort"), help="output folder (default results/cohort)")
-    p.add_argument("--ranks-per-job", type=int, default=1,
-                   help="MPI ranks per run; must divide the number of ranks (default 1)")
-    p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt,
-                   help=f"growth step Δtg in h, the accuracy option (default {GrowthSettings.growth_dt:g})")
+                   help=f"named protocols ({', '.join(protocols.NAMES)}) or TOML protocol files")
+    p.add_argument("--output", type=Path, default=Path("results/cohort"), help="output folder")
+    p.add_argument("--ranks-per-job", type=int, default=1, help="MPI ranks per run; must divide the number of ranks")
+    p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step Δtg (h)")
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run fails; a failed run "
-                        "resumes from its checkpoint with a larger value (default %(default)s)")
-    p.add_argument("--snapshot-every", type=int, default=10, help="XDMF snapshot every K growth steps (default 10)")
-    p.add_argument("--picture", default="BFLH_VHF_Left", metavar="ID",
-                   help="geometry of the shape picture (default BFLH_VHF_Left, the paper's Fig. 6A)")
-    return p.parse_args(argv)
+                        "resumes from its checkpoint with a larger value")
+    p.add_argument("--snapshot-every", type=int, default=run.SNAPSHOT_EVERY, help="XDMF snapshot every K growth steps")
+    p.add_argument("--plot-geometry", default="BFLH_VHF_Left", metavar="ID",
+                   help="geometry of the shape plot (the paper's Fig. 6A)")
+    return p
 
 
-def _check(args, comm) -> tuple[list[Run], GrowthSettings]:
+def check(args, comm) -> tuple[list[Run], GrowthSettings]:
     unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
     if unknown:
         raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")
     if args.ranks_per_job < 1 or comm.size % args.ranks_per_job:
         raise InputError(f"--ranks-per-job must be >= 1 and divide the number of MPI ranks ({comm.size}), "
                          f"got {args.ranks_per_job}")
-    if args.picture not in geo.GEOMETRIES:
-        raise InputError(f"--picture: unknown geometry {args.picture!r}; known: {', '.join(geo.GEOMETRIES)}")
+    if args.plot_geometry not in geo.GEOMETRIES:
+        raise InputError(f"--plot-geometry: unknown geometry {args.plot_geometry!r}; "
+                         f"known: {', '.join(geo.GEOMETRIES)}")
     if args.snapshot_every < 1:
         raise InputError(f"--snapshot-every must be a positive integer, got {args.snapshot_every}")
-    try:
-        settings = GrowthSettings(growth_dt=args.growth_dt, max_halvings=args.max_halvings)
-    except InputError as err:
-        raise InputError(f"--{str(err).replace('_', '-')}") from None
-    runs = plan(args.geometries, [protocols.resolve(p) for p in args.protocols])
+    settings = build(GrowthSettings, {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings"},
+                     growth_dt=args.growth_dt, max_halvings=args.max_halvings)
+    runs = plan(args.geometries, [p for text in args.protocols for p in protocols.from_option(text, "--protocols")])
     return runs, settings
 
 
@@ -560,10 +523,11 @@ def _finish(args, runs: list[Run], results, settings: GrowthSettings, elapsed: f
     if done:
         ratio_figure(done, output / "ratios.png")
         written.append(output / "ratios.png")
-    pictured = {r.protocol.name: grow.fields_path(series_path(output, r)) for r in runs if r.geometry == args.picture}
+    pictured = {r.protocol.name: run.Outputs(series_path(output, r)).fields for r in runs
+                if r.geometry == args.plot_geometry}
     pictured = {name: p for name, p in pictured.items() if p.is_file()}
     if pictured:
-        shape_figure({name: final_fields(p) for name, p in pictured.items()}, output / "shape.png", args.picture)
+        shape_figure({name: final_fields(p) for name, p in pictured.items()}, output / "shape.png", args.plot_geometry)
         written.append(output / "shape.png")
     table = markdown(rows, settings)
     with io.atomic_path(output / "table.md") as tmp:
@@ -585,35 +549,17 @@ def _finish(args, runs: list[Run], results, settings: GrowthSettings, elapsed: f
         info(None, f"stopped by SIGTERM: {len(interrupted)} run(s) not finished ({', '.join(sorted(interrupted))}); "
                    "rerun the same command to continue them from their checkpoints")
     info(None, "wrote " + ", ".join(str(p) for p in written))
-    return grow.EXIT_TERMINATED if interrupted else 1 if failed else 0
+    return cli.EXIT_TERMINATED if interrupted else cli.EXIT_SOME_FAILED if failed else cli.EXIT_OK
 
 
-def main(argv=None) -> int:
-    comm = MPI.COMM_WORLD
+def cohort(comm, args) -> int:
     start = time.perf_counter()
-    args = parse_args(sys.argv[1:] if argv is None else argv)
-    try:
-        runs, settings = _check(args, comm)
-    except InputError as err:
-        if comm.rank == 0:
-            print(f"error: {err}", file=sys.stderr)
-        return 2
-    with contextlib.ExitStack() as held:
-        busy = None
-        if comm.rank == 0:
-            try:
-                held.enter_context(ckpt.locked([args.output]))
-            except ckpt.Busy as err:
-                busy = str(err)
-        busy = comm.bcast(busy, root=0)
-        if busy is not None:
-            if comm.rank == 0:
-                print(f"error: {busy}", file=sys.stderr)
-            return 4
+    runs, settings = check(args, comm)
+    with cli.hold(comm, [args.output]):
         info(comm, f"cohort: {len(runs)} runs ({len(args.geometries)} geometries × {len(args.protocols)} "
                    f"protocols) on {comm.size} rank(s) in groups of {args.ranks_per_job}, growth step "
                    f"{settings.growth_dt:g} h, output {args.output}")
-        with grow.StopOnTerm() as stop:
+        with run.StopOnTerm() as stop:
             results = run_cohort(comm, runs, args.output, settings=settings, snapshot_every=args.snapshot_every,
                                  ranks_per_job=args.ranks_per_job, stop=stop)
         code = 0
@@ -622,10 +568,12 @@ def main(argv=None) -> int:
                 code = _finish(args, runs, results, settings, time.perf_counter() - start)
             except Exception:  # noqa: BLE001 - the other ranks wait below: report, never leave them hanging
                 traceback.print_exc()
-                code = 1
+                code = cli.EXIT_SOME_FAILED
         _idle_barrier(comm)
     return int(comm.bcast(code, root=0))
 
+
+main = cli.entry(parser, cohort)
 
 if __name__ == "__main__":
     sys.exit(main())
