@@ -17,8 +17,11 @@ growth displacement u as P1). Files:
     OUTPUT/GEOMETRY_PROTOCOL/LABEL/seedI.h5, seedI_fields.xdmf/.h5
     OUTPUT/GEOMETRY_PROTOCOL/LABEL/summary.json, fig7a_states.png, fig7b_growth.png, fig7c_maps.png
 
-with LABEL e.g. uniform-noise_eps0.01. A run whose complete .h5 exists with the same
-settings is skipped, so a rerun only redoes what is missing (and the figures).
+with LABEL e.g. uniform-noise_eps0.01. A run whose complete .h5 exists for the same run
+(hyper.run's digest: geometry, protocol, heterogeneity, seed, settings) is skipped, so a
+rerun only redoes what is missing (and the figures). Runs checkpoint and resume as
+hyper grow's do (RESULT.ckpt.h5 every 10 growth steps and at the first step boundary
+after a SIGTERM; exit status 143, and the same command continues them).
 
 Roughness of a cell field f: R(f) = sqrt(mean over interior facets of
 ((f_a − f_b)/|x_a − x_b|)²) / std(f), with a, b the facet's two cells and x their
@@ -31,7 +34,6 @@ session boundaries), so the IGF1/AKT spikes between them are not resolved in Fig
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import sys
@@ -46,62 +48,51 @@ from dolfinx import fem
 from dolfinx import mesh as dmesh
 from mpi4py import MPI
 
-from hyper import farm, heterogeneity, io, protocols, signaling
+from hyper import cli, farm, heterogeneity, io, plot, protocols, run, signaling
 from hyper import geometry as geo
-from hyper.coupled import CoupledModel, GrowthSettings
-from hyper.log import Progress, hms, info
-from hyper.params import InputError, as_attributes
+from hyper.coupled import GrowthSettings
+from hyper.log import hms, info
+from hyper.params import InputError, build
 
 STD = tuple(f"{s}_std" for s in signaling.STATES)
-SERIES = ("t", "csa_ratio", "volume_ratio", "kM", *signaling.STATES, *STD, "newton_iterations", "wall_s")
 FIELDS = ("N", "detGbar", "u")
 
 
 @dataclasses.dataclass(frozen=True)
 class Sample:
-    """One run of an ensemble: the uniform case (seed None) or a heterogeneous sample."""
+    """One run of an ensemble: the uniform case (no heterogeneity) or a heterogeneous sample."""
 
-    geometry: str
-    protocol: str
-    spec: heterogeneity.Heterogeneity | None
-    seed: int | None
-    h5: str
-    xdmf: str
+    spec: run.RunSpec
+    h5: Path
+
+    @property
+    def outputs(self) -> run.Outputs:
+        return run.Outputs(self.h5)
 
 
-class Snapshots:
-    """N and det Ḡ (DG0) and the growth displacement (P1) of a run, updated in place."""
+class FinalFields:
+    """N, det Ḡ and |u| per cell (DG0, ghosts included) at the end of a run."""
 
-    def __init__(self, model: CoupledModel):
+    def __init__(self, model):
         mesh = model.geometry.mesh
-        self.model = model
+        self.mesh = mesh
         dg0 = fem.functionspace(mesh, ("DG", 0))
-        self.N = fem.Function(dg0, name="N")
-        self.det = fem.Function(dg0, name="detGbar")
-        self.umag = fem.Function(dg0, name="u_magnitude")
-        self.u = fem.Function(fem.functionspace(mesh, ("Lagrange", 1, (3,))), name="u")
         self._dofs = dg0.dofmap.list[model.growth.cells][:, 0]
+        self.fields = {name: fem.Function(dg0, name=name) for name in FIELDS}
+        self.fields["N"].x.array[self._dofs] = model.y[signaling.STATES.index("N")]
+        self.fields["detGbar"].x.array[self._dofs] = model.growth.cell_det()
         u = model.problem.u
-        self._umag = fem.Expression(ufl.sqrt(ufl.dot(u, u)), dg0.element.interpolation_points)
-
-    def update(self):
-        m = self.model
-        self.N.x.array[self._dofs] = m.y[4]
-        self.det.x.array[self._dofs] = m.growth.cell_det()
-        self.umag.interpolate(self._umag)
-        for f in (self.N, self.det, self.umag):
+        self.fields["u"].interpolate(fem.Expression(ufl.sqrt(ufl.dot(u, u)), dg0.element.interpolation_points))
+        for f in self.fields.values():
             f.x.scatter_forward()
-        self.u.interpolate(m.problem.u)
-        return self.N, self.det, self.u
 
     def cell_values(self) -> dict[str, np.ndarray]:
         """The fields of FIELDS at the owned cells (|u| at the midpoints)."""
-        return {"N": self.N.x.array[self._dofs].copy(), "detGbar": self.det.x.array[self._dofs].copy(),
-                "u": self.umag.x.array[self._dofs].copy()}
+        return {name: f.x.array[self._dofs].copy() for name, f in self.fields.items()}
 
     def roughness(self) -> dict[str, float]:
         """R(f) of the module docstring for each field (NaN for a constant field)."""
-        mesh = self.model.geometry.mesh
+        mesh = self.mesh
         tdim = mesh.topology.dim
         mesh.topology.create_connectivity(tdim - 1, tdim)
         f2c = mesh.topology.connectivity(tdim - 1, tdim)
@@ -113,11 +104,11 @@ class Snapshots:
         nowned, ncells = cells.size_local, cells.size_local + cells.num_ghosts
         mid = mesh.geometry.x[dmesh.entities_to_geometry(mesh, tdim, np.arange(ncells, dtype=np.int32))].mean(axis=1)
         dist = np.linalg.norm(mid[a] - mid[b], axis=1)
-        dofs = self.N.function_space.dofmap.list[:, 0]
+        dofs = self.fields["N"].function_space.dofmap.list[:, 0]
         comm = mesh.comm
         count = comm.allreduce(len(interior), op=MPI.SUM)
         out = {}
-        for name, f in (("N", self.N), ("detGbar", self.det), ("u", self.umag)):
+        for name, f in self.fields.items():
             v = f.x.array[dofs]
             grad2 = comm.allreduce(float(np.sum(((v[a] - v[b]) / dist) ** 2)), op=MPI.SUM) / count
             out[name] = float(np.sqrt(grad2) / global_std(comm, v[:nowned]))
@@ -154,63 +145,28 @@ def gather_cells(comm, mesh, values: dict[str, np.ndarray], points: np.ndarray) 
     return out
 
 
-def run_sample(comm, sample: Sample, settings: GrowthSettings, *, snapshot_every: int) -> dict:
-    """One coupled run of an ensemble; writes its series and fields. Collective over comm."""
-    protocol = protocols.named(sample.protocol)
-    geometry = geo.load(sample.geometry, comm)
-    a0 = geo.fiber_field(geometry)
-    if sample.spec is None:
-        params = signaling.SignalingParams()
-    else:
-        params = heterogeneity.cell_params(geometry.mesh, sample.spec, sample.seed)
-    model = CoupledModel(geometry, a0, protocol, params=params, settings=settings)
-    snaps = Snapshots(model)
-    series = {name: [] for name in SERIES}
-    label = f"{sample.geometry}/{sample.protocol}/{Path(sample.h5).stem}"
-    progress = Progress(comm, protocol.end, label, every=30.0)
-    start = time.perf_counter()
-    with io.atomic_xdmf(comm, sample.xdmf) as xdmf:
-        xdmf.write_mesh(geometry.mesh)
-        for report in model.run():
-            for name, value in zip(signaling.STATES, report.states):
-                series[name].append(value)
-            for name, value in zip(STD, state_std(comm, model.y)):
-                series[name].append(value)
-            series["t"].append(report.t)
-            series["csa_ratio"].append(report.csa_ratio)
-            series["volume_ratio"].append(report.volume_ratio)
-            series["kM"].append(report.kM)
-            series["newton_iterations"].append(report.newton_iterations)
-            series["wall_s"].append(time.perf_counter() - start)
-            last = report.t >= protocol.end
-            if report.step % snapshot_every == 0 or last:
-                for f in snaps.update():
-                    xdmf.write_function(f, report.t)
-            progress.update(report.t, f"CSA/CSA0 {report.csa_ratio:.5f}, V/V0 {report.volume_ratio:.5f}", force=last)
-    rough = snaps.roughness()
-    final = gather_cells(comm, geometry.mesh, snaps.cell_values(), heterogeneity.cell_midpoints(geometry.mesh))
-    wall = time.perf_counter() - start
+def std_columns(comm) -> dict:
+    """The series columns of the spread of each state across all cells."""
+    return {name: (lambda model, i=i: state_std(comm, model.y)[i]) for i, name in enumerate(STD)}
+
+
+def run_sample(comm, sample: Sample, *, snapshot_every: int, stop=None) -> dict:
+    """One coupled run of an ensemble, with checkpoints; writes its series and fields.
+    Collective over comm; raises run.Interrupted after a SIGTERM (checkpoint saved)."""
+    spec = sample.spec
+    done = run.execute(comm, spec, sample.outputs, snapshot_every=snapshot_every, stop=stop,
+                       extra_series=std_columns(comm), progress_every=30.0)
+    final = FinalFields(done.model)
+    rough = final.roughness()
+    cells = gather_cells(comm, final.mesh, final.cell_values(), heterogeneity.cell_midpoints(final.mesh))
     if comm.rank == 0:
-        data = {k: np.asarray(v) for k, v in series.items()} | final
-        attrs = {"geometry": sample.geometry, "protocol": sample.protocol, "seed": -1 if sample.seed is None else sample.seed,
-                 "ranks": comm.size, "growth_steps": model.step, "wall_s": wall, "csa0_m2": model.csa0,
-                 "volume0_m3": model.volume0} | {f"roughness_{k}": v for k, v in rough.items()}
-        groups = {"settings": dataclasses.asdict(settings),
-                  "heterogeneity": sample.spec.attributes() if sample.spec else {"model": "uniform"},
-                  "signaling": as_attributes(signaling.SignalingParams())}
-        io.write_series(sample.h5, data, attrs=attrs, groups=groups)
-    return {"csa_ratio": series["csa_ratio"][-1], "volume_ratio": series["volume_ratio"][-1], "wall_s": wall}
-
-
-def is_done(sample: Sample, settings: GrowthSettings) -> bool:
-    """A complete result of the same settings exists."""
-    import h5py
-
-    if not io.is_complete(sample.h5):
-        return False
-    with h5py.File(sample.h5, "r") as f:
-        saved = dict(f["settings"].attrs) if "settings" in f else {}
-    return all(np.all(saved.get(k) == v) for k, v in dataclasses.asdict(settings).items())
+        attrs = {**done.meta, "protocol": spec.protocol.name, "seed": -1 if spec.seed is None else spec.seed}
+        attrs |= {f"roughness_{k}": v for k, v in rough.items()}
+        groups = run.result_groups(spec)
+        groups.setdefault("heterogeneity", {"model": "uniform"})
+        sample.outputs.store(done.series | cells, attrs, groups)
+    return {"csa_ratio": float(done.series["csa_ratio"][-1]), "volume_ratio": float(done.series["volume_ratio"][-1]),
+            "wall_s": done.meta["wall_s"]}
 
 
 # ------------------------------------------------------------------------------ summary
@@ -247,11 +203,7 @@ def read(path: str) -> dict:
 
 def figures(uniform: dict, samples: dict[str, dict], folder: Path, title: str) -> list[Path]:
     """Fig. 7A (states), 7B (CSA, volume, kM) and 7C (maps of N, det Ḡ, |u|)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = plot.pyplot()
     paths = [folder / "fig7a_states.png", folder / "fig7b_growth.png", folder / "fig7c_maps.png"]
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     names = {"igf1": "IGF1", "akt": "AKT", "foxo": "FOXO", "mtor": "mTOR", "N": "N"}
@@ -269,8 +221,7 @@ def figures(uniform: dict, samples: dict[str, dict], folder: Path, title: str) -
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
     fig.suptitle(f"{title}: cell mean ± std across cells")
-    fig.savefig(paths[0], dpi=130)
-    plt.close(fig)
+    plot.save(fig, paths[0], dpi=130)
 
     fig, axes = plt.subplots(1, 3, figsize=(14, 3.8), constrained_layout=True)
     for key, label, scale in (("csa_ratio", "CSA change (%)", 100), ("volume_ratio", "volume change (%)", 100),
@@ -289,8 +240,7 @@ def figures(uniform: dict, samples: dict[str, dict], folder: Path, title: str) -
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
     fig.suptitle(title)
-    fig.savefig(paths[1], dpi=130)
-    plt.close(fig)
+    plot.save(fig, paths[1], dpi=130)
 
     first = next(iter(samples.values()))
     x = first["final_x"]
@@ -309,106 +259,119 @@ def figures(uniform: dict, samples: dict[str, dict], folder: Path, title: str) -
         ax.set_xlabel("first principal axis (mm)")
     axes[0].set_ylabel("second principal axis (mm)")
     fig.suptitle(f"{title}: cells within {1e3 * spacing:.1f} mm of the principal plane, t = {first['t'][-1]:g} h")
-    fig.savefig(paths[2], dpi=130)
-    plt.close(fig)
+    plot.save(fig, paths[2], dpi=130)
     return paths
 
 
 # ---------------------------------------------------------------------------------- CLI
 
 
-def parse_args(argv):
-    p = argparse.ArgumentParser(prog="python -m hyper.ensemble", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+def parser() -> cli.Parser:
+    p = cli.Parser("ensemble", __doc__)
     p.add_argument("--geometry", default="BFLH_VHF_Left", help="geometry id (idealized, BFLH_VHF_Left, …)")
-    p.add_argument("--protocol", default="mwf", help=f"named protocol ({', '.join(protocols.NAMES)})")
+    p.add_argument("--protocol", default="mwf", metavar="NAME|FILE",
+                   help=f"a named protocol ({', '.join(protocols.NAMES)}) or a TOML protocol file")
     p.add_argument("--samples", type=int, default=5, help="heterogeneous samples besides the uniform case")
     p.add_argument("--first-seed", type=int, default=1, help="seed of the first sample (then +1 each)")
     p.add_argument("--epsilon", type=float, default=0.01, help="relative half-width ε of the perturbation")
-    p.add_argument("--model", choices=heterogeneity.MODELS, default="uniform-noise")
+    p.add_argument("--model", choices=heterogeneity.MODELS, default="uniform-noise", help="heterogeneity model")
     p.add_argument("--length", type=float, default=heterogeneity.Heterogeneity.length,
                    help="Matérn correlation range ℓ (m; matern only)")
     p.add_argument("--nu", type=float, default=heterogeneity.Heterogeneity.nu, help="Matérn smoothness ν (matern only)")
     p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step Δtg (h)")
     p.add_argument("--signaling-dt", type=float, default=GrowthSettings.signaling_dt, help="RK4 step (h)")
     p.add_argument("--ranks-per-job", type=int, default=1, help="MPI ranks per coupled run")
-    p.add_argument("--snapshot-every", type=int, default=10, help="XDMF snapshot every K growth steps")
+    p.add_argument("--snapshot-every", type=int, default=run.SNAPSHOT_EVERY, help="XDMF snapshot every K growth steps")
     p.add_argument("--output", type=Path, default=Path("results/ensemble"), help="results folder")
-    return p.parse_args(argv)
+    return p
 
 
-def plan(args) -> tuple[list[farm.Job], GrowthSettings, heterogeneity.Heterogeneity, Path]:
-    """Jobs, settings, heterogeneity and the sample folder; InputError on bad input."""
+def plan(args) -> tuple[list[farm.Job], heterogeneity.Heterogeneity, Path]:
+    """Jobs, heterogeneity and the sample folder; InputError on bad input."""
     if args.geometry not in geo.GEOMETRIES:
         raise InputError(f"--geometry: unknown geometry {args.geometry!r}; known: {', '.join(geo.GEOMETRIES)}")
-    protocols.named(args.protocol)
+    (protocol,) = protocols.from_option(args.protocol) if args.protocol != "all" else (None,)
+    if protocol is None:
+        raise InputError("--protocol: an ensemble runs one protocol, not 'all'")
     if args.samples < 1:
         raise InputError(f"--samples must be a positive integer, got {args.samples}")
     if args.first_seed < 0:
         raise InputError(f"--first-seed must be a non-negative integer, got {args.first_seed}")
     if args.snapshot_every < 1:
         raise InputError(f"--snapshot-every must be a positive integer, got {args.snapshot_every}")
-    spec = heterogeneity.Heterogeneity(model=args.model, epsilon=args.epsilon, length=args.length, nu=args.nu)
-    settings = GrowthSettings(growth_dt=args.growth_dt, signaling_dt=args.signaling_dt)
-    base = args.output / f"{args.geometry}_{args.protocol}"
-    folder = base / spec.label()
+    het = heterogeneity.Heterogeneity(model=args.model, epsilon=args.epsilon, length=args.length, nu=args.nu)
+    settings = build(GrowthSettings, {"growth_dt": "--growth-dt", "signaling_dt": "--signaling-dt"},
+                     growth_dt=args.growth_dt, signaling_dt=args.signaling_dt)
+    base = args.output / f"{args.geometry}_{protocol.name}"
+    folder = base / het.label()
 
-    def job(key, spec, seed, h5):
-        sample = Sample(args.geometry, args.protocol, spec, seed, str(h5), str(h5.with_name(h5.stem + "_fields.xdmf")))
-        return farm.Job(key, 1.0, sample)
+    def job(key, het, seed, h5):
+        spec = run.RunSpec(args.geometry, protocol, settings=settings, heterogeneity=het, seed=seed)
+        return farm.Job(key, 1.0, Sample(spec, h5))
 
     jobs = [job("uniform", None, None, base / "uniform.h5")]
     for i in range(args.samples):
         seed = args.first_seed + i
-        jobs.append(job(f"seed{seed}", spec, seed, folder / f"seed{seed}.h5"))
-    return jobs, settings, spec, folder
+        jobs.append(job(f"seed{seed}", het, seed, folder / f"seed{seed}.h5"))
+    return jobs, het, folder
 
 
-def main(argv=None) -> int:
-    args = parse_args(sys.argv[1:] if argv is None else argv)
-    comm = MPI.COMM_WORLD
-    try:
-        jobs, settings, spec, folder = plan(args)
-        if args.ranks_per_job < 1 or comm.size % args.ranks_per_job:
-            raise InputError(f"--ranks-per-job must be >= 1 and divide the number of ranks ({comm.size}), "
-                             f"got {args.ranks_per_job}")
-    except InputError as err:
-        if comm.rank == 0:
-            print(f"error: {err}", file=sys.stderr)
-        return 2
-
+def ensemble(comm, args) -> int:
+    jobs, het, folder = plan(args)
+    if args.ranks_per_job < 1 or comm.size % args.ranks_per_job:
+        raise InputError(f"--ranks-per-job must be >= 1 and divide the number of ranks ({comm.size}), "
+                         f"got {args.ranks_per_job}")
+    protocol = jobs[0].payload.spec.protocol.name
+    digests = {job.key: job.payload.spec.digest() for job in jobs}
     start = time.perf_counter()
-    results = farm.run(
-        comm, jobs, lambda sub, job: run_sample(sub, job.payload, settings, snapshot_every=args.snapshot_every),
-        ranks_per_job=args.ranks_per_job, is_done=lambda job: is_done(job.payload, settings),
-        label=f"ensemble {args.geometry}/{args.protocol}/{spec.label()}",
-    )
+
+    def work(sub, job, stop):
+        # after a SIGTERM the runs not started yet are not started at all
+        if sub.allreduce(bool(stop()), op=MPI.LOR):
+            return {"interrupted": True}
+        try:
+            return run_sample(sub, job.payload, snapshot_every=args.snapshot_every, stop=stop)
+        except run.Interrupted:
+            return {"interrupted": True}
+
+    with cli.hold(comm, [folder]), run.StopOnTerm() as stop:
+        results = farm.run(
+            comm, jobs, lambda sub, job: work(sub, job, stop), ranks_per_job=args.ranks_per_job,
+            is_done=lambda job: job.payload.outputs.is_current(digests[job.key]),
+            label=f"ensemble {args.geometry}/{protocol}/{het.label()}",
+        )
     info(comm, farm.summary_line(results) + f" in {hms(time.perf_counter() - start)}")
     for r in results:
         if r.status == "failed":
             info(comm, f"{r.key} failed:\n{r.error}")
-    if comm.rank != 0:
-        return 0 if all(r.status != "failed" for r in results) else 1
-    if any(r.status == "failed" for r in results):
-        return 1
+    failed = any(r.status == "failed" for r in results)
+    interrupted = comm.allreduce(stop(), op=MPI.LOR)
+    if interrupted:
+        info(comm, "stopped by SIGTERM: run the same command again to continue from the checkpoints")
+        return cli.EXIT_TERMINATED
+    if comm.rank != 0 or failed:
+        return cli.EXIT_SOME_FAILED if failed else cli.EXIT_OK
     uniform = read(jobs[0].payload.h5)
     samples = {job.key: read(job.payload.h5) for job in jobs[1:]}
     numbers = summary(uniform, samples)
-    numbers["heterogeneity"] = spec.attributes()
-    numbers["settings"] = dataclasses.asdict(settings)
+    numbers["heterogeneity"] = het.attributes()
+    numbers["settings"] = dataclasses.asdict(jobs[0].payload.spec.settings)
     numbers["wall_s"] = {r.key: r.wall_s for r in results}
     folder.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(folder / "summary.json") as tmp:
         tmp.write_text(json.dumps(numbers, indent=2))
-    title = f"{args.geometry}, {args.protocol}, {spec.label()}"
+    title = f"{args.geometry}, {protocol}, {het.label()}"
     paths = figures(uniform, samples, folder, title)
     c, v = numbers["csa_ratio"], numbers["volume_ratio"]
-    print(f"uniform: CSA/CSA0 {numbers['uniform']['csa_ratio']:.5f}, V/V0 {numbers['uniform']['volume_ratio']:.5f}; "
-          f"ensemble mean CSA/CSA0 {c['mean']:.5f} (std {c['std']:.2e}), V/V0 {v['mean']:.5f} (std {v['std']:.2e}); "
-          f"roughness det Ḡ / |u| = {numbers['roughness_ratio_detGbar_over_u']:.1f}")
-    print(f"wrote {folder / 'summary.json'}, " + ", ".join(map(str, paths)))
-    return 0
+    info(comm, f"uniform: CSA/CSA0 {numbers['uniform']['csa_ratio']:.5f}, V/V0 "
+               f"{numbers['uniform']['volume_ratio']:.5f}; ensemble mean CSA/CSA0 {c['mean']:.5f} (std "
+               f"{c['std']:.2e}), V/V0 {v['mean']:.5f} (std {v['std']:.2e}); roughness det Ḡ / |u| = "
+               f"{numbers['roughness_ratio_detGbar_over_u']:.1f}")
+    info(comm, f"wrote {folder / 'summary.json'}, " + ", ".join(map(str, paths)))
+    return cli.EXIT_OK
 
+
+main = cli.entry(parser, ensemble)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -446,8 +446,8 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAP
                    {"run_digest": run_digest, "step": model.step, "t": model.t, "segments": segments,
                     "status": status, "geometry": spec.geometry, "protocol": spec.protocol.name})
 
-    def stopped(reason: str, **status) -> None:
-        ckpt.on_rank0(comm, lambda: ckpt.write_status(outputs.status, {"state": reason, **status}))
+    def stopped(state: str, **status) -> None:
+        ckpt.on_rank0(comm, lambda: ckpt.write_status(outputs.status, {"state": state, **status}))
 
     end = spec.protocol.end
     progress = Progress(comm, end, spec.label, every=progress_every)
