@@ -11,7 +11,7 @@ import h5py
 import numpy as np
 import pytest
 
-from hyper import fidelity, protocols, signaling
+from hyper import fidelity, protocols, run, signaling
 from hyper.fidelity import Scene, choose
 from hyper.params import InputError
 
@@ -180,4 +180,4 @@ def test_grow_takes_the_linear_solver_asked_for_or_auto_with_accuracy(tmp_path):
     assert grow.plan(MPI.COMM_WORLD, [*out, "--accuracy"]).linear_solver == "auto"
     assert grow.plan(MPI.COMM_WORLD, [*out, "--accuracy", "--linear-solver", "lu"]).linear_solver == "lu"
     assert grow.plan(MPI.COMM_WORLD, [*out, "--linear-solver", "iterative"]).linear_solver == "iterative"
-    assert grow.available_memory_mb(MPI.COMM_WORLD) > 100.0
+    assert run.available_memory_mb(MPI.COMM_WORLD) > 100.0

@@ -22,7 +22,7 @@ import pytest
 from mpi4py import MPI
 
 from hyper import checkpoint as ckpt
-from hyper import grow, io
+from hyper import cli, grow, io, run
 
 ROOT = Path(__file__).resolve().parents[1]
 PYTHON = sys.executable
@@ -53,7 +53,7 @@ def inputs(tmp_path_factory):
 
 
 def command(inputs, output, *extra):
-    return ["--geometry", "cylinder", "--protocol-file", str(inputs / "short.toml"),
+    return ["--geometry", "cylinder", "--protocol", str(inputs / "short.toml"),
             "--params", str(inputs / "growing.toml"), "--growth-dt", "8", "--snapshot-every", "4",
             "--output", str(output), *extra]
 
@@ -112,7 +112,7 @@ def killed(inputs, tmp_path_factory):
     out = tmp_path_factory.mktemp("killed") / "run.h5"
     proc = start(inputs, out, "--checkpoint-every", "3")
     try:
-        wait_for(grow.checkpoint_path(out), proc)
+        wait_for(run.Outputs(out).checkpoint, proc)
         proc.send_signal(signal.SIGKILL)
         assert proc.wait(60) == -signal.SIGKILL
     finally:
@@ -120,21 +120,21 @@ def killed(inputs, tmp_path_factory):
         proc.wait()
     assert not out.exists()
     pristine = tmp_path_factory.mktemp("pristine") / "one_rank.ckpt.h5"
-    shutil.copy(grow.checkpoint_path(out), pristine)
+    shutil.copy(run.Outputs(out).checkpoint, pristine)
     return out, pristine
 
 
 def test_sigkill_then_rerun_continues_bit_for_bit(inputs, reference, killed):
     out, _ = killed
-    saved = attrs(grow.checkpoint_path(out))
+    saved = attrs(run.Outputs(out).checkpoint)
     assert saved["step"] == 3 and saved["status"] == "running" and saved["ranks"] == 1 and saved["complete"]
 
     assert grow.main(command(inputs, out, "--checkpoint-every", "3")) == 0
     same_series(reference, out, rtol=1e-12)
     np.testing.assert_array_equal(io.read_series(out)["csa_ratio"], io.read_series(reference)["csa_ratio"])
     # the resumed run's XDMF holds every snapshot, the same as the uninterrupted run's
-    ref_fields = fields(grow.fields_path(reference).with_suffix(".h5"))
-    new_fields = fields(grow.fields_path(out).with_suffix(".h5"))
+    ref_fields = fields(run.Outputs(reference).fields.with_suffix(".h5"))
+    new_fields = fields(run.Outputs(out).fields.with_suffix(".h5"))
     assert sorted(ref_fields) == sorted(new_fields) and len(ref_fields) > 6
     for name in ref_fields:
         np.testing.assert_array_equal(new_fields[name], ref_fields[name])
@@ -146,31 +146,31 @@ def test_sigterm_saves_at_the_next_step_boundary_and_exits_143(inputs, reference
     out = tmp_path / "run.h5"
     proc = start(inputs, out, "--checkpoint-every", "3")
     try:
-        wait_for(grow.checkpoint_path(out), proc)
+        wait_for(run.Outputs(out).checkpoint, proc)
         proc.send_signal(signal.SIGTERM)
         log = proc.communicate(timeout=120)[0]
     finally:
         proc.kill()
         proc.wait()
-    assert proc.returncode == grow.EXIT_TERMINATED == 143, log
-    status = ckpt.read_status(grow.status_path(out))
+    assert proc.returncode == cli.EXIT_TERMINATED == 143, log
+    status = ckpt.read_status(run.Outputs(out).status)
     assert status["state"] == "interrupted" and status["reason"] == "SIGTERM"
-    with h5py.File(grow.checkpoint_path(out), "r") as f:
+    with h5py.File(run.Outputs(out).checkpoint, "r") as f:
         assert f.attrs["status"] == "interrupted" and f.attrs["complete"]
         assert f.attrs["step"] == status["step"] > 3  # after the periodic checkpoint at step 3
         assert len(f["series/t"]) == status["step"] + 1
-    assert not out.exists() and not grow.fields_path(out).exists()
+    assert not out.exists() and not run.Outputs(out).fields.exists()
 
     assert grow.main(command(inputs, out, "--checkpoint-every", "3")) == 0
     same_series(reference, out, rtol=1e-12)
-    assert not grow.status_path(out).exists() and not grow.checkpoint_path(out).exists()
+    assert not run.Outputs(out).status.exists() and not run.Outputs(out).checkpoint.exists()
     assert attrs(out)["segments"] == 2
 
 
 @pytest.mark.skipif(not Path(MPIRUN).exists(), reason="needs the venv's mpirun")
 def test_two_ranks_resume_what_one_rank_wrote(inputs, reference, killed, tmp_path):
     out = tmp_path / "run.h5"
-    shutil.copy(killed[1], grow.checkpoint_path(out))
+    shutil.copy(killed[1], run.Outputs(out).checkpoint)
     result = subprocess.run([MPIRUN, "-n", "2", PYTHON, "-m", "hyper.grow", *command(inputs, out)],
                             cwd=ROOT, env=env(), capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout + result.stderr
@@ -197,18 +197,18 @@ def test_failed_newton_solves_cut_the_step(inputs, reference, tmp_path):
 def test_unrecoverable_failure_saves_the_last_step_and_the_reason(inputs, tmp_path, capsys):
     out = tmp_path / "run.h5"
     failing = command(inputs, out, "--growth-dt", "24", "--petsc-option", "snes_max_it=2", "--max-halvings", "0")
-    assert grow.main(failing) == grow.EXIT_FAILED == 3
+    assert grow.main(failing) == cli.EXIT_FAILED == 3
     err = capsys.readouterr().err
     assert "Newton did not converge" in err and "run.status.json" in err
-    status = ckpt.read_status(grow.status_path(out))
+    status = ckpt.read_status(run.Outputs(out).status)
     assert status["state"] == "failed"
     # step 1 is the first session (0-1 h), step 2 the first half of the rest after it
     assert status["failed_step"] == 2 and status["from_h"] == 1.0 and status["to_h"] == 24.5
     assert "DIVERGED_MAX_IT" in status["reason"]
     assert status["settings"]["growth_dt"] == 24.0 and status["petsc_options"] == {"snes_max_it": "2"}
-    saved = attrs(grow.checkpoint_path(out))
+    saved = attrs(run.Outputs(out).checkpoint)
     assert saved["status"] == "failed" and saved["step"] == 1 and saved["t"] == 1.0
-    assert not out.exists() and not grow.fields_path(out).exists()
+    assert not out.exists() and not run.Outputs(out).fields.exists()
     assert not Path(str(out) + ".lock").exists()
 
     # Allowed to cut the step, the same run goes on from the saved step 1.
@@ -216,7 +216,7 @@ def test_unrecoverable_failure_saves_the_last_step_and_the_reason(inputs, tmp_pa
     assert "resuming" in capsys.readouterr().out
     s = io.read_series(out)
     assert s["halvings"][2] >= 1
-    assert not grow.status_path(out).exists() and not grow.checkpoint_path(out).exists()
+    assert not run.Outputs(out).status.exists() and not run.Outputs(out).checkpoint.exists()
 
 
 def test_a_second_run_on_the_same_output_stops_at_once(inputs, tmp_path, capsys):
@@ -224,7 +224,7 @@ def test_a_second_run_on_the_same_output_stops_at_once(inputs, tmp_path, capsys)
     lock = ckpt.OutputLock(out)
     lock.acquire()
     try:
-        assert grow.main(command(inputs, out)) == grow.EXIT_BUSY == 4
+        assert grow.main(command(inputs, out)) == cli.EXIT_BUSY == 4
     finally:
         lock.release()
     err = capsys.readouterr().err
@@ -234,7 +234,7 @@ def test_a_second_run_on_the_same_output_stops_at_once(inputs, tmp_path, capsys)
 
 def test_checkpoint_of_other_settings_is_refused(inputs, killed, tmp_path, capsys):
     out = tmp_path / "run.h5"
-    shutil.copy(killed[1], grow.checkpoint_path(out))
+    shutil.copy(killed[1], run.Outputs(out).checkpoint)
     before = sorted((p.name, p.stat().st_mtime_ns) for p in tmp_path.iterdir())
     assert grow.main(command(inputs, out, "--growth-dt", "12")) == 2
     assert "belongs to another run" in capsys.readouterr().err
@@ -275,7 +275,7 @@ def test_grow_array_script_stops_requeues_and_resumes(inputs, tmp_path):
         job.wait()
     assert job.returncode == 143, log
     assert "stopped on request" in log and (fake / "scontrol.args").read_text() == "requeue 4242\n"
-    assert grow.checkpoint_path(result).exists() and not result.exists()
+    assert run.Outputs(result).checkpoint.exists() and not result.exists()
 
     requeued = subprocess.run(["bash", str(script)], cwd=tmp_path, env={**env, "SLURM_RESTART_COUNT": "1"},
                               capture_output=True, text=True, timeout=300)
@@ -284,7 +284,7 @@ def test_grow_array_script_stops_requeues_and_resumes(inputs, tmp_path):
     s = io.read_series(result)
     assert attrs(result)["segments"] == 2 and s["t"][-1] == 9 * 168.0 and np.all(np.diff(s["t"]) > 0)
     assert s["csa_ratio"][-1] > 1.01
-    assert not grow.checkpoint_path(result).exists()
+    assert not run.Outputs(result).checkpoint.exists()
 
 
 # ----------------------------------------------------------------- heterogeneous state

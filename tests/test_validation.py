@@ -77,22 +77,20 @@ BAD_OPTIONS = {
     "growth_dt_text": (["--growth-dt", "1day"], r"argument --growth-dt: invalid float value: '1day'"),
     "signaling_dt_zero": (["--signaling-dt", "0"], r"--signaling-dt: expected a finite number of hours > 0, got 0"),
     "signaling_dt_above_growth_dt": (["--growth-dt", "8", "--signaling-dt", "12"],
-                                     r"--signaling-dt \(12 h\) must not exceed growth-dt \(8 h\)"),
+                                     r"--signaling-dt: 12 h must not exceed the growth step \(8 h\)"),
     "feedback": (["--feedback", "cubic"], r"argument --feedback: invalid choice: 'cubic'"),
     "snapshot_every": (["--snapshot-every", "0"],
                        r"--snapshot-every: expected an integer >= 1 \(growth steps\), got 0"),
     "checkpoint_every": (["--checkpoint-every", "-2"], r"--checkpoint-every: expected an integer >= 0"),
     "checkpoint_every_fraction": (["--checkpoint-every", "2.5"],
                                   r"argument --checkpoint-every: invalid int value: '2.5'"),
-    "max_halvings": (["--max-halvings", "40"], r"--max-halvings must be an integer in \[0, 12\], got 40"),
+    "max_halvings": (["--max-halvings", "40"], r"--max-halvings: must be an integer in \[0, 12\], got 40"),
     "petsc_option_no_value": (["--petsc-option", "snes_max_it"], r"--petsc-option 'snes_max_it': expected KEY=VALUE"),
     "petsc_option_dash": (["--petsc-option=-snes_max_it=3"], r"--petsc-option '-snes_max_it=3': expected KEY=VALUE"),
     "petsc_option_lag": (["--petsc-option", "snes_lag_jacobian=0"], r"snes_lag_jacobian must be a positive integer"),
     "geometry": (["--geometry", "biceps"], r"--geometry: unknown geometry 'biceps'; known: idealized, cylinder, BFLH"),
     "protocol": (["--protocol", "daily"], r"--protocol: unknown protocol 'daily'; known: mwf, .*or 'all'"),
-    "protocol_and_protocol_file": (["--protocol", "mwf", "--protocol-file", "{d}/protocol.toml"],
-                                   r"--protocol and --protocol-file exclude each other"),
-    "protocol_file_absent": (["--protocol-file", "{d}/absent.toml"], r"absent.toml: no such file"),
+    "protocol_file_absent": (["--protocol", "{d}/absent.toml"], r"absent.toml: no such file"),
     "params_absent": (["--params", "{d}/absent_params.toml"], r"absent_params.toml: no such file"),
     "output_not_h5": (["--output", "{out}/run.xdmf"], r"--output .*run.xdmf: expected an .h5 file or a folder"),
     "output_h5_for_all": (["--protocol", "all"], r"--output .*run.h5: several protocols need a folder"),
@@ -161,14 +159,14 @@ def write_inputs(d: Path) -> None:
 
 
 def base(files, out, protocol_file=True, geometry=True):
-    protocol = ["--protocol-file", str(files / "protocol.toml")] if protocol_file else []
+    protocol = ["--protocol", str(files / "protocol.toml")] if protocol_file else []
     return [*(["--geometry", "cylinder"] if geometry else []), *protocol, "--params", str(files / "params.toml"),
             "--output", str(out / "run.h5")]
 
 
 def argv_for(files, out, options):
     """The base command with ``options``; a --mesh or --protocol there replaces the base's
-    --geometry or --protocol-file."""
+    --geometry or --protocol."""
     return base(files, out, protocol_file="--protocol" not in options, geometry="--mesh" not in options) + [
         o.format(d=files, out=out) for o in options]
 
@@ -180,7 +178,7 @@ def cases():
 
 def _cases():
     for name, (_, message) in BAD_PROTOCOLS.items():
-        yield pytest.param(["--protocol-file", "{d}/bad_" + name + ".toml"], rf"bad_{name}.toml: .*{message}", id=name)
+        yield pytest.param(["--protocol", "{d}/bad_" + name + ".toml"], rf"bad_{name}.toml: .*{message}", id=name)
     for name, (_, message) in BAD_PARAMS.items():
         yield pytest.param(["--params", "{d}/bad_" + name + ".toml"], rf"bad_{name}.toml: .*{message}", id=name)
     for name, (options, message) in BAD_OPTIONS.items():

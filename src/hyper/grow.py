@@ -78,9 +78,6 @@ def scene_options(p: cli.Parser) -> None:
 
 
 def parser(ask: str = "growth") -> cli.Parser:
-    from hyper.coupled import GrowthSettings
-    from hyper.growth import FEEDBACK_LAWS
-
     if ask == "signaling":
         p = cli.Parser("grow --ask signaling", "A signaling question: the signaling ODEs alone for each protocol "
                        "(no mesh, no DOLFINx), with the fidelity choice as attributes.")
@@ -88,11 +85,14 @@ def parser(ask: str = "growth") -> cli.Parser:
         p.add_argument("--output", type=Path, default=Path("results/signaling"),
                        help="an .h5 file (one protocol) or a folder")
         return p
+    from hyper.coupled import GrowthSettings
+    from hyper.growth import FEEDBACK_LAWS
+
     p = cli.Parser("grow", __doc__)
     p.add_argument("--geometry", help="geometry id (idealized, cylinder, BFLH_VHF_Left, …); idealized by default")
     p.add_argument("--mesh", type=Path, help="a tetrahedral XDMF mesh of your own instead of --geometry (facet tags "
                    "'ft_small': 1, 2 the ends, 3 the lateral surface; fibres along its principal axis)")
-    p.add_argument("--mesh-unit", choices=tuple(run.MESH_UNITS), help="length unit of --mesh; m by default")
+    p.add_argument("--mesh-unit", help=f"length unit of --mesh ({' or '.join(run.MESH_UNITS)}); m by default")
     scene_options(p)
     p.add_argument("--output", type=Path, default=Path("results/grow"), help="an .h5 file (one protocol) or a folder")
     p.add_argument("--growth-dt", type=float,
@@ -153,6 +153,19 @@ class Plan:
     checkpoint_every: int
     restart: bool
     choice: fidelity.Choice | None  # from --accuracy; None: the fixed steps
+
+    # what every run of the command shares
+    @property
+    def geometry(self) -> str:
+        return self.specs[0].geometry
+
+    @property
+    def mesh(self) -> run.MeshFile | None:
+        return self.specs[0].mesh
+
+    @property
+    def settings(self):
+        return self.specs[0].settings
 
     @property
     def linear_solver(self) -> str:
