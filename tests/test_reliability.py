@@ -378,11 +378,15 @@ def test_accuracy_takes_lu_while_it_fits_and_the_iterative_solver_when_memory_is
     runs = {}
     for name, available in (("roomy", None), ("short", 1.0)):
         if available is not None:
-            monkeypatch.setattr(grow, "available_memory_mb", lambda comm: available)  # MB
+            monkeypatch.setattr(run, "available_memory_mb", lambda comm: available)  # MB
         out = tmp_path / f"{name}.h5"
         assert grow.main(command(inputs, out, "--accuracy", "1e-3")) == 0
         with h5py.File(out) as f:
             runs[name] = (f.attrs["linear_solver"], f.attrs["linear_solver_reason"])
+            # the one fidelity record holds the steps and the solver it chose
+            chosen = dict(f["fidelity"].attrs)
+            assert (chosen["linear_solver"], chosen["linear_solver_reason"]) == runs[name]
+            assert chosen["growth_dt"] > 0 and chosen["signaling_dt"] > 0 and chosen["accuracy"] == 1e-3
         runs[name] += (io.read_series(out)["csa_ratio"],)
     assert runs["roomy"][0] == "lu" and "MUMPS LU" in runs["roomy"][1]
     assert runs["short"][0] == "iterative" and "may not fit" in runs["short"][1]

@@ -26,6 +26,7 @@ Newton tolerance, so the choice changes the cost, not the answer.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -91,6 +92,13 @@ class Choice:
     predicted_error: float  # in the accuracy's measure (of the growth, or of N)
     reasons: tuple[str, ...]
     accuracy: float | None = None  # asked for; None: the steps were given, not chosen
+    linear_solver: str | None = None  # "lu" or "iterative" once the mesh is known
+    linear_solver_reason: str | None = None
+
+    def with_linear_solver(self, unknowns: int, available_mb: float) -> "Choice":
+        """This choice completed with the linear solver for a mesh (`linear_solver`)."""
+        solver, why = linear_solver(unknowns, available_mb)
+        return dataclasses.replace(self, linear_solver=solver, linear_solver_reason=why)
 
     def as_attributes(self) -> dict:
         """HDF5 attributes: the fields, without the unset ones, reasons as one text."""
@@ -107,7 +115,8 @@ class Choice:
             bound = "(no accuracy asked)"
         else:
             bound = f"{'<=' if self.predicted_error <= self.accuracy else '>'} accuracy {self.accuracy:g}"
-        return f"{self.model} model, {steps}; predicted error {self.predicted_error:.2g} {measure} {bound}"
+        solver = "" if self.linear_solver is None else f"; linear solver {self.linear_solver}"
+        return f"{self.model} model, {steps}; predicted error {self.predicted_error:.2g} {measure} {bound}{solver}"
 
 
 def growth_step_error(dt: float) -> float:

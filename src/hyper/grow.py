@@ -225,7 +225,8 @@ def plan_from(comm, args) -> Plan:
     if mesh is not None:
         mesh.load(comm)  # units and tags, before anything is written
     solver = args.linear_solver or ("auto" if args.accuracy is not None else "lu")
-    specs = [run.RunSpec(name, p, params, settings, petsc_options, mesh=mesh, linear_solver=solver) for p in runs]
+    specs = [run.RunSpec(name, p, params, settings, petsc_options, mesh=mesh, linear_solver=solver, choice=choice)
+             for p in runs]
     if not args.restart:
         for spec, h5 in zip(specs, results):
             saved = run.Outputs(h5).checkpoint
@@ -291,7 +292,7 @@ def grow(comm, args, argv: list[str]) -> int:
                     cli.error(comm, f"{spec.label}: {err}; state after step {err.step - 1} saved in "
                                     f"{err.checkpoint}, details in {out.status}")
                     return cli.EXIT_FAILED
-                on_rank0(comm, lambda: out.store(done.series, done.meta, run.result_groups(spec, work.choice)))
+                on_rank0(comm, lambda: out.store(done.series, done.meta, run.result_groups(spec, done.choice)))
                 info(comm, f"{spec.protocol.name}: CSA/CSA0 {done.series['csa_ratio'][-1]:.5f}, V/V0 "
                            f"{done.series['volume_ratio'][-1]:.5f} in {hms(done.meta['wall_s'])}; wrote {out.h5} "
                            f"and {out.fields}")

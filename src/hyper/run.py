@@ -120,6 +120,8 @@ class RunSpec:
     # how the Newton steps are solved: "lu", "iterative" or "auto" (by memory); all give
     # the answer to the Newton tolerance, so the choice is not part of the digest
     linear_solver: str = "lu"
+    # the fidelity choice (--accuracy) that set the steps; "auto" completes it with the solver
+    choice: fidelity.Choice | None = None
 
     def __post_init__(self):
         if self.settings is None:
@@ -207,7 +209,8 @@ class Outputs:
 
 
 def result_groups(spec: RunSpec, choice: fidelity.Choice | None = None) -> dict:
-    """The attribute groups every run's result carries."""
+    """The attribute groups every run's result carries; ``choice`` the run's fidelity
+    choice (`Result.choice`)."""
     groups = {"signaling": as_attributes(spec.params), "protocol": spec.protocol.to_attributes(),
               "settings": dataclasses.asdict(spec.settings)}
     if spec.heterogeneity is not None:
@@ -384,24 +387,32 @@ class Result:
     series: dict[str, np.ndarray]
     meta: dict
     model: object
+    choice: fidelity.Choice | None = None  # the spec's, with the linear solver where it was chosen
 
 
 def build(comm, spec: RunSpec, *, monitor=None):
-    """The geometry, fibre field and coupled model of ``spec``, with the linear solver
-    chosen (``auto``: by `fidelity.linear_solver` from the unknowns and the memory)."""
+    """The coupled model of ``spec``, its fibre field, the linear solver's attributes and
+    the fidelity choice completed with it (``auto``: by `fidelity.linear_solver` from the
+    unknowns and the memory available)."""
     from hyper.coupled import CoupledModel
     from hyper.mechanics import taylor_hood_unknowns
 
     geometry = spec.load_geometry(comm)
     a0 = spec.fiber_field(geometry)
+    choice = spec.choice
     solver, reason = spec.linear_solver, "asked for (--linear-solver)"
     if solver == "auto":
-        solver, reason = fidelity.linear_solver(taylor_hood_unknowns(geometry.mesh), available_memory_mb(comm))
+        unknowns, memory = taylor_hood_unknowns(geometry.mesh), available_memory_mb(comm)
+        if choice is None:
+            solver, reason = fidelity.linear_solver(unknowns, memory)
+        else:
+            choice = choice.with_linear_solver(unknowns, memory)
+            solver, reason = choice.linear_solver, choice.linear_solver_reason
         info(comm, f"fidelity: {reason}")
     kwargs = {} if monitor is None else {"monitor": monitor}
     model = CoupledModel(geometry, a0, spec.protocol, params=spec.cell_params(geometry), settings=spec.settings,
                          petsc_options=dict(spec.petsc_options), linear_solver=solver, **kwargs)
-    return model, a0, {"linear_solver": solver, "linear_solver_reason": reason}
+    return model, a0, {"linear_solver": solver, "linear_solver_reason": reason}, choice
 
 
 def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAPSHOT_EVERY,
@@ -421,7 +432,7 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAP
     from hyper.coupled import GrowthFailure
 
     run_digest = spec.digest()
-    model, a0, solver = build(comm, spec, monitor=monitor)
+    model, a0, solver, choice = build(comm, spec, monitor=monitor)
     snaps = Snapshots(model, a0)
     series = Series(extra_series)
     segments = 1
@@ -502,4 +513,4 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAP
         "unknowns": model.problem.num_dofs,
         **solver,
     }
-    return Result(series.arrays(), meta, model)
+    return Result(series.arrays(), meta, model, choice)
