@@ -78,16 +78,16 @@ class _Rank0(logging.Filter):
         return getattr(record, "rank", self.world_rank) == 0
 
 
-class _Stdout(logging.StreamHandler):
+class _Stdout(logging.Handler):
     """Writes to the sys.stdout of the moment: a farm group may redirect it into a run's log."""
 
-    def __init__(self):
-        super().__init__(sys.stdout)
-
     def emit(self, record):
-        self.setStream(sys.stdout)
-        super().emit(record)
-        self.flush()
+        try:
+            stream = sys.stdout
+            stream.write(self.format(record) + "\n")
+            stream.flush()
+        except Exception:  # noqa: BLE001 - logging's own policy: report, never raise
+            self.handleError(record)
 
 
 def setup_logging(world_rank: int, *, quiet: bool = False, verbose: bool = False) -> logging.Logger:
