@@ -53,7 +53,7 @@ def test_batch_equals_one_at_a_time(design):
 def test_compiled_kernel_follows_signaling_bit_for_bit(design):
     # The C kernel repeats signaling's RK4 expression for expression, so both backends give
     # the same bits (chunks of either backend can be mixed in one run). A failure here means
-    # signaling's RK4 arithmetic changed: update signaling_c.SOURCE to match it.
+    # signaling's RK4 arithmetic changed: update signaling.compiled.SOURCE to match it.
     full = sobol.final_N(design)
     assert np.array_equal(full, sobol.final_N(design, backend="numpy"))
     # N stays in [Nmin, Nmax] = [0.5, 1.3] up to the last step's overshoot

@@ -184,3 +184,18 @@ def resolve(name_or_path: str | Path) -> Protocol:
     if text.endswith(".toml") or Path(text).is_file():
         return load(text)
     raise InputError(f"unknown protocol {text!r}: give one of {', '.join(NAMES)} or a .toml file")
+
+
+PAPER = ("mwf", "every3days", "weekly")  # the three protocols of the paper's Figs. 3 and 4
+
+
+def from_option(value: str, option: str = "--protocol") -> list[Protocol]:
+    """The protocols a ``--protocol NAME|FILE`` option names: a built-in protocol, ``all`` for
+    the paper's three (``PAPER``), or a TOML protocol file (a value ending in .toml or naming
+    an existing file). A bad value is an InputError that names ``option``."""
+    if value == "all":
+        return [named(name) for name in PAPER]
+    if value in NAMES or value.endswith(".toml") or Path(value).is_file():
+        return [resolve(value)]
+    raise InputError(f"{option}: unknown protocol {value!r}; known: {', '.join(NAMES)}, or 'all' for "
+                     f"{' '.join(PAPER)}, or a .toml protocol file")
