@@ -47,7 +47,7 @@ from dolfinx import mesh as dmesh
 from mpi4py import MPI
 
 from hyper import farm, heterogeneity, io, protocols, signaling
-from hyper import geometry as geo
+from hyper import fibers, geometry as geo
 from hyper.coupled import CoupledModel, GrowthSettings
 from hyper.log import Progress, hms, info
 from hyper.params import InputError, as_attributes
@@ -158,7 +158,7 @@ def run_sample(comm, sample: Sample, settings: GrowthSettings, *, snapshot_every
     """One coupled run of an ensemble; writes its series and fields. Collective over comm."""
     protocol = protocols.named(sample.protocol)
     geometry = geo.load(sample.geometry, comm)
-    a0 = geo.fiber_field(geometry)
+    a0 = fibers.fiber_field(geometry)
     if sample.spec is None:
         params = signaling.SignalingParams()
     else:

@@ -268,13 +268,13 @@ def run_one(comm, geometry_name: str, protocol, params, settings, *, snapshot_ev
     by `fidelity.linear_solver` from the unknowns and the memory available). Collective
     over ``comm``.
     """
-    from hyper import geometry as geo
+    from hyper import fibers, geometry as geo
     from hyper.coupled import CoupledModel, GrowthFailure
     from hyper.mechanics import taylor_hood_unknowns
 
     run_digest = ckpt.digest(describe(geometry_name, protocol, params, settings, petsc_options, mesh))
     geometry = mesh.load(comm) if mesh is not None else geo.load(geometry_name, comm)
-    a0 = geo.fiber_field(geometry, "principal" if mesh is not None else "auto")
+    a0 = fibers.fiber_field(geometry, "principal" if mesh is not None else "auto")
     solver_reason = "asked for (--linear-solver)"
     if linear_solver == "auto":
         unknowns = taylor_hood_unknowns(geometry.mesh)
