@@ -389,6 +389,14 @@ def test_cli_protocol_file_and_bad_input(tmp_path, capsys):
     assert "smaller dt" in capsys.readouterr().err and not out.exists()
 
 
+def test_cli_help_shows_every_default(capsys):
+    with pytest.raises(SystemExit):
+        S.main(["--help"])
+    text = capsys.readouterr().out
+    assert "--signaling-dt H      largest RK4 step (h) (default: 0.05)" in text
+    assert "(default: mwf)" in text and "--protocol-file" not in text
+
+
 # --- MPI: each rank integrates its share of the batch ------------------------------------
 
 
