@@ -141,7 +141,7 @@ class _KindParser(cli.Parser):
 def parser() -> cli.Parser:
     p = cli.Parser("slurm", description=__doc__)
     kinds = p.add_subparsers(dest="kind", required=True, metavar="{cohort,grow-array,sobol}",
-                             parser_class=_KindParser)
+                             parser_class=_KindParser, help="the template to render")
     for kind, (ntasks, time, output) in DEFAULTS.items():
         k = kinds.add_parser(kind, help=f"render jobs/{TEMPLATES[kind].name}")
         k.add_argument("-o", "--script", type=Path, help="where to write the script (stdout if not given)")
