@@ -10,7 +10,7 @@ from dolfinx import fem
 from mpi4py import MPI
 
 from hyper import contraction
-from hyper import geometry as geo_mod
+from hyper import fibers, geometry as geo_mod
 from hyper.io import read_series
 from hyper.mechanics import MechanicsProblem
 
@@ -41,7 +41,7 @@ def test_cli_writes_series_fields_and_plot(tmp_path, capsys):
         (["--geometry", "BFLH"], "error: unknown geometry 'BFLH'"),
         (["--steps", "0"], "error: --steps: expected a positive integer"),
         (["--output", "x.txt"], "error: --output: expected a path ending in .h5"),
-        (["--fibres", "helical"], "error: unknown fibre kind 'helical'"),
+        (["--fibers", "helical"], "error: unknown fibre kind 'helical'"),
         (["--stepz", "3"], "error: unknown option(s) --stepz"),
     ],
 )
@@ -78,7 +78,7 @@ def test_reaction_force_converges_under_refinement():
     problems = []
     for level in range(2):
         # Newton converges quadratically: stopping at 1e-6 changes the forces by < 1e-9.
-        problem = MechanicsProblem(geometry, geo_mod.fiber_field(geometry), petsc_options={"snes_rtol": 1e-6})
+        problem = MechanicsProblem(geometry, fibers.fiber_field(geometry), petsc_options={"snes_rtol": 1e-6})
         if level == 0:
             for alpha in (0.1, 0.2, 0.35, 0.55, 0.8, 1.0):
                 problem.alpha.value = alpha

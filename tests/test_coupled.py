@@ -8,7 +8,7 @@ import ufl
 from dolfinx import fem
 from mpi4py import MPI
 
-from hyper import geometry as geo
+from hyper import fibers, geometry as geo
 from hyper import growth, material, signaling
 from hyper.coupled import CoupledModel, GrowthSettings
 from hyper.mechanics import MechanicsProblem
@@ -22,7 +22,7 @@ def test_uniform_growth_of_a_cylinder_is_stress_free_and_exact():
     Θ = ϑ1 ϑ2 exactly, and the pressure is the law's stress-free value c1 + 2 c2.
     """
     g = geo.load("cylinder", MPI.COMM_SELF)
-    a0 = geo.fiber_field(g)
+    a0 = fibers.fiber_field(g)
     field = growth.GrowthField(g.mesh, a0, g.quadrature_degree)
     problem = MechanicsProblem(g, a0, growth=field.function)
     field.set_deformation(problem.F)
@@ -68,7 +68,7 @@ GROWING = signaling.SignalingParams(thetaM=0.46)
 
 def csa_series(comm) -> np.ndarray:
     g = geo.load("idealized", comm)
-    a0 = geo.fiber_field(g)
+    a0 = fibers.fiber_field(g)
     model = CoupledModel(g, a0, short_protocol(), params=GROWING, settings=GrowthSettings(growth_dt=24.0))
     return np.array([[r.t, r.csa_ratio, r.volume_ratio, r.kM] for r in model.run()])
 

@@ -9,7 +9,7 @@ from dolfinx import fem, mesh as dmesh
 from dolfinx.io import XDMFFile
 from mpi4py import MPI
 
-from hyper import geometry as g
+from hyper import fibers, geometry as g
 from hyper.params import InputError
 
 # Paper: group means of the baseline volumes (cm³), MODEL.md §5.
@@ -94,28 +94,28 @@ def _nodal(a0):
 def test_fibres():
     comm = MPI.COMM_WORLD
     idealized = g.load("idealized", comm)
-    x, a = _nodal(g.fiber_field(idealized))
+    x, a = _nodal(fibers.fiber_field(idealized))
     assert np.allclose(np.linalg.norm(a, axis=1), 1.0, atol=1e-14)
-    assert np.allclose(a, g.idealized_fiber(x.T).T, atol=1e-14)
+    assert np.allclose(a, fibers.idealized_fiber(x.T).T, atol=1e-14)
     # MODEL.md §5 by hand at (r, 0, z): slope y'(0.05) = 0.045, y'(0.15) = -0.045
     for z, slope in [(0.05, 0.06 - 6 * 0.05**2), (0.15, 6 * 0.15**2 - 2.4 * 0.15 + 0.18), (0.1, 0.0)]:
         expected = np.array([slope, 0.0, 0.2]) / np.hypot(slope, 0.2)
-        assert np.allclose(g.idealized_fiber(np.array([[0.01], [0.0], [z]]))[:, 0], expected)
-    assert np.allclose(g.idealized_fiber(np.array([[0.0], [0.0], [0.03]]))[:, 0], [0, 0, 1])
+        assert np.allclose(fibers.idealized_fiber(np.array([[0.01], [0.0], [z]]))[:, 0], expected)
+    assert np.allclose(fibers.idealized_fiber(np.array([[0.0], [0.0], [0.03]]))[:, 0], [0, 0, 1])
 
-    _, a = _nodal(g.fiber_field(g.load("cylinder", comm)))
+    _, a = _nodal(fibers.fiber_field(g.load("cylinder", comm)))
     assert np.allclose(a, [0, 0, 1])
 
     ta = g.load("TA_VHF_Left", comm)
-    _, a = _nodal(g.fiber_field(ta, "principal"))
+    _, a = _nodal(fibers.fiber_field(ta, "principal"))
     _, axes = g.principal_axes(ta.mesh)
     assert np.allclose(np.abs(a @ axes[:, 0]), 1.0)
     along = (g.facet_centroid(ta, 2) - g.facet_centroid(ta, 1)) @ a[0] if len(a) else 1.0
     assert along > 0  # from end 1 towards end 2
     with pytest.raises(InputError, match="unknown fibre kind"):
-        g.fiber_field(ta, "helical")
+        fibers.fiber_field(ta, "helical")
     # anatomical meshes default to their stored Stokes-flow fibres
-    _, stokes = _nodal(g.fiber_field(ta))
+    _, stokes = _nodal(fibers.fiber_field(ta))
     assert np.allclose(np.linalg.norm(stokes, axis=1), 1.0, atol=1e-12)
     assert not np.allclose(np.abs(stokes @ axes[:, 0]), 1.0)
 

@@ -10,7 +10,7 @@ from mpi4py import MPI
 from scipy import optimize
 
 from hyper import ensemble
-from hyper import geometry as geo
+from hyper import fibers, geometry as geo
 from hyper import heterogeneity as het
 from hyper import signaling
 from hyper.coupled import CoupledModel, GrowthSettings
@@ -27,7 +27,7 @@ def short_protocol() -> Protocol:
 
 def coupled_run(params):
     g = geo.load("idealized", MPI.COMM_SELF)
-    model = CoupledModel(g, geo.fiber_field(g), short_protocol(), params=params(g.mesh) if callable(params) else params,
+    model = CoupledModel(g, fibers.fiber_field(g), short_protocol(), params=params(g.mesh) if callable(params) else params,
                          settings=GrowthSettings(growth_dt=24.0))
     series = np.array([[r.t, r.csa_ratio, r.volume_ratio, r.kM, *r.states] for r in model.run()])
     return series, model

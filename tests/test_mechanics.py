@@ -20,7 +20,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 from scipy.optimize import brentq
 
-from hyper import geometry as geo_mod
+from hyper import fibers, geometry as geo_mod
 from hyper import growth
 from hyper import material as mat
 from hyper.mechanics import MechanicsProblem, SolverError, rigid_modes
@@ -48,7 +48,7 @@ def _sum(comm, expr, measure):
 def _box_spring_contraction(comm):
     L, a = 0.1, 0.01
     geometry = box_geometry(comm, a=a, L=L)
-    problem = MechanicsProblem(geometry, geo_mod.uniform_fiber_field(geometry.mesh, (0, 0, 1)),
+    problem = MechanicsProblem(geometry, fibers.uniform_fiber_field(geometry.mesh, (0, 0, 1)),
                                petsc_options=TIGHT)
     for alpha in np.linspace(0, 1, 6)[1:]:
         problem.alpha.value = alpha
@@ -87,7 +87,7 @@ def test_box_with_springs_contracts_as_analytic_in_parallel():
 def test_no_activation_no_load_gives_zero_displacement():
     comm = MPI.COMM_WORLD
     geometry = geo_mod.load("idealized", comm)
-    problem = MechanicsProblem(geometry, geo_mod.fiber_field(geometry), petsc_options=TIGHT)
+    problem = MechanicsProblem(geometry, fibers.fiber_field(geometry), petsc_options=TIGHT)
     assert problem.solve() == 0  # the reference state is the solution, no work to do
     rng = np.random.default_rng(comm.rank)
     problem.w.x.array[:] += 1e-4 * rng.standard_normal(problem.w.x.array.shape)
@@ -119,7 +119,7 @@ def _check_growth(comm, consistent):
     theta = 1.21
     s = np.sqrt(theta)
     Fg = fem.Constant(geometry.mesh, np.diag([s, s, 1.0]))
-    problem = MechanicsProblem(geometry, geo_mod.fiber_field(geometry), growth=Fg,
+    problem = MechanicsProblem(geometry, fibers.fiber_field(geometry), growth=Fg,
                                consistent_stress=consistent, petsc_options=TIGHT)
     problem.solve()
     V0 = geometry.reference_volume()
@@ -149,7 +149,7 @@ def test_rigid_modes_found_where_the_ends_leave_them_free():
 def test_divergence_raises_and_restores_the_state():
     comm = MPI.COMM_WORLD
     geometry = geo_mod.load("cylinder", comm)
-    problem = MechanicsProblem(geometry, geo_mod.fiber_field(geometry),
+    problem = MechanicsProblem(geometry, fibers.fiber_field(geometry),
                                petsc_options={"snes_max_it": 1}, options_prefix="test_diverge_")
     before = problem.w.x.array.copy()
     problem.alpha.value = 1.0
@@ -161,7 +161,7 @@ def test_divergence_raises_and_restores_the_state():
 def test_options_database_overrides_the_dict_which_overrides_defaults():
     comm = MPI.COMM_WORLD
     geometry = box_geometry(comm)
-    a0 = geo_mod.uniform_fiber_field(geometry.mesh, (0, 0, 1))
+    a0 = fibers.uniform_fiber_field(geometry.mesh, (0, 0, 1))
     db = PETSc.Options()
     db["test_opts_snes_max_it"] = 7
     try:
@@ -177,7 +177,7 @@ def test_options_database_overrides_the_dict_which_overrides_defaults():
 
 def _idealized_reaction(comm):
     geometry = geo_mod.load("idealized", comm)
-    problem = MechanicsProblem(geometry, geo_mod.fiber_field(geometry), petsc_options=TIGHT,
+    problem = MechanicsProblem(geometry, fibers.fiber_field(geometry), petsc_options=TIGHT,
                                options_prefix=f"test_rank{comm.size}_")
     forces = []
     for alpha in (0.1, 0.2, 0.35, 0.55, 0.8, 1.0):
@@ -201,7 +201,7 @@ def _lu_and_iterative(comm):
     """Both linear solvers on the idealized shape grown transversely by 10 % and then
     activated to α = 0.3 (free rigid modes, so multipliers in the system)."""
     geometry = geo_mod.load("idealized", comm)
-    a0 = geo_mod.fiber_field(geometry)
+    a0 = fibers.fiber_field(geometry)
     Fg = growth.transverse_growth_ufl(1.1**2, a0 / ufl.sqrt(ufl.dot(a0, a0)))
     out = {}
     for solver in ("lu", "iterative"):
@@ -240,14 +240,14 @@ def test_iterative_solver_gives_the_lu_answer_in_parallel():
 def test_unknown_linear_solver_is_refused():
     geometry = geo_mod.load("cylinder", MPI.COMM_SELF)
     with pytest.raises(ValueError, match="linear_solver"):
-        MechanicsProblem(geometry, geo_mod.fiber_field(geometry), linear_solver="cg")
+        MechanicsProblem(geometry, fibers.fiber_field(geometry), linear_solver="cg")
     with pytest.raises(ValueError, match="blr_precision"):
-        MechanicsProblem(geometry, geo_mod.fiber_field(geometry), linear_solver="iterative", blr_precision=2.0)
+        MechanicsProblem(geometry, fibers.fiber_field(geometry), linear_solver="iterative", blr_precision=2.0)
 
 
 def test_taylor_hood_unknowns_counts_the_space_without_building_it():
     from hyper.mechanics import taylor_hood_unknowns
 
     geometry = geo_mod.load("cylinder", MPI.COMM_WORLD)
-    problem = MechanicsProblem(geometry, geo_mod.fiber_field(geometry))
+    problem = MechanicsProblem(geometry, fibers.fiber_field(geometry))
     assert taylor_hood_unknowns(geometry.mesh) == problem.num_dofs - len(problem.rigid.modes)

@@ -162,3 +162,17 @@ def test_bad_toml_names_the_file_and_the_field(tmp_path, text, message):
 def test_missing_file(tmp_path):
     with pytest.raises(InputError, match="no such file"):
         load(tmp_path / "none.toml")
+
+
+def test_from_option_names_a_protocol_all_or_a_file(tmp_path):
+    from hyper.protocols import PAPER, from_option
+
+    assert from_option("weekly") == [named("weekly")]
+    assert [p.name for p in from_option("all")] == list(PAPER) == ["mwf", "every3days", "weekly"]
+    path = tmp_path / "two.toml"
+    path.write_text(TOML)
+    assert from_option(str(path)) == [load(path)]
+    with pytest.raises(InputError, match=r"--plan: unknown protocol 'monday'; known: mwf, .*'all'"):
+        from_option("monday", "--plan")
+    with pytest.raises(InputError, match=r"absent.toml: no such file"):
+        from_option(str(tmp_path / "absent.toml"))

@@ -293,7 +293,7 @@ def test_grow_array_script_stops_requeues_and_resumes(inputs, tmp_path):
 def heterogeneous_model(comm):
     """The cylinder with a per-cell synthesis rate (a field over the mesh file's cells):
     growth, Ḡ, A and the stress then differ from cell to cell and point to point."""
-    from hyper import geometry as geo
+    from hyper import fibers, geometry as geo
     from hyper import protocols, signaling
     from hyper.coupled import CoupledModel, GrowthSettings
 
@@ -301,7 +301,7 @@ def heterogeneous_model(comm):
     original = np.asarray(g.mesh.topology.original_cell_index)[: g.mesh.topology.index_map(3).size_local]
     params = signaling.SignalingParams(thetaM=0.46, kM=0.01 * (1.0 + 0.5 * np.sin(original)))
     protocol = protocols.Protocol((protocols.Session(0.0, 1.0, 0.8),), end=25.0, name="one")  # 4 steps
-    return CoupledModel(g, geo.fiber_field(g), protocol, params=params, settings=GrowthSettings(growth_dt=8.0))
+    return CoupledModel(g, fibers.fiber_field(g), protocol, params=params, settings=GrowthSettings(growth_dt=8.0))
 
 
 def measures(model, until=None) -> list:

@@ -261,9 +261,11 @@ def test_c_backend_equals_numpy_bit_for_bit(mixed_batch):
 def test_auto_takes_c_for_batches_only(monkeypatch):
     if S.c_backend_error() is not None:
         pytest.skip(f"no C backend here: {S.c_backend_error()}")
+    from hyper.signaling import compiled
+
     sizes = []
-    compiled = S._rk4_compiled
-    monkeypatch.setattr(S, "_rk4_compiled", lambda Y0, *args: sizes.append(Y0.shape[1]) or compiled(Y0, *args))
+    run = compiled.run
+    monkeypatch.setattr(compiled, "run", lambda P, a20, Y0, *args, **kw: sizes.append(Y0.shape[1]) or run(P, a20, Y0, *args, **kw))
     batch = np.repeat(Y0[:, None], S.AUTO_MIN_MEMBERS, axis=1)
     _, auto = S.integrate(P0, named("mwf"), batch, 0.0, 200.0)
     _, single = S.integrate(P0, named("mwf"), Y0, 0.0, 200.0)
@@ -272,9 +274,9 @@ def test_auto_takes_c_for_batches_only(monkeypatch):
 
 
 def test_auto_falls_back_to_numpy_without_a_compiler(monkeypatch, tmp_path, mixed_batch):
-    from hyper import signaling_c
+    from hyper.signaling import compiled
 
-    monkeypatch.setattr(signaling_c, "_KERNEL", {})  # forget the kernel built so far
+    monkeypatch.setattr(compiled, "_KERNEL", {})  # forget the kernel built so far
     monkeypatch.setenv("HYPER_CACHE_DIR", str(tmp_path))
     monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
     assert "cannot build the compiled RK4 kernel" in S.c_backend_error()
@@ -284,7 +286,7 @@ def test_auto_falls_back_to_numpy_without_a_compiler(monkeypatch, tmp_path, mixe
         _, auto = S.integrate(p, named("mwf"), Y0, 160.0, 190.0, kM=kM)
     _, ref = S.integrate(p, named("mwf"), Y0, 160.0, 190.0, kM=kM, backend="numpy")
     assert np.array_equal(auto, ref)
-    with pytest.raises(signaling_c.Unavailable, match="no-such-cc"):
+    with pytest.raises(compiled.Unavailable, match="no-such-cc"):
         S.integrate(p, named("mwf"), Y0, 160.0, 190.0, kM=kM, backend="c")
     assert list(tmp_path.iterdir()) == []  # the failed builds left nothing behind
 
@@ -370,21 +372,29 @@ def test_cli_protocol_file_and_bad_input(tmp_path, capsys):
     spec = tmp_path / "mine.toml"
     spec.write_text("end = 100.0\n[[session]]\nstart = 10\nduration = 2\nintensity = 0.5\n")
     path = tmp_path / "mine.h5"
-    assert S.main(["--protocol-file", str(spec), "--output", str(path), "--dt", "0.1"]) == 0
+    assert S.main(["--protocol", str(spec), "--output", str(path), "--signaling-dt", "0.1"]) == 0
     with h5py.File(path) as f:
         assert f.attrs["dt"] == 0.1 and f["protocol"].attrs["name"] == "mine"
         assert f["parameters"].attrs["kM"] == 0.01 and "version_hyper" in f.attrs
     bad = tmp_path / "bad.toml"
     bad.write_text("end = 100.0\n[[session]]\nstart = 10\nduration = -2\nintensity = 0.5\n")
     out = tmp_path / "none"
-    assert S.main(["--protocol-file", str(bad), "--output", str(out)]) == 2
+    assert S.main(["--protocol", str(bad), "--output", str(out)]) == 2
     assert "error: " in capsys.readouterr().err and not out.exists()
     params = tmp_path / "p.toml"
     params.write_text("kM = 0.01\nspeed = 2\n")
     assert S.main(["--params", str(params), "--output", str(out)]) == 2
     assert "unknown parameter(s) speed" in capsys.readouterr().err and not out.exists()
-    assert S.main(["--dt", "2", "--output", str(out)]) == 1
+    assert S.main(["--signaling-dt", "2", "--output", str(out)]) == 1
     assert "smaller dt" in capsys.readouterr().err and not out.exists()
+
+
+def test_cli_help_shows_every_default(capsys):
+    with pytest.raises(SystemExit):
+        S.main(["--help"])
+    text = capsys.readouterr().out
+    assert "--signaling-dt H      largest RK4 step (h) (default: 0.05)" in text
+    assert "(default: mwf)" in text and "--protocol-file" not in text
 
 
 # --- MPI: each rank integrates its share of the batch ------------------------------------
@@ -412,12 +422,12 @@ def test_batch_split_over_ranks_equals_serial():
 def test_ranks_building_the_kernel_at_once_get_the_same_bits(monkeypatch, tmp_path):
     from mpi4py import MPI
 
-    from hyper import signaling_c
+    from hyper.signaling import compiled
 
     comm = MPI.COMM_WORLD
     cache = Path(comm.bcast(str(tmp_path) if comm.rank == 0 else None, root=0)) / "cache"
     monkeypatch.setenv("HYPER_CACHE_DIR", str(cache))
-    monkeypatch.setattr(signaling_c, "_KERNEL", {})  # every rank builds anew, into one empty cache
+    monkeypatch.setattr(compiled, "_KERNEL", {})  # every rank builds anew, into one empty cache
     rng = np.random.default_rng(11)
     p = S.SignalingParams(kM=P0.kM * rng.uniform(0.5, 2.0, 40), b4=P0.b4 * rng.uniform(0.9, 1.1, 40))
     comm.barrier()

@@ -53,7 +53,7 @@ def test_batch_equals_one_at_a_time(design):
 def test_compiled_kernel_follows_signaling_bit_for_bit(design):
     # The C kernel repeats signaling's RK4 expression for expression, so both backends give
     # the same bits (chunks of either backend can be mixed in one run). A failure here means
-    # signaling's RK4 arithmetic changed: update signaling_c.SOURCE to match it.
+    # signaling's RK4 arithmetic changed: update signaling.compiled.SOURCE to match it.
     full = sobol.final_N(design)
     assert np.array_equal(full, sobol.final_N(design, backend="numpy"))
     # N stays in [Nmin, Nmax] = [0.5, 1.3] up to the last step's overshoot
@@ -205,7 +205,7 @@ def test_cli_signaling_small(tmp_path, capsys):
 def test_cli_failures_are_reported(tmp_path, capsys):
     # dt = 0.7 h is beyond RK4's stability limit during sessions: every member fails
     out = tmp_path / "f"
-    assert sobol.main(["--samples", "2", "--dt", "0.7", "--output", str(out)], comm=MPI.COMM_SELF) == 1
+    assert sobol.main(["--samples", "2", "--signaling-dt", "0.7", "--output", str(out)], comm=MPI.COMM_SELF) == 1
     captured = capsys.readouterr()
     assert "failed members: 60" in captured.out and "60 of 60 model evaluations failed" in captured.err
     assert not (out / "sobol.h5").exists()
@@ -213,7 +213,7 @@ def test_cli_failures_are_reported(tmp_path, capsys):
 
 @pytest.mark.parametrize("args, message", [
     (["--samples", "1"], "--samples must be >= 2"),
-    (["--dt", "0"], "--dt must be a finite number > 0"),
+    (["--signaling-dt", "0"], "--signaling-dt must be a finite number > 0"),
     (["--chunk", "0"], "--chunk must be >= 1"),
     (["--protocol", "nope"], "unknown protocol 'nope'"),
 ])

@@ -1,4 +1,4 @@
-"""python -m hyper.contraction: ramp the activation α from 0 to 1 on one geometry.
+"""hyper contraction: ramp the activation α from 0 to 1 on one geometry.
 
 Writes <output>.h5 (series alpha, reaction_force, reaction_force_current,
 newton_iterations, volume_ratio, stretch_min, stretch_max; parameters as attributes),
@@ -11,39 +11,43 @@ Options after the known ones go to PETSc under the prefix mechanics_ (for exampl
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from hyper import cli
 from hyper.params import InputError, as_attributes
 
 SERIES = ("alpha", "reaction_force", "reaction_force_current", "newton_iterations",
           "volume_ratio", "stretch_min", "stretch_max", "wall_s")
 
 
-def parse(argv):
-    parser = argparse.ArgumentParser(prog="python -m hyper.contraction", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--geometry", default="idealized", help="geometry identifier (default idealized)")
-    parser.add_argument("--steps", type=int, default=10, help="equal activation steps from 0 to 1")
-    parser.add_argument("--output", default="results/contraction/idealized.h5", help="HDF5 series file")
-    parser.add_argument("--fibres", default="auto", help="fibre field kind (see hyper.geometry.fiber_field)")
-    parser.add_argument("--quadrature-degree", type=int, default=4)
-    parser.add_argument("--max-halvings", type=int, default=6, help="step cuts allowed per step")
-    args, rest = parser.parse_known_args(argv)
-    if args.steps < 1:
-        raise InputError(f"--steps: expected a positive integer, got {args.steps}")
-    if args.quadrature_degree < 1:
-        raise InputError(f"--quadrature-degree: expected a positive integer, got {args.quadrature_degree}")
-    if not args.output.endswith(".h5"):
-        raise InputError(f"--output: expected a path ending in .h5, got {args.output!r}")
-    stray = [a for a in rest if a.startswith("--")]
-    if stray:
-        raise InputError(f"unknown option(s) {' '.join(stray)}; PETSc options take one dash")
-    return args, rest
+class _Parser(cli.Parser):
+    """Single-dash words after the known options are PETSc's: kept in ``args.petsc``."""
+
+    def parse_args(self, args=None, namespace=None):
+        args, rest = self.parse_known_args(args, namespace)
+        stray = [a for a in rest if a.startswith("--")]
+        if stray:
+            raise InputError(f"unknown option(s) {' '.join(stray)}; PETSc options take one dash")
+        args.petsc = rest
+        return args
+
+
+def parser() -> cli.Parser:
+    from hyper import fibers
+
+    p = _Parser("contraction", description=__doc__)
+    p.add_argument("--geometry", default="idealized", help="geometry identifier")
+    p.add_argument("--steps", type=int, default=10, help="equal activation steps from 0 to 1")
+    p.add_argument("--output", type=Path, default=Path("results/contraction/idealized.h5"), help="HDF5 series file")
+    p.add_argument("--fibers", default="auto", metavar="KIND",
+                   help=f"fibre field kind: {', '.join(fibers.FIBER_KINDS)} (see hyper.fibers.fiber_field)")
+    p.add_argument("--quadrature-degree", type=int, default=4, help="quadrature degree of the forms")
+    p.add_argument("--max-halvings", type=int, default=6, help="step cuts allowed per step")
+    return p
 
 
 class Fields:
@@ -97,14 +101,9 @@ def advance(problem, target: float, max_halvings: int) -> tuple[int, int]:
 
 
 def plot(path: Path, series: dict, title: str) -> None:
-    import matplotlib
+    from hyper import plot as figures
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from hyper.io import atomic_path
-
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    fig, (ax, ax2) = figures.pyplot().subplots(1, 2, figsize=(10, 4))
     ax.plot(series["alpha"], series["reaction_force"], "o-", label=r"$\int_{\Gamma_1} (\sigma N)\cdot N\,dA$ (original)")
     ax.plot(series["alpha"], series["reaction_force_current"], "s-", label=r"$\int_{\Gamma_1} (PN)\cdot n\,dA$ (current)")
     ax.set_xlabel("activation α")
@@ -118,12 +117,12 @@ def plot(path: Path, series: dict, title: str) -> None:
     ax2.grid(alpha=0.3)
     fig.suptitle(title)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
+    figures.save(fig, path, dpi=120)
 
 
-def run(comm, args) -> dict:
+def contract(comm, args) -> dict:
+    """The activation ramp of the job's ``args`` on ``comm``: the series (and the files)."""
+    from hyper import fibers
     from hyper import geometry as geo
     from hyper import io
     from hyper.log import Progress, info
@@ -131,7 +130,7 @@ def run(comm, args) -> dict:
     from hyper.mechanics import MechanicsProblem
 
     geometry = geo.load(args.geometry, comm, quadrature_degree=args.quadrature_degree)
-    a0 = geo.fiber_field(geometry, args.fibres)
+    a0 = fibers.fiber_field(geometry, args.fibers)
     material = MaterialParams()
     problem = MechanicsProblem(geometry, a0, material)
     info(comm, f"{args.geometry}: {geometry.num_cells()} cells, {problem.num_dofs} unknowns, "
@@ -139,7 +138,7 @@ def run(comm, args) -> dict:
     fields = Fields(problem)
     volume0 = problem.volume()
     series = {name: [] for name in SERIES}
-    output = Path(args.output)
+    output = args.output
     xdmf_path = output.with_name(output.stem + "_fields.xdmf")
     progress = Progress(comm, args.steps, f"contraction {args.geometry}", every=0.0)
     start = time.perf_counter()
@@ -160,7 +159,7 @@ def run(comm, args) -> dict:
     attrs = {
         "geometry": args.geometry,
         "steps": args.steps,
-        "fibres": args.fibres,
+        "fibers": args.fibers,
         "cells": geometry.num_cells(),
         "unknowns": problem.num_dofs,
         "ranks": comm.size,
@@ -178,37 +177,33 @@ def run(comm, args) -> dict:
     return series
 
 
-def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    from mpi4py import MPI
+def run(comm, args) -> int:
+    import dolfinx_solver  # noqa: F401  (before petsc4py)
+    from petsc4py import PETSc
 
-    comm = MPI.COMM_WORLD
-    try:
-        args, petsc_args = parse(argv)
-        import dolfinx_solver  # noqa: F401  (before petsc4py)
-        from petsc4py import PETSc
-
-        if petsc_args:
-            PETSc.Options().insertString(" ".join(petsc_args))
-        from hyper.mechanics import SolverError
-
-        try:
-            series = run(comm, args)
-        except SolverError as err:
-            if comm.rank == 0:
-                print(f"error: {err} (after {args.max_halvings} step halvings)", file=sys.stderr)
-            return 1
-    except InputError as err:
-        if comm.rank == 0:
-            print(f"error: {err}", file=sys.stderr)
-        return 2
     from hyper.log import info
+    from hyper.mechanics import SolverError
 
+    if args.steps < 1:
+        raise InputError(f"--steps: expected a positive integer, got {args.steps}")
+    if args.quadrature_degree < 1:
+        raise InputError(f"--quadrature-degree: expected a positive integer, got {args.quadrature_degree}")
+    if args.output.suffix != ".h5":
+        raise InputError(f"--output: expected a path ending in .h5, got {str(args.output)!r}")
+    if args.petsc:
+        PETSc.Options().insertString(" ".join(args.petsc))
+    try:
+        series = contract(comm, args)
+    except SolverError as err:
+        cli.error(comm, f"{err} (after {args.max_halvings} step halvings)")
+        return cli.EXIT_SOME_FAILED
     info(comm, f"peak reaction force {max(series['reaction_force']):.4e} N (current normal: "
                f"{max(series['reaction_force_current']):.4e} N); fibre stretch range at α = 1: "
                f"[{series['stretch_min'][-1]:.4f}, {series['stretch_max'][-1]:.4f}]; wrote {args.output}")
-    return 0
+    return cli.EXIT_OK
 
+
+main = cli.entry(parser, run)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,4 +1,6 @@
-"""Stokes-flow fibre fields for the anatomical meshes (MODEL.md §5, after Varvik et al. 2021).
+"""Fibre fields (MODEL.md §5): `fiber_field` gives the reference fibre direction a0 of any
+geometry, analytic (the idealized shape), uniform (the cylinder, a principal axis), or the
+Stokes-flow fibres of the anatomical meshes (after Varvik et al. 2021), computed here.
 
 A slow viscous flow enters the muscle through one end (tag ``ends[0]``), leaves it
 through the other (``ends[1]``) and slides along the lateral surface; its normalized
@@ -55,7 +57,7 @@ Stored form (``fibers.h5``): datasets ``node`` (the mesh file's node indices,
 and versions as attributes, and ``complete`` last (written atomically). Keyed by the
 file's node index, the field maps back exactly onto any partition of the mesh.
 
-CLI. ``mpirun -n 2 python -m hyper.fibers`` spreads the meshes over groups of
+The job. ``mpirun -n 2 python -m hyper.fibers`` spreads the meshes over groups of
 ``--ranks-per-job`` ranks (hyper.farm) and skips a mesh whose fibre file is complete
 and whose picture exists; a complete fibre file without its picture is read back, not
 recomputed (``--force`` recomputes). It writes ``results/fibers/<geometry>.png`` and
@@ -64,7 +66,6 @@ recomputed (``--force`` recomputes). It writes ``results/fibers/<geometry>.png``
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import itertools
 import math
@@ -81,8 +82,10 @@ from dolfinx import fem, la
 from dolfinx.fem.petsc import LinearProblem
 from mpi4py import MPI
 
+from hyper import cli
 from hyper import geometry as geo
 from hyper.params import InputError, as_attributes, check_positive
+from hyper.plot import pyplot
 
 FILE_NAME = "fibers.h5"
 METHOD = ("Stokes flow, Taylor-Hood P2-P1; inflow u.N = -1 on ends[0] and free slip u.N = 0 "
@@ -366,6 +369,69 @@ def load(geometry: geo.Geometry, path: str | Path | None = None) -> fem.Function
     return a0
 
 
+# ------------------------------------------------------------------------- fibre fields
+
+
+def idealized_fiber(x: np.ndarray) -> np.ndarray:
+    """MODEL.md §5: a0 ∝ (x/r y'(z), y/r y'(z), 0.2), a0 = e_z on the axis; x has shape (3, n)."""
+    z = x[2]
+    slope = np.where(z <= 0.1, 0.06 - 6.0 * z**2, 6.0 * z**2 - 2.4 * z + 0.18)
+    r = np.hypot(x[0], x[1])
+    on_axis = r < 1e-12
+    r = np.where(on_axis, 1.0, r)
+    a = np.vstack([np.where(on_axis, 0.0, x[0] / r * slope), np.where(on_axis, 0.0, x[1] / r * slope),
+                   np.full_like(z, 0.2)])
+    return a / np.linalg.norm(a, axis=0)
+
+
+def uniform_fiber_field(mesh, direction) -> fem.Function:
+    """A constant unit fibre direction as a P1 vector function."""
+    d = np.asarray(direction, dtype=float)
+    d = d / np.linalg.norm(d)
+    a0 = fem.Function(fem.functionspace(mesh, ("Lagrange", 1, (3,))), name="a0")
+    a0.interpolate(lambda x: np.tile(d[:, None], (1, x.shape[1])))
+    return a0
+
+
+FIBER_KINDS = ("auto", "idealized", "axial", "principal", "stokes")
+
+
+def fiber_field(geometry: geo.Geometry, kind: str = "auto") -> fem.Function:
+    """The reference fibre direction a0 as a vector P1 function, unit length at the nodes.
+
+    kind: "idealized" the analytic spline fibres of MODEL.md §5; "axial" e_z (the axis of
+    the cylinder and the idealized shape); "principal" the first principal axis of the
+    vertex coordinates, oriented from end Γ1 to Γ2 (a stand-in for tests); "stokes" the
+    Stokes-flow fibres stored next to an anatomical mesh (`load`, MODEL.md §5);
+    "auto" picks the first for `idealized`, the second for `cylinder` and "stokes"
+    otherwise.
+
+    Why P1: every fibre source (analytic, Stokes flow) can be written at vertices, XDMF
+    stores and ParaView shows it as is, and any quadrature or DG space the forms or the
+    growth tensors use interpolates it. Between the nodes |a0| dips below 1 where the
+    fibres turn (by up to 4 % next to the idealized shape's axis, where the formula
+    jumps); `MechanicsProblem` and the growth field normalise at their points.
+    """
+    if kind not in FIBER_KINDS:
+        raise InputError(f"unknown fibre kind {kind!r}; expected one of {', '.join(FIBER_KINDS)}")
+    if kind == "auto":
+        kind = {"idealized": "idealized", "cylinder": "axial"}.get(geometry.name, "stokes")
+    if kind == "stokes":
+        return load(geometry)
+    if kind == "axial":
+        return uniform_fiber_field(geometry.mesh, (0.0, 0.0, 1.0))
+    if kind == "principal":
+        _, axes = geo.principal_axes(geometry.mesh)
+        axis = axes[:, 0]
+        if np.dot(geo.facet_centroid(geometry, geometry.ends[1]) - geo.facet_centroid(geometry, geometry.ends[0]),
+                  axis) < 0:
+            axis = -axis
+        return uniform_fiber_field(geometry.mesh, axis)
+    a0 = fem.Function(fem.functionspace(geometry.mesh, ("Lagrange", 1, (3,))), name="a0")
+    a0.interpolate(idealized_fiber)
+    return a0
+
+
 # ----------------------------------------------------------------------------- pictures
 
 
@@ -395,10 +461,7 @@ def figure(name: str, centroid, fiber, volume, axis, stats: dict):
     by the angle to the principal axis, and the volume-weighted histogram of that angle.
 
     ``axis`` (unit) should point from the inflow end to the outflow end."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     from matplotlib.collections import LineCollection
 
     angle = np.degrees(np.arccos(np.clip(np.abs(fiber @ axis), 0.0, 1.0)))
@@ -443,34 +506,32 @@ def figure(name: str, centroid, fiber, volume, axis, stats: dict):
     return fig
 
 
-# ---------------------------------------------------------------------------------- CLI
+# ---------------------------------------------------------------------------------- job
 
 
 SUMMARY_COLUMNS = ("geometry", "muscle", "subject", "side", "cells", "vertices", "share_within_30deg",
                    "max_norm_error", "min_speed", "max_speed", "solve_s", "status")
 
 
-def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="python -m hyper.fibers",
-        description="Stokes-flow fibre fields for the anatomical meshes (MODEL.md §5), stored "
-                    f"next to each mesh as {FILE_NAME}, with a picture and a summary per mesh.",
-    )
-    parser.add_argument("--geometries", nargs="+", metavar="ID", default=list(geo.ANATOMICAL),
-                        help="geometries to do (default: the 12 anatomical meshes)")
-    parser.add_argument("--force", action="store_true", help="recompute fibre files that exist")
-    parser.add_argument("--ranks-per-job", type=int, default=1, help="MPI ranks per mesh (default 1)")
-    parser.add_argument("--output", type=Path, default=Path("results/fibers"),
-                        help="folder for summary.csv and the pictures (default results/fibers)")
-    parser.add_argument("--meshes-dir", type=Path, default=None,
-                        help=f"folder of the meshes, where the fibre files go (default {geo.MESHES_DIR})")
-    parser.add_argument("--penalty", type=float, default=StokesParams.penalty, help="Nitsche penalty γ")
-    return parser
+def parser() -> cli.Parser:
+    p = cli.Parser("fibers", description="Stokes-flow fibre fields for the anatomical meshes (MODEL.md §5), stored "
+                   f"next to each mesh\nas {FILE_NAME}, with a picture and a summary per mesh.")
+    p.add_argument("--geometries", nargs="+", metavar="ID", default=list(geo.ANATOMICAL),
+                   help="geometries to do (the 12 anatomical meshes)")
+    p.add_argument("--force", action="store_true", help="recompute fibre files that exist")
+    p.add_argument("--ranks-per-job", type=int, default=1, help="MPI ranks per mesh")
+    p.add_argument("--output", type=Path, default=Path("results/fibers"),
+                   help="folder for summary.csv and the pictures")
+    p.add_argument("--meshes-dir", type=Path, default=geo.MESHES_DIR,
+                   help="folder of the meshes, where the fibre files go")
+    p.add_argument("--penalty", type=float, default=StokesParams.penalty, help="Nitsche penalty γ")
+    return p
 
 
 def _work(args, params: StokesParams):
     """The farm job for one geometry: fibres (computed or read back), file, picture."""
-    from hyper.io import atomic_path, is_complete, write_series
+    from hyper import plot
+    from hyper.io import is_complete, write_series
 
     def work(comm, job):
         name = job.key
@@ -503,12 +564,7 @@ def _work(args, params: StokesParams):
         ends = [geo.facet_centroid(geometry, tag) for tag in geometry.ends]
         axis = axis if np.dot(ends[1] - ends[0], axis) >= 0 else -axis
         if comm.rank == 0:
-            import matplotlib.pyplot as plt
-
-            fig = figure(name, *cells, axis, stats)
-            with atomic_path(args.output / f"{name}.png") as tmp:
-                fig.savefig(tmp, format="png", dpi=110)
-            plt.close(fig)
+            plot.save(figure(name, *cells, axis, stats), args.output / f"{name}.png", dpi=110)
         return {k: float(v) if isinstance(v, np.floating) else v for k, v in stats.items()}
 
     return work
@@ -542,36 +598,29 @@ def _write_summary(path: Path, names, fiber_paths, results) -> list[dict]:
     return rows
 
 
-def main(argv=None) -> int:
+def run(comm, args) -> int:
     from hyper import farm
     from hyper.io import is_complete
     from hyper.log import info
 
-    comm = MPI.COMM_WORLD
-    args = _parser().parse_args(argv)
-    try:
-        unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
-        if unknown:
-            raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")
-        if len(set(args.geometries)) != len(args.geometries):
-            raise InputError("--geometries: each geometry once")
-        params = StokesParams(penalty=args.penalty)
-        for name in args.geometries:
-            mesh_file = fiber_path(name, args.meshes_dir).parent / Path(geo.GEOMETRIES[name]).name
-            if not mesh_file.is_file():
-                raise InputError(f"{mesh_file}: no such mesh file")
-        jobs = [farm.Job(name, cost=1.0) for name in args.geometries]
+    unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
+    if unknown:
+        raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")
+    if len(set(args.geometries)) != len(args.geometries):
+        raise InputError("--geometries: each geometry once")
+    params = StokesParams(penalty=args.penalty)
+    for name in args.geometries:
+        mesh_file = fiber_path(name, args.meshes_dir).parent / Path(geo.GEOMETRIES[name]).name
+        if not mesh_file.is_file():
+            raise InputError(f"{mesh_file}: no such mesh file")
+    jobs = [farm.Job(name, cost=1.0) for name in args.geometries]
 
-        def is_done(job):
-            return (not args.force and is_complete(fiber_path(job.key, args.meshes_dir))
-                    and (args.output / f"{job.key}.png").is_file())
+    def is_done(job):
+        return (not args.force and is_complete(fiber_path(job.key, args.meshes_dir))
+                and (args.output / f"{job.key}.png").is_file())
 
-        results = farm.run(comm, jobs, _work(args, params), ranks_per_job=args.ranks_per_job,
-                           is_done=is_done, label="fibres")
-    except InputError as err:
-        if comm.rank == 0:
-            print(f"error: {err}", file=sys.stderr)
-        return 2
+    results = farm.run(comm, jobs, _work(args, params), ranks_per_job=args.ranks_per_job,
+                       is_done=is_done, label="fibres")
     status = 0
     if comm.rank == 0:
         paths = [fiber_path(name, args.meshes_dir) for name in args.geometries]
@@ -591,6 +640,8 @@ def main(argv=None) -> int:
         status = int(any(r.status == "failed" for r in results))
     return comm.bcast(status, root=0)
 
+
+main = cli.entry(parser, run)
 
 if __name__ == "__main__":
     sys.exit(main())

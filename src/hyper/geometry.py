@@ -1,4 +1,6 @@
-"""Meshes, facet tags and fibre fields: everything that knows a shape (MODEL.md §5).
+"""Meshes, facet tags, principal axes and centroids: everything that knows a shape (MODEL.md §5).
+
+The fibre fields on these shapes live in `hyper.fibers`.
 
 Every geometry is a tetrahedral mesh in metres with facet tags for the two muscle ends
 (where the tendon springs act), the lateral surface and, where the mesh has one, an
@@ -374,80 +376,14 @@ def facet_centroid(geometry: Geometry, tag: int) -> np.ndarray:
     return _sum(geometry.comm, (area[:, None] * pts.mean(axis=1)).sum(axis=0)) / total
 
 
-# ------------------------------------------------------------------------------ fibres
-
-
-def idealized_fiber(x: np.ndarray) -> np.ndarray:
-    """MODEL.md §5: a0 ∝ (x/r y'(z), y/r y'(z), 0.2), a0 = e_z on the axis; x has shape (3, n)."""
-    z = x[2]
-    slope = np.where(z <= 0.1, 0.06 - 6.0 * z**2, 6.0 * z**2 - 2.4 * z + 0.18)
-    r = np.hypot(x[0], x[1])
-    on_axis = r < 1e-12
-    r = np.where(on_axis, 1.0, r)
-    a = np.vstack([np.where(on_axis, 0.0, x[0] / r * slope), np.where(on_axis, 0.0, x[1] / r * slope),
-                   np.full_like(z, 0.2)])
-    return a / np.linalg.norm(a, axis=0)
-
-
-def uniform_fiber_field(mesh: dmesh.Mesh, direction) -> fem.Function:
-    """A constant unit fibre direction as a P1 vector function."""
-    d = np.asarray(direction, dtype=float)
-    d = d / np.linalg.norm(d)
-    a0 = fem.Function(fem.functionspace(mesh, ("Lagrange", 1, (3,))), name="a0")
-    a0.interpolate(lambda x: np.tile(d[:, None], (1, x.shape[1])))
-    return a0
-
-
-FIBER_KINDS = ("auto", "idealized", "axial", "principal", "stokes")
-
-
-def fiber_field(geometry: Geometry, kind: str = "auto") -> fem.Function:
-    """The reference fibre direction a0 as a vector P1 function, unit length at the nodes.
-
-    kind: "idealized" the analytic spline fibres of MODEL.md §5; "axial" e_z (the axis of
-    the cylinder and the idealized shape); "principal" the first principal axis of the
-    vertex coordinates, oriented from end Γ1 to Γ2 (a stand-in for tests); "stokes" the
-    Stokes-flow fibres stored next to an anatomical mesh (`hyper.fibers`, MODEL.md §5);
-    "auto" picks the first for `idealized`, the second for `cylinder` and "stokes"
-    otherwise.
-
-    Why P1: every fibre source (analytic, Stokes flow) can be written at vertices, XDMF
-    stores and ParaView shows it as is, and any quadrature or DG space the forms or the
-    growth tensors use interpolates it. Between the nodes |a0| dips below 1 where the
-    fibres turn (by up to 4 % next to the idealized shape's axis, where the formula
-    jumps); `MechanicsProblem` and the growth field normalise at their points.
-    """
-    if kind not in FIBER_KINDS:
-        raise InputError(f"unknown fibre kind {kind!r}; expected one of {', '.join(FIBER_KINDS)}")
-    if kind == "auto":
-        kind = {"idealized": "idealized", "cylinder": "axial"}.get(geometry.name, "stokes")
-    if kind == "stokes":
-        from hyper import fibers
-
-        return fibers.load(geometry)
-    if kind == "axial":
-        return uniform_fiber_field(geometry.mesh, (0.0, 0.0, 1.0))
-    if kind == "principal":
-        _, axes = principal_axes(geometry.mesh)
-        axis = axes[:, 0]
-        if np.dot(facet_centroid(geometry, geometry.ends[1]) - facet_centroid(geometry, geometry.ends[0]), axis) < 0:
-            axis = -axis
-        return uniform_fiber_field(geometry.mesh, axis)
-    a0 = fem.Function(fem.functionspace(geometry.mesh, ("Lagrange", 1, (3,))), name="a0")
-    a0.interpolate(idealized_fiber)
-    return a0
-
-
 __all__ = [
     "ANATOMICAL",
     "GEOMETRIES",
     "Geometry",
     "MUSCLES",
-    "fiber_field",
     "load",
     "load_file",
     "principal_axes",
     "refine",
     "split_id",
-    "uniform_fiber_field",
 ]

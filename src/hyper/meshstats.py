@@ -1,6 +1,6 @@
 """Statistics of the anatomical meshes: size, volume, reference cross-section, length.
 
-``python -m hyper.meshstats --output results/meshes/stats.csv`` writes one row per mesh,
+``hyper meshstats --output results/meshes/stats.csv`` writes one row per mesh,
 
     geometry,muscle,subject,side,cells,vertices,volume_cm3,csa0_cm2,length_cm
 
@@ -20,7 +20,6 @@ checked and printed.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import sys
 from pathlib import Path
@@ -28,11 +27,12 @@ from pathlib import Path
 import dolfinx_solver  # noqa: F401  (must precede dolfinx)
 
 import numpy as np
-from mpi4py import MPI
 
+from hyper import cli, section
 from hyper import geometry as geo
-from hyper import section
+from hyper.log import info
 from hyper.params import InputError
+from hyper.plot import pyplot
 
 COLUMNS = ("geometry", "muscle", "subject", "side", "cells", "vertices", "volume_cm3", "csa0_cm2", "length_cm")
 # Group means of the initial volumes (cm³) as the paper reports them, to 0.1 cm³.
@@ -84,11 +84,7 @@ def matching_digits(value: float, reference: float) -> int:
 def figure(rows):
     """Bar charts of volume and CSA0 per muscle, one bar per subject and side, with the
     group means as lines (the analogue of the paper's Fig. 5B)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     muscles = [m for m in geo.MUSCLES if any(r.get("muscle") == m for r in rows)]
     members = [("VHF", "Left"), ("VHF", "Right"), ("VHM", "Left"), ("VHM", "Right")]
     colours = {"VHF": ("#c0392b", "#e6958d"), "VHM": ("#1f5f99", "#8fb3d6")}
@@ -119,50 +115,34 @@ def figure(rows):
     return fig
 
 
-def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="python -m hyper.meshstats",
-        description="Cells, vertices, volume, reference cross-section (exact cut) and length of "
-                    "the anatomical meshes, with a bar chart like the paper's Fig. 5B.",
-    )
-    parser.add_argument("--output", type=Path, default=Path("results/meshes/stats.csv"),
-                        help="CSV file to write; the figure goes next to it as .png")
-    parser.add_argument("--geometries", nargs="+", metavar="ID", default=list(geo.ANATOMICAL),
-                        help="geometries (default: the 12 anatomical meshes)")
-    parser.add_argument("--meshes-dir", type=Path, default=None, help="folder of the meshes")
-    return parser
+def parser() -> cli.Parser:
+    p = cli.Parser("meshstats", description="Cells, vertices, volume, reference cross-section (exact cut) and "
+                   "length of the anatomical\nmeshes, with a bar chart like the paper's Fig. 5B.")
+    p.add_argument("--output", type=Path, default=Path("results/meshes/stats.csv"),
+                   help="CSV file to write; the figure goes next to it as .png")
+    p.add_argument("--geometries", nargs="+", metavar="ID", default=list(geo.ANATOMICAL),
+                   help="geometries (the 12 anatomical meshes)")
+    p.add_argument("--meshes-dir", type=Path, default=geo.MESHES_DIR, help="folder of the meshes")
+    return p
 
 
-def main(argv=None) -> int:
+def run(comm, args) -> int:
+    from hyper import plot
     from hyper.io import atomic_path
-    from hyper.log import info
 
-    comm = MPI.COMM_WORLD
-    args = _parser().parse_args(argv)
-    try:
-        if args.output.suffix != ".csv":
-            raise InputError(f"--output must name a .csv file, got {args.output}")
-        unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
-        if unknown:
-            raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")
-        rows = [statistics(geo.load(name, comm, meshes_dir=args.meshes_dir)) for name in args.geometries]
-    except InputError as err:
-        if comm.rank == 0:
-            print(f"error: {err}", file=sys.stderr)
-        return 2
+    if args.output.suffix != ".csv":
+        raise InputError(f"--output must name a .csv file, got {args.output}")
+    unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
+    if unknown:
+        raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")
+    rows = [statistics(geo.load(name, comm, meshes_dir=args.meshes_dir)) for name in args.geometries]
     if comm.rank == 0:
-        import matplotlib.pyplot as plt
-
         with atomic_path(args.output) as tmp, open(tmp, "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=COLUMNS, restval="")
             writer.writeheader()
             for row in rows:
                 writer.writerow({k: (f"{v:.12g}" if isinstance(v, float) else v) for k, v in row.items()})
-        fig = figure(rows)
-        png = args.output.with_suffix(".png")
-        with atomic_path(png) as tmp:
-            fig.savefig(tmp, format="png", dpi=130)
-        plt.close(fig)
+        png = plot.save(figure(rows), args.output.with_suffix(".png"), dpi=130)
 
         info(comm, f"{'geometry':<16} {'cells':>6} {'vertices':>8} {'volume cm³':>11} {'CSA0 cm²':>9} {'length cm':>9}")
         for row in rows:
@@ -176,9 +156,11 @@ def main(argv=None) -> int:
             info(comm, f"{muscle:<5} mean of {n}: volume {mean:.4f} cm³ (paper {paper:.1f}: "
                        f"{'matches' if ok else 'DIFFERS'}, {matching_digits(mean, paper)} significant digits), "
                        f"CSA0 {csa[muscle]:.3f} cm²")
-        info(comm, f"table: {args.output}\nfigure: {png}")
-    return 0
+        info(comm, f"wrote {args.output} and {png}")
+    return cli.EXIT_OK
 
+
+main = cli.entry(parser, run)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -186,15 +186,16 @@ def resolve(name_or_path: str | Path) -> Protocol:
     raise InputError(f"unknown protocol {text!r}: give one of {', '.join(NAMES)} or a .toml file")
 
 
-PAPER = ("mwf", "every3days", "weekly")  # the paper's three, in its order of growth
+PAPER = ("mwf", "every3days", "weekly")  # the three protocols of the paper's Figs. 3 and 4
 
 
 def from_option(value: str, option: str = "--protocol") -> list[Protocol]:
-    """The protocols an option names: a built-in name, 'all' for the paper's three, or a TOML file."""
+    """The protocols a ``--protocol NAME|FILE`` option names: a built-in protocol, ``all`` for
+    the paper's three (``PAPER``), or a TOML protocol file (a value ending in .toml or naming
+    an existing file). A bad value is an InputError that names ``option``."""
     if value == "all":
-        return [named(n) for n in PAPER]
-    if value in NAMES:
-        return [named(value)]
-    if str(value).endswith(".toml") or Path(value).is_file():
-        return [load(value)]
-    raise InputError(f"{option}: unknown protocol {value!r}; known: {', '.join(NAMES)}, or 'all', or a TOML file")
+        return [named(name) for name in PAPER]
+    if value in NAMES or value.endswith(".toml") or Path(value).is_file():
+        return [resolve(value)]
+    raise InputError(f"{option}: unknown protocol {value!r}; known: {', '.join(NAMES)}, or 'all' for "
+                     f"{' '.join(PAPER)}, or a .toml protocol file")

@@ -161,9 +161,9 @@ class RunSpec:
         return self.mesh.load(comm) if self.mesh is not None else geo.load(self.geometry, comm)
 
     def fiber_field(self, geometry):
-        from hyper import geometry as geo
+        from hyper import fibers
 
-        return geo.fiber_field(geometry, "principal" if self.mesh is not None else "auto")
+        return fibers.fiber_field(geometry, "principal" if self.mesh is not None else "auto")
 
     def cell_params(self, geometry):
         """The signaling parameters of this run on this rank's cells."""

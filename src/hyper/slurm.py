@@ -1,8 +1,8 @@
 """Slurm batch scripts from the templates in ``jobs/``: fill the placeholders, check values.
 
-    python -m hyper.slurm cohort --ntasks 36 --time 2:00:00 -o cohort.sbatch
-    python -m hyper.slurm grow-array --protocols mwf weekly -o array.sbatch
-    python -m hyper.slurm sobol --ntasks 64 --samples 10000 -o sobol.sbatch
+    hyper slurm cohort --ntasks 36 --time 2:00:00 -o cohort.sbatch
+    hyper slurm grow-array --protocols mwf weekly -o array.sbatch
+    hyper slurm sobol --ntasks 64 --samples 10000 -o sobol.sbatch
     sbatch cohort.sbatch
 
 A placeholder is ``{name}`` with a lower-case name; shell variables in the templates are
@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+from hyper import cli, log, protocols
 from hyper.params import InputError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -58,10 +59,10 @@ def render_template(path: str | Path, **values) -> str:
 
 def cohort_runs(geometries: Sequence[str] | None, protocol_names: Sequence[str] | None) -> list[tuple[str, str]]:
     """(geometry, protocol) pairs, geometry-major; by default the paper's cohort."""
-    from hyper import geometry, protocols
+    from hyper import geometry
 
     geometries = list(geometry.ANATOMICAL) if not geometries else list(geometries)
-    protocol_names = ["mwf", "every3days", "weekly"] if not protocol_names else list(protocol_names)
+    protocol_names = list(protocols.PAPER) if not protocol_names else list(protocol_names)
     for g in geometries:
         if g not in geometry.GEOMETRIES:
             raise InputError(f"--geometries: unknown geometry {g!r}; known: {', '.join(geometry.GEOMETRIES)}")
@@ -97,7 +98,7 @@ def values_for(kind: str, args: argparse.Namespace) -> dict[str, Any]:
     if "\n" in args.args:
         raise InputError("--args must be one line")
     values = {
-        "job_name": _word(args.job_name or f"hyper-{kind}", "--job-name"),
+        "job_name": _word(args.job_name, "--job-name"),
         "ntasks": _count(args.ntasks, "--ntasks"),
         "time": args.time,
         "workdir": _word(args.workdir.resolve(), "--workdir"),
@@ -130,42 +131,45 @@ DEFAULTS = {  # first guesses per template: ntasks, time, output
 }
 
 
-def parse_args(argv):
-    p = argparse.ArgumentParser(prog="python -m hyper.slurm", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    kinds = p.add_subparsers(dest="kind", required=True, metavar="{cohort,grow-array,sobol}")
+class _KindParser(cli.Parser):
+    """The parser of one template: a `cli.Parser` named ``hyper slurm KIND`` by argparse."""
+
+    def __init__(self, prog: str, **kwargs):
+        super().__init__(prog.removeprefix("hyper "), **kwargs)
+
+
+def parser() -> cli.Parser:
+    p = cli.Parser("slurm", description=__doc__)
+    kinds = p.add_subparsers(dest="kind", required=True, metavar="{cohort,grow-array,sobol}",
+                             parser_class=_KindParser, help="the template to render")
     for kind, (ntasks, time, output) in DEFAULTS.items():
         k = kinds.add_parser(kind, help=f"render jobs/{TEMPLATES[kind].name}")
-        k.add_argument("-o", "--script", type=Path, help="where to write the script (default: stdout)")
-        k.add_argument("--ntasks", type=int, default=ntasks, help=f"MPI ranks (default {ntasks})")
-        k.add_argument("--time", default=time, help=f"time limit (default {time})")
-        k.add_argument("--job-name", help=f"default hyper-{kind}")
-        k.add_argument("--output", default=output, help=f"results folder (default {output})")
+        k.add_argument("-o", "--script", type=Path, help="where to write the script (stdout if not given)")
+        k.add_argument("--ntasks", type=int, default=ntasks, help="MPI ranks")
+        k.add_argument("--time", default=time, help="time limit")
+        k.add_argument("--job-name", default=f"hyper-{kind}", help="the Slurm job name")
+        k.add_argument("--output", default=output, help="results folder")
         k.add_argument("--workdir", type=Path, default=ROOT, help="the project folder the job runs in")
         k.add_argument("--venv", type=Path, default=Path(sys.prefix), help="virtual environment to activate")
         k.add_argument("--log-dir", default="results/slurm", help="Slurm logs, relative to --workdir")
         k.add_argument("--warn-s", type=int, default=300, help="TERM this many s before the time limit")
         k.add_argument("--max-requeue", type=int, default=3, help="requeue at most this many times")
-        k.add_argument("--srun-mpi", default="pmi2", help="srun --mpi plugin (default pmi2)")
+        k.add_argument("--srun-mpi", default="pmi2", help="srun --mpi plugin")
         k.add_argument("--args", default="", help="extra options for the python command, as one string")
         if kind == "cohort":
-            k.add_argument("--ranks-per-job", type=int, default=1, help="ranks per run (default 1)")
+            k.add_argument("--ranks-per-job", type=int, default=1, help="ranks per run")
         elif kind == "grow-array":
-            k.add_argument("--geometries", nargs="+", metavar="ID", help="default: the 12 anatomical meshes")
-            k.add_argument("--protocols", nargs="+", metavar="NAME", help="default: mwf every3days weekly")
+            k.add_argument("--geometries", nargs="+", metavar="ID",
+                           help="geometries; the 12 anatomical meshes if not given")
+            k.add_argument("--protocols", nargs="+", metavar="NAME", default=list(protocols.PAPER), help="protocols")
             k.add_argument("--max-parallel", type=int, help="at most this many array tasks at once")
         else:
-            k.add_argument("--samples", type=int, default=10000, help="Sobol base samples (default 10000)")
-    return p.parse_args(argv)
+            k.add_argument("--samples", type=int, default=10000, help="Sobol base samples")
+    return p
 
 
-def main(argv=None) -> int:
-    args = parse_args(sys.argv[1:] if argv is None else argv)
-    try:
-        script = render_template(TEMPLATES[args.kind], **values_for(args.kind, args))
-    except InputError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+def run(comm, args) -> int:
+    script = render_template(TEMPLATES[args.kind], **values_for(args.kind, args))
     # Slurm does not create the folder of --output: a missing one fails the job silently.
     (args.workdir / args.log_dir).mkdir(parents=True, exist_ok=True)
     if args.script is None:
@@ -173,9 +177,12 @@ def main(argv=None) -> int:
     else:
         args.script.parent.mkdir(parents=True, exist_ok=True)
         args.script.write_text(script)
-        print(f"wrote {args.script}; submit with: sbatch {args.script}", file=sys.stderr)
-    return 0
+        log.info(comm, f"wrote {args.script}; submit with: sbatch {args.script}")
+    return cli.EXIT_OK
 
+
+# Scripts are rendered on a login node, where MPI need not start.
+main = cli.entry(parser, run, world=False)
 
 if __name__ == "__main__":
     sys.exit(main())

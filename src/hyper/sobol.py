@@ -21,14 +21,13 @@ are computed while any member failed; ``"drop"`` removes every base sample that 
 failed row (its whole block of 2D + 2 rows, which keeps SALib's design intact) and
 says how many.
 
-The job layer (``run_chunks`` and ``main``) writes each finished chunk atomically to
+The job (``run_chunks`` and ``run``) writes each finished chunk atomically to
 ``<output>/chunks/<digest>/``, the digest covering the sample matrix and every setting,
 so a rerun skips finished chunks and never reuses chunks of a different run.
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import functools
 import hashlib
@@ -44,9 +43,12 @@ from typing import Callable
 
 import numpy as np
 
+from hyper import cli, protocols
 from hyper import signaling as S
+from hyper.log import info
 from hyper.params import InputError
-from hyper.protocols import NAMES, Protocol, resolve
+from hyper.plot import pyplot
+from hyper.protocols import Protocol, named
 
 PARAMETERS = ("a10", "a20", "a3", "a4", "b1", "b2", "b3", "b4", "c21", "c32", "c42", "c43", "kM", "kF")
 
@@ -129,7 +131,7 @@ def final_N(X: np.ndarray, *, names=PARAMETERS, protocol: Protocol | None = None
     """N at the end of ``protocol`` (default daily15) for every row of X, from the baseline rest
     state, by RK4 with steps of at most dt. NaN marks a member whose trajectory failed (c
     backend); the numpy backend raises ``SignalingError`` instead."""
-    protocol = resolve("daily15") if protocol is None else protocol
+    protocol = named("daily15") if protocol is None else protocol
     p = sample_params(np.atleast_2d(X), names, base)
     y0 = S.rest_state(base)
     if backend == "numpy":
@@ -223,11 +225,7 @@ def figure_spread(ind: Indices):
     """The Fig. 3F analog: for each parameter the bootstrap mean of its index against the bootstrap
     standard deviation, first-order and total side by side. Colour: species; a coupling
     parameter is split between its own species and the one it comes from."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.6))
     for ax, (label, boot) in zip(axes, (("first-order $S_1$", ind.S1_boot), ("total $S_T$", ind.ST_boot))):
         mean, std = boot.mean(axis=0), boot.std(axis=0, ddof=1)
@@ -249,11 +247,7 @@ def figure_spread(ind: Indices):
 
 def figure_bars(ind: Indices):
     """S1 and ST with their confidence intervals, parameters by decreasing ST."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     order = np.argsort(-ind.ST)
     x = np.arange(len(order))
     fig, ax = plt.subplots(figsize=(10, 4.2))
@@ -346,37 +340,36 @@ def remove_stale(folder: Path, key: str) -> list[str]:
 
 
 # --------------------------------------------------------------------------------------
-# CLI
+# The job
 
 
-def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="python -m hyper.sobol",
-        description="Sobol sensitivity analysis of N(480 h) under daily15 (MODEL.md §7), farmed over MPI ranks "
-        "(run under mpirun -n K). Writes sobol.h5, indices.csv and two figures to --output.",
-    )
-    parser.add_argument("--samples", type=int, default=10000, help="base samples N; N (2D + 2) evaluations (default: 10000)")
-    parser.add_argument("--output", type=Path, default=Path("results/sobol"), help="output folder (default: results/sobol)")
-    parser.add_argument("--dt", type=float, default=0.05, help="largest RK4 step in h (default: 0.05)")
-    parser.add_argument("--chunk", type=int, default=10000, help="rows per job and per chunk file (default: 10000)")
-    parser.add_argument("--seed", type=int, default=1, help="seed of the design; the bootstrap uses seed + 1 (default: 1)")
-    parser.add_argument("--resamples", type=int, default=100, help="bootstrap resamples (default: 100)")
-    parser.add_argument("--protocol", default="daily15", help=f"named protocol ({', '.join(NAMES)}) or a .toml file "
-                        "(default: daily15); the output is N at its end")
-    parser.add_argument("--on-failure", choices=("abort", "drop"), default="abort",
-                        help="failed members: compute no indices (abort), or drop their base samples (default: abort)")
-    parser.add_argument("--backend", choices=("c", "numpy"), default="c",
-                        help="RK4 backend: compiled (c) or signaling.integrate (numpy); same numbers (default: c)")
-    parser.add_argument("--function", choices=("signaling", "ishigami"), default="signaling",
-                        help="the model: the signaling model, or the Ishigami test function (default: signaling)")
-    return parser
+def parser() -> cli.Parser:
+    p = cli.Parser("sobol", description="Sobol sensitivity analysis of N(480 h) under daily15 (MODEL.md §7),\n"
+                   "farmed over MPI ranks (run under mpirun -n K). Writes sobol.h5, indices.csv and two\n"
+                   "figures to --output.")
+    p.add_argument("--samples", type=int, default=10000, help="base samples N; N (2D + 2) evaluations")
+    p.add_argument("--output", type=Path, default=Path("results/sobol"), help="output folder")
+    p.add_argument("--signaling-dt", type=float, default=0.05, metavar="H", help="largest RK4 step (h)")
+    p.add_argument("--chunk", type=int, default=10000, help="rows per job and per chunk file")
+    p.add_argument("--seed", type=int, default=1, help="seed of the design; the bootstrap uses seed + 1")
+    p.add_argument("--resamples", type=int, default=100, help="bootstrap resamples")
+    p.add_argument("--protocol", default="daily15", metavar="NAME|FILE",
+                   help=f"a named protocol ({', '.join(protocols.NAMES)}) or a TOML protocol file; the output "
+                   "is N at its end")
+    p.add_argument("--on-failure", choices=("abort", "drop"), default="abort",
+                   help="failed members: compute no indices (abort), or drop their base samples")
+    p.add_argument("--backend", choices=("c", "numpy"), default="c",
+                   help="RK4 backend: compiled (c) or signaling.integrate (numpy); same numbers")
+    p.add_argument("--function", choices=("signaling", "ishigami"), default="signaling",
+                   help="the model: the signaling model, or the Ishigami test function")
+    return p
 
 
 def _settings(args, protocol: Protocol | None) -> dict:
     """Everything a chunk's outputs depend on besides the sample matrix."""
     if args.function == "ishigami":
         return {"function": "ishigami", "a_b": ISHIGAMI_AB}
-    return {"function": "signaling", "dt": args.dt, "protocol": protocol.to_attributes(),
+    return {"function": "signaling", "dt": args.signaling_dt, "protocol": protocol.to_attributes(),
             "baseline": dataclasses.asdict(S.SignalingParams()), "start": "baseline rest state"}
 
 
@@ -387,29 +380,23 @@ def _check(args) -> Protocol | None:
         raise InputError(f"--chunk must be >= 1, got {args.chunk}")
     if args.resamples < 2:
         raise InputError(f"--resamples must be >= 2, got {args.resamples}")
-    if not (math.isfinite(args.dt) and args.dt > 0):
-        raise InputError(f"--dt must be a finite number > 0 h, got {args.dt}")
     if args.seed < 0:
         raise InputError(f"--seed must be >= 0, got {args.seed}")
-    return resolve(args.protocol) if args.function == "signaling" else None
+    S.check_hours(args.signaling_dt, "--signaling-dt")
+    if args.function == "ishigami":
+        return None
+    found = protocols.from_option(args.protocol)
+    if len(found) > 1:
+        raise InputError(f"--protocol {args.protocol}: the analysis takes one protocol")
+    return found[0]
 
 
-def main(argv=None, comm=None) -> int:
-    from mpi4py import MPI
-
+def run(comm, args) -> int:
     from hyper import io
     from hyper.farm import summary_line
-    from hyper.log import info
 
-    comm = MPI.COMM_WORLD if comm is None else comm
     start = time.perf_counter()
-    args = _parser().parse_args(argv)
-    try:
-        protocol = _check(args)
-    except InputError as err:
-        if comm.rank == 0:
-            print(f"error: {err}", file=sys.stderr)
-        return 2
+    protocol = _check(args)
     # io.versions() imports dolfinx, whose PETSc initialization is collective over COMM_WORLD:
     # done by rank 0 alone (when it writes the results) it would meet the other ranks' next
     # collective call and hang. All ranks import it here, together.
@@ -428,11 +415,10 @@ def main(argv=None, comm=None) -> int:
             # rank 0 builds the kernel; the other ranks then load it from the cache
             error = comm.bcast(S.c_backend_error() if comm.rank == 0 else None, root=0)
             if error is not None:
-                if comm.rank == 0:
-                    print(f"error: {error}; use --backend numpy", file=sys.stderr)
-                return 1
+                cli.error(comm, f"{error}; use --backend numpy")
+                return cli.EXIT_SOME_FAILED
             S.c_backend_error()
-        evaluate = functools.partial(final_N, protocol=protocol, dt=args.dt, backend=args.backend)
+        evaluate = functools.partial(final_N, protocol=protocol, dt=args.signaling_dt, backend=args.backend)
     chunks = args.output / "chunks"
     if comm.rank == 0:
         stale = remove_stale(chunks, key)
@@ -442,7 +428,8 @@ def main(argv=None, comm=None) -> int:
             info(comm, f"note: {args.samples} base samples is not a power of 2; the Sobol sequence is balanced only then")
     comm.barrier()
     info(comm, f"sobol: {args.function}, {D} parameters, N = {args.samples}, {X.shape[0]} evaluations in chunks of "
-               f"{args.chunk} on {comm.size} rank(s), dt = {args.dt} h, backend {args.backend}, digest {key}")
+               f"{args.chunk} on {comm.size} rank(s), dt = {args.signaling_dt} h, backend {args.backend}, "
+               f"digest {key}")
     t_eval, c_eval = time.perf_counter(), time.process_time()
     Y, results = run_chunks(comm, X, evaluate, chunks, key, args.chunk, label="sobol")
     eval_wall = time.perf_counter() - t_eval
@@ -450,7 +437,7 @@ def main(argv=None, comm=None) -> int:
     # cores the ranks actually got
     eval_cpu = comm.reduce(time.process_time() - c_eval, root=0)
     info(comm, summary_line(results))
-    code = _finish(args, prob, X, Y, results, protocol, key, (eval_wall, eval_cpu), start, comm.size, io, info) if comm.rank == 0 else 0
+    code = _finish(args, prob, X, Y, results, protocol, key, (eval_wall, eval_cpu), start, comm.size) if comm.rank == 0 else 0
     _idle_barrier(comm)
     return int(comm.bcast(code, root=0))
 
@@ -463,11 +450,13 @@ def _idle_barrier(comm) -> None:
         time.sleep(0.02)
 
 
-def _finish(args, prob, X, Y, results, protocol, key, timing, start, ranks, io, info) -> int:
+def _finish(args, prob, X, Y, results, protocol, key, timing, start, ranks) -> int:
     """Rank 0: analysis, HDF5, CSV, figures, summary. Returns the exit code."""
+    from hyper import io, plot
+
     if Y is None:
-        print("error: some chunks failed (see above); rerun the same command to compute only those", file=sys.stderr)
-        return 1
+        cli.error(None, "some chunks failed (see above); rerun the same command to compute only those")
+        return cli.EXIT_SOME_FAILED
     jobs = chunk_jobs(X.shape[0], args.chunk)
     computed = sum(r.status == "done" for r in results)
     evaluated_rows = sum(j.payload[1] - j.payload[0] for j, r in zip(jobs, results) if r.status == "done")
@@ -484,8 +473,8 @@ def _finish(args, prob, X, Y, results, protocol, key, timing, start, ranks, io, 
     try:
         ind = analyze(prob, Y, seed=args.seed, resamples=args.resamples, on_failure=args.on_failure)
     except ValueError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 1
+        cli.error(None, str(err))
+        return cli.EXIT_SOME_FAILED
     if ind.dropped:
         info(None, f"dropped {ind.dropped} base samples with a failed member; indices from {ind.base_samples}")
     wall = time.perf_counter() - start
@@ -495,7 +484,7 @@ def _finish(args, prob, X, Y, results, protocol, key, timing, start, ranks, io, 
         "model": f"Sobol indices of {'N(end)' if protocol else 'the Ishigami function'} (MODEL.md §7)",
         "function": args.function, "N": args.samples, "D": prob["num_vars"], "evaluations": X.shape[0],
         "seed": args.seed, "bootstrap_seed": args.seed + 1, "resamples": args.resamples, "conf_level": 0.95,
-        "dt": args.dt, "backend": args.backend, "ranks": ranks, "chunk": args.chunk, "digest": key,
+        "dt": args.signaling_dt, "backend": args.backend, "ranks": ranks, "chunk": args.chunk, "digest": key,
         "failures": int(failed.size), "on_failure": args.on_failure, "dropped_base_samples": ind.dropped,
         "base_samples_used": ind.base_samples, "wall_s": wall, "evaluation_wall_s": eval_wall,
         "evaluation_cpu_s": eval_cpu, "cpu_share": share,
@@ -517,18 +506,15 @@ def _finish(args, prob, X, Y, results, protocol, key, timing, start, ranks, io, 
             f.write("parameter,S1,S1_conf,ST,ST_conf\n")
             for k, name in enumerate(ind.names):
                 f.write(f"{name},{ind.S1[k]:.6g},{ind.S1_conf[k]:.6g},{ind.ST[k]:.6g},{ind.ST_conf[k]:.6g}\n")
-    import matplotlib.pyplot as plt
-
     for name, make in (("spread.png", figure_spread), ("indices.png", figure_bars)):
-        fig = make(ind)
-        with io.atomic_path(out / name) as tmp:
-            fig.savefig(tmp, format="png", dpi=130)
-        plt.close(fig)
+        plot.save(make(ind), out / name, dpi=130)
     info(None, ind.table())
     info(None, f"wall {wall:.1f} s; results: {out / 'sobol.h5'}, {out / 'indices.csv'}, {out / 'spread.png'}, "
                f"{out / 'indices.png'}")
     return 0
 
+
+main = cli.entry(parser, run)
 
 if __name__ == "__main__":
     sys.exit(main())

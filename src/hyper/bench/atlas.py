@@ -134,13 +134,13 @@ def newton_growth_step(thetas=THETAS, halvings: int = 4) -> list[dict]:
     from dolfinx import fem
     from mpi4py import MPI
 
-    from hyper import geometry as geo
+    from hyper import fibers, geometry as geo
     from hyper import growth
     from hyper.mechanics import MechanicsProblem, SolverError
 
     comm = MPI.COMM_SELF
     geometry = geo.load("idealized", comm)
-    a0 = geo.fiber_field(geometry)
+    a0 = fibers.fiber_field(geometry)
     unit = a0 / ufl.sqrt(ufl.dot(a0, a0))
     theta = fem.Constant(geometry.mesh, 1.0)  # transverse stretch: area growth ϑ²
     Fg = growth.transverse_growth_ufl(theta**2, unit)

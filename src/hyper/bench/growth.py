@@ -232,7 +232,7 @@ def run_case(comm, case: dict) -> dict:
 
     from mpi4py import MPI
 
-    from hyper import geometry as geo
+    from hyper import fibers, geometry as geo
     from hyper import protocols
     from hyper.coupled import CoupledModel, GrowthSettings
     from hyper.log import Progress
@@ -247,7 +247,7 @@ def run_case(comm, case: dict) -> dict:
     geometry = geo.load(case["geometry"], comm, quadrature_degree=case.get("quadrature_degree", 4))
     for _ in range(case.get("refine", 0)):
         geometry = geo.refine(geometry)
-    model = CoupledModel(geometry, geo.fiber_field(geometry), protocol, settings=settings)
+    model = CoupledModel(geometry, fibers.fiber_field(geometry), protocol, settings=settings)
     setup_wall = time.perf_counter() - wall0
 
     series = {"t": [], "csa_ratio": [], "volume_ratio": []}

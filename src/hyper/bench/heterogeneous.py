@@ -29,7 +29,7 @@ import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
 from mpi4py import MPI
 
-from hyper import geometry as geo
+from hyper import fibers, geometry as geo
 from hyper import heterogeneity, io, protocols, signaling
 from hyper.coupled import CoupledModel, GrowthSettings
 from hyper.log import info
@@ -161,7 +161,7 @@ def main(argv=None) -> int:
 
     load_start = os.getloadavg()
     geometry = geo.load(args.geometry, comm)
-    a0 = geo.fiber_field(geometry)
+    a0 = fibers.fiber_field(geometry)
     params = heterogeneity.cell_params(geometry.mesh, heterogeneity.Heterogeneity(epsilon=0.01), seed=1)
     rest = signaling.rest_state()
     y0 = np.repeat(rest[:, None], params.size, axis=1)

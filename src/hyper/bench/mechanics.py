@@ -62,12 +62,12 @@ def _worker_jacobian(geometry_name: str, degree: str) -> dict:
     from dolfinx import fem
     from mpi4py import MPI
 
-    from hyper import geometry as geo
+    from hyper import fibers, geometry as geo
     from hyper.mechanics import MechanicsProblem
 
     comm = MPI.COMM_WORLD
     geometry = geo.load(geometry_name, comm)
-    problem = MechanicsProblem(geometry, geo.fiber_field(geometry))
+    problem = MechanicsProblem(geometry, fibers.fiber_field(geometry))
     problem.alpha.value = 0.5
     estimate = estimated_degrees(problem.jacobian)
     degrees = dict(estimate)
@@ -101,14 +101,14 @@ def _worker_newton(geometry_name: str) -> dict:
 
     from mpi4py import MPI
 
-    from hyper import geometry as geo
+    from hyper import fibers, geometry as geo
     from hyper.contraction import advance
     from hyper.mechanics import MechanicsProblem
 
     comm = MPI.COMM_WORLD
     start = time.perf_counter()
     geometry = geo.load(geometry_name, comm)
-    problem = MechanicsProblem(geometry, geo.fiber_field(geometry))
+    problem = MechanicsProblem(geometry, fibers.fiber_field(geometry))
     setup_s = comm.allreduce(time.perf_counter() - start, op=MPI.MAX)
     solves = []
     for alpha in ALPHAS:

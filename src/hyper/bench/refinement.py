@@ -56,14 +56,14 @@ def run_levels(comm, levels: int, log=print) -> list[dict]:
 
     from mpi4py import MPI
 
-    from hyper import geometry as geo
+    from hyper import fibers, geometry as geo
     from hyper.mechanics import MechanicsProblem
 
     geometry = geo.load("idealized", comm)
     rows, previous = [], None
     for level in range(levels):
         start = time.perf_counter()
-        problem = MechanicsProblem(geometry, geo.fiber_field(geometry))
+        problem = MechanicsProblem(geometry, fibers.fiber_field(geometry))
         setup_s = time.perf_counter() - start
         start = time.perf_counter()
         if previous is None:

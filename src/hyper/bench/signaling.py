@@ -27,7 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import io, signaling as S, signaling_c
+from hyper import io, signaling as S
+from hyper.signaling import compiled as signaling_c
 from hyper.protocols import named
 
 DTS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.55, 0.6, 0.65, 0.7, 0.8, 1.0)

@@ -63,8 +63,7 @@ def _cli(ranks: int, samples: int, chunk: int, folder: Path) -> dict:
 def _backends(members: int) -> dict:
     X = sobol.sample(sobol.problem(), max(2, -(-members // 30)), seed=11)[:members]
     protocol = named("daily15")
-    steps = sum(S._steps(piece, 0.05)[0] for piece in
-                S._pieces(protocol, sobol.sample_params(X[:2]), 0.0, protocol.end, np.array([0.0, protocol.end])))
+    steps = S.step_count(sobol.sample_params(X[:2]), protocol, 0.0, protocol.end)
     if S.c_backend_error() is not None:  # builds or loads the kernel before timing
         raise RuntimeError(f"the C backend is unavailable: {S.c_backend_error()}")
     out = {"members": int(X.shape[0]), "steps": steps}

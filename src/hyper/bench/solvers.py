@@ -122,14 +122,14 @@ def run_case(case: dict, comm, save: Path | None) -> dict:
     from dolfinx import fem
     from mpi4py import MPI
 
-    from hyper import geometry as geo
+    from hyper import fibers, geometry as geo
     from hyper import growth
     from hyper.mechanics import BLR_PRECISION, MechanicsProblem, SolverError
 
     geometry = geo.load(case["geometry"], comm)
     for _ in range(case.get("level", 0)):
         geometry = geo.refine(geometry)
-    a0 = geo.fiber_field(geometry)
+    a0 = fibers.fiber_field(geometry)
     unit = a0 / ufl.sqrt(ufl.dot(a0, a0))
     theta = fem.Constant(geometry.mesh, 1.0)  # transverse stretch: area growth ϑ²
     Fg = growth.transverse_growth_ufl(theta**2, unit)

@@ -2,12 +2,12 @@
 
 Use it through ``signaling.integrate(..., backend="c" | "auto")``;
 ``signaling.c_backend_error`` builds it (ahead of timings) and says why it cannot be.
-This module knows arrays, not protocols: signaling cuts [t0, t1] into pieces and
-tabulates the stimuli, as for its numpy batch, and ``run`` takes each block of members
+This module knows arrays, not protocols: the integrators cut [t0, t1] into pieces and
+tabulate the stimuli, as for their numpy batch, and ``run`` takes each block of members
 through those pieces on the compiled step.
 
-The C code repeats signaling's RK4 in its (h/2)-scaled form expression for expression
-(``_scalar_rhs``, ``_rk4_single``): with s = h/2 the rate constants and the stimuli come
+The C code repeats the RK4 of ``hyper.signaling.integrators`` in its (h/2)-scaled form
+expression for expression (``model.scalar_rhs`` and the single-member step): with s = h/2 the rate constants and the stimuli come
 scaled by s, the stages are K_i = s k_i, and y_new = y + ((K1 + K4) + 2 (K2 + K3)) / 3.
 IEEE +, -, * are exactly rounded, so the same trees in the same order give the same bits;
 ``-ffp-contract=off`` keeps the compiler from fusing them into FMAs. A member that fails
@@ -37,7 +37,7 @@ import numpy as np
 
 # Rows of the per-member coefficient matrix, in the order the C code reads them: first
 # those that scale with the step (rates), then thresholds and bounds. The inhibitions c32
-# and c43 enter negated, as in signaling's kernels; "kM" is the effective synthesis rate
+# and c43 enter negated, as in the model's right-hand sides; "kM" is the effective synthesis rate
 # (signaling's kM override).
 ROWS = ("b1", "b2", "b3", "b4", "a3", "a4", "c21", "c32", "c42", "c43", "kF", "kM",
         "thetaF", "thetaM", "Nmin", "Nmax")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from hyper.plot import pyplot
 from hyper.protocols import WEEK, Protocol
 
 STYLES = {"weekly": (0, (4, 2))}  # dashed: weekly and mwf coincide until the second session
@@ -34,10 +35,7 @@ def figure_protocols(runs: dict, protocols: dict[str, Protocol], params, insets:
     sixth panel showing the sessions. ``runs[name]`` holds the series ``t, igf1, ..., N``;
     ``insets[name]`` the same over the first day, t in hours after the first session start.
     Returns the matplotlib Figure (Agg)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     from matplotlib.ticker import MaxNLocator
 
     end = max(p.end for p in protocols.values())

@@ -1,0 +1,29 @@
+"""IGF1–AKT–FOXO–mTOR signaling (MODEL.md §1): numpy kernels over a batch axis.
+
+State ``y = (igf1, akt, foxo, mtor, N)``, shape (5,) for one member or (5, n) for a batch.
+The batch axis is later the mesh cells of one rank or the samples of a Sobol analysis:
+every parameter may be a float or an array of n per-member values.
+
+- ``params``: `SignalingParams` (Table 2, units, validation) and TOML loading;
+- ``model``: the rest state, the stimuli, the right-hand side and its switch times;
+- ``integrators``: RK4 over the batch axis (numpy or compiled), the reference solution,
+  the sampled series of a protocol;
+- ``compiled``: the RK4 step in C, built at run time;
+- ``plot``: the Fig. 3A–E analog;
+- ``cli``: ``hyper signaling`` (``python -m hyper.signaling``).
+
+The names below are the ones the rest of hyper uses.
+"""
+
+from hyper.protocols import PAPER
+from hyper.signaling.cli import main
+from hyper.signaling.integrators import (AUTO_MIN_MEMBERS, BACKENDS, CHUNK, FAILURES, SignalingError, c_backend_error,
+                                         check_hours, first_day, integrate, reference, run, step_count)
+from hyper.signaling.model import STATES, a1, a2, bump_duration, g, net_balance, rest_state, rhs, switch_times
+from hyper.signaling.params import SignalingParams, load_params
+
+__all__ = [
+    "AUTO_MIN_MEMBERS", "BACKENDS", "CHUNK", "FAILURES", "PAPER", "STATES", "SignalingError", "SignalingParams",
+    "a1", "a2", "bump_duration", "c_backend_error", "check_hours", "first_day", "g", "integrate", "load_params",
+    "main", "net_balance", "reference", "rest_state", "rhs", "run", "step_count", "switch_times",
+]

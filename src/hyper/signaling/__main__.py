@@ -1,0 +1,5 @@
+import sys
+
+from hyper.signaling.cli import main
+
+sys.exit(main())
