@@ -290,8 +290,8 @@ def run_one(comm, geometry_name: str, protocol, params, settings, *, snapshot_ev
         # a checkpoint write killed halfway leaves its temporary file: never read, remove it
         ckpt.on_rank0(comm, lambda: Path(str(checkpoint) + io.PARTIAL).unlink(missing_ok=True))
     if checkpoint is not None and ckpt.on_rank0(comm, Path(checkpoint).is_file):
-        saved = ckpt.read(comm, Path(checkpoint), run_digest, model.local_original_cells())
-        model.set_local_state(saved.rows, saved.glob)
+        saved = ckpt.read(comm, Path(checkpoint), run_digest, ckpt.local_original_cells(model.geometry.mesh))
+        ckpt.restore_model(model, saved.rows, saved.glob)
         series = {name: list(saved.series[name]) for name in SERIES}
         segments = int(saved.attrs["segments"]) + 1
         wall0 = float(series["wall_s"][-1])
@@ -299,7 +299,7 @@ def run_one(comm, geometry_name: str, protocol, params, settings, *, snapshot_ev
                    f"(t = {model.t:g} h), written on {saved.attrs['ranks']} rank(s)")
 
     def save(status: str) -> None:
-        original, per_cell, glob = model.local_state()
+        original, per_cell, glob = ckpt.model_state(model)
         snap_cells, snap_glob = snaps.state()
         ckpt.write(comm, Path(checkpoint), original, {**per_cell, **snap_cells}, {**glob, **snap_glob},
                    {k: np.asarray(v) for k, v in series.items()},

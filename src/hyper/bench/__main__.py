@@ -8,8 +8,13 @@ import sys
 import hyper.bench
 
 
+# Modules of the package that are not benchmarks.
+SHARED = ("common",)
+
+
 def available() -> list[str]:
-    return sorted(m.name for m in pkgutil.iter_modules(hyper.bench.__path__) if not m.name.startswith("_"))
+    return sorted(m.name for m in pkgutil.iter_modules(hyper.bench.__path__)
+                  if not m.name.startswith("_") and m.name not in SHARED)
 
 
 def main(argv=None) -> int:

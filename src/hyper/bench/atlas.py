@@ -41,12 +41,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import platform
 import time
 from pathlib import Path
 
 import numpy as np
 
+from hyper import plot
+from hyper.bench import common
 from hyper.bench import growth as growth_bench
 
 THETAS = (1.005, 1.05, 1.2, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, 10.0)
@@ -107,7 +108,7 @@ def measure_dimension(cases: list[tuple[dict, int]], timeout: float, log) -> lis
     rows = []
     for case, ranks in cases:
         log(f"  {case['label']} on {ranks} rank(s) …")
-        row = growth_bench._run_worker(case, ranks, timeout)
+        row = common.run_worker("growth", case, ranks, timeout)
         row.pop("series", None)
         row["ranks"] = ranks
         rows.append(row)
@@ -243,7 +244,7 @@ def matplotlib_ticker():
 
 
 def pareto_chart(path: Path, result: dict) -> None:
-    plt = growth_bench._plt()
+    plt = plot.pyplot()
     panels = [(name, rows) for name, rows in result["dimensions"].items()]
     collected = result["collected"]
     if "ode_dt" in collected:
@@ -313,12 +314,11 @@ def pareto_chart(path: Path, result: dict) -> None:
         ax.axis("off")
     fig.suptitle("speed against accuracy: error of the final CSA/V ratios (or N) against time")
     fig.tight_layout()
-    fig.savefig(path, dpi=120, format="png")
-    plt.close(fig)
+    plot.save(fig, path, dpi=120)
 
 
 def failure_chart(path: Path, result: dict) -> None:
-    plt = growth_bench._plt()
+    plt = plot.pyplot()
     fig, axes = plt.subplots(1, 4, figsize=(20, 4.2))
     collected = result["collected"]
     ax = axes[0]
@@ -392,15 +392,12 @@ def failure_chart(path: Path, result: dict) -> None:
     else:
         ax.axis("off")
     fig.tight_layout()
-    fig.savefig(path, dpi=120, format="png")
-    plt.close(fig)
+    plot.save(fig, path, dpi=120)
 
 
-def _charts(output: Path, result: dict, io) -> None:
-    with io.atomic_path(output / "atlas.png") as tmp:
-        pareto_chart(tmp, result)
-    with io.atomic_path(output / "failure_map.png") as tmp:
-        failure_chart(tmp, result)
+def _charts(output: Path, result: dict) -> None:
+    pareto_chart(output / "atlas.png", result)
+    failure_chart(output / "failure_map.png", result)
 
 
 # -------------------------------------------------------------------------------- main
@@ -421,7 +418,7 @@ def main(argv=None) -> int:
 
     if args.replot:
         result = json.loads((args.output / "atlas.json").read_text())
-        _charts(args.output, result, io)
+        _charts(args.output, result)
         return 0
 
     from hyper import geometry as geo
@@ -444,13 +441,13 @@ def main(argv=None) -> int:
         dimensions[name] = measure_dimension(cases, args.timeout, lambda m: print(m, flush=True))
     print("atlas: failure map, growth step", flush=True)
     failure = {"growth_step": newton_growth_step(), "iterative": ITERATIVE_FINDINGS}
-    result = {"benchmark": "atlas", "host": platform.node(), "protocol": args.protocol,
+    result = {"benchmark": "atlas", "machine": common.machine(), "protocol": args.protocol,
               "dimensions": dimensions, "failure": failure, "collected": collect(args.output),
               "versions": io.versions(), "wall_s": time.perf_counter() - start}
     args.output.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(args.output / "atlas.json") as tmp:
         tmp.write_text(json.dumps(result, indent=2, default=float) + "\n")
-    _charts(args.output, result, io)
+    _charts(args.output, result)
     for name, rows in dimensions.items():
         for row in rows:
             err = _error(row)

@@ -21,6 +21,7 @@ import argparse
 import json
 from pathlib import Path
 
+from hyper.bench import common
 from hyper.bench import growth as growth_bench
 
 REFERENCE = {"growth_dt": 6.0, "signaling_dt": 0.05}
@@ -79,13 +80,13 @@ def main(argv=None) -> int:
     except InputError as err:
         parser.error(str(err))
 
-    result = {"benchmark": "fidelity", "accuracy": args.accuracy, "reference_settings": REFERENCE,
+    result = {"benchmark": "fidelity", "machine": common.machine(), "accuracy": args.accuracy, "reference_settings": REFERENCE,
               "geometries": {}, "versions": io.versions()}
     for name, plan in plans.items():
         rows = {}
         for key, case in plan.items():
             print(f"fidelity: {name}: {case['label']} …", flush=True)
-            row = growth_bench._run_worker(case, 1, args.timeout)
+            row = common.run_worker("growth", case, 1, args.timeout)
             row.pop("series", None)
             rows[key] = row
         result["geometries"][name] = {"runs": rows, "comparison": compare(rows, args.accuracy)}

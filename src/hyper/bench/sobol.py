@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -27,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import io, signaling as S, sobol
+from hyper import io, plot, signaling as S, sobol
+from hyper.bench import common
 from hyper.protocols import named
 
 
@@ -63,8 +63,7 @@ def _cli(ranks: int, samples: int, chunk: int, folder: Path) -> dict:
 def _backends(members: int) -> dict:
     X = sobol.sample(sobol.problem(), max(2, -(-members // 30)), seed=11)[:members]
     protocol = named("daily15")
-    steps = sum(S._steps(piece, 0.05)[0] for piece in
-                S._pieces(protocol, sobol.sample_params(X[:2]), 0.0, protocol.end, np.array([0.0, protocol.end])))
+    steps = S.step_count(sobol.sample_params(X[:2]), protocol, 0.0, protocol.end)
     if S.c_backend_error() is not None:  # builds or loads the kernel before timing
         raise RuntimeError(f"the C backend is unavailable: {S.c_backend_error()}")
     out = {"members": int(X.shape[0]), "steps": steps}
@@ -92,7 +91,7 @@ def main(argv=None) -> int:
     one, two = runs
     backends = _backends(args.members)
     result = {
-        "machine": {"cpus": os.cpu_count(), "processor": platform.processor(), "load_average": os.getloadavg()},
+        "machine": common.machine(),
         "versions": io.versions(),
         "samples": args.samples,
         "runs": runs,
@@ -107,11 +106,7 @@ def main(argv=None) -> int:
     with io.atomic_path(args.output / "sobol.json") as path:
         path.write_text(json.dumps(result, indent=2))
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = plot.pyplot()
     fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.6))
     a.bar(["1 rank", "2 ranks"], [r["evaluations_per_s"] for r in runs], color=["tab:blue", "tab:orange"])
     a.set_ylabel("evaluations / s")
@@ -122,9 +117,7 @@ def main(argv=None) -> int:
     b.set_ylabel("member-steps / s / core")
     b.set_title(f"RK4 backends: {backends['ratio_c_over_numpy']:.1f}x")
     fig.tight_layout()
-    with io.atomic_path(args.output / "sobol.png") as path:
-        fig.savefig(path, format="png", dpi=120)
-    plt.close(fig)
+    plot.save(fig, args.output / "sobol.png", dpi=120)
 
     print(f"1 rank: {one['evaluations_per_s']:.0f} evaluations/s ({one['evaluation_wall_s']:.1f} s), "
           f"2 ranks: {two['evaluations_per_s']:.0f} evaluations/s ({two['evaluation_wall_s']:.1f} s): "
