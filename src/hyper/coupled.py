@@ -137,7 +137,7 @@ class LaggedJacobian:
         if due or self._refresh:
             with self.monitor.track("jacobian assembly"):
                 self.problem.assemble_jacobian(x)
-            self.point = (self.problem.w.x.array.copy(), self.growth_function.x.array.copy())
+                self.point = (self.problem.w.x.array.copy(), self.growth_function.x.array.copy())
             self.assemblies += 1
             self._refresh = False
         self.count += 1
