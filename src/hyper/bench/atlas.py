@@ -38,7 +38,6 @@ Writes results/bench/atlas.json, atlas.png (Pareto charts) and failure_map.png.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import time
@@ -46,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import plot
+from hyper import cli, plot
 from hyper.bench import common
 from hyper.bench import growth as growth_bench
 
@@ -403,17 +402,17 @@ def _charts(output: Path, result: dict) -> None:
 # -------------------------------------------------------------------------------- main
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hyper.bench atlas", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--geometries", default="idealized,BFLH_VHF_Left",
-                        help="comma-separated geometries (default idealized,BFLH_VHF_Left)")
-    parser.add_argument("--protocol", default="mwf", help="named protocol (default mwf)")
-    parser.add_argument("--timeout", type=float, default=1800.0, help="seconds per run before it counts as failed")
-    parser.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
-    parser.add_argument("--replot", action="store_true", help="redraw the charts from OUTPUT/atlas.json, run nothing")
-    args = parser.parse_args(argv)
+def parser() -> cli.Parser:
+    p = cli.Parser("bench atlas", __doc__)
+    p.add_argument("--geometries", default="idealized,BFLH_VHF_Left", help="comma-separated geometries")
+    p.add_argument("--protocol", default="mwf", help="named protocol")
+    p.add_argument("--timeout", type=float, default=1800.0, help="seconds per run before it counts as failed")
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    p.add_argument("--replot", action="store_true", help="redraw the charts from OUTPUT/atlas.json, run nothing")
+    return p
 
+
+def run(comm, args) -> int:
     from hyper import io
 
     if args.replot:
@@ -426,13 +425,10 @@ def main(argv=None) -> int:
     from hyper.params import InputError
 
     geometries = [g for g in args.geometries.split(",") if g]
-    try:
-        for name in geometries:
-            if name not in geo.GEOMETRIES:
-                raise InputError(f"unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
-        protocols.named(args.protocol)
-    except InputError as err:
-        parser.error(str(err))
+    for name in geometries:
+        if name not in geo.GEOMETRIES:
+            raise InputError(f"unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
+    protocols.named(args.protocol)
 
     start = time.perf_counter()
     dimensions = {}
@@ -462,6 +458,8 @@ def main(argv=None) -> int:
     print(f"wrote {args.output / 'atlas.json'}, atlas.png, failure_map.png")
     return 0
 
+
+main = cli.entry(parser, run)
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -32,7 +32,6 @@ growth_series.png (CSA and volume against time per Δtg). ``--quick`` leaves out
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -42,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import plot
+from hyper import cli, plot
 from hyper.bench import common
 from hyper.params import InputError
 
@@ -361,10 +360,9 @@ def _summary(run: dict) -> str:
             f"signaling {100 * run['signaling_share']:.0f} %")
 
 
-def parse_args(argv):
-    p = argparse.ArgumentParser(prog="python -m hyper.bench growth", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--geometry", default="idealized")
+def parser() -> cli.Parser:
+    p = cli.Parser("bench growth", __doc__)
+    p.add_argument("--geometry", default="idealized", help="the mesh")
     p.add_argument("--protocol", default="mwf", help="named protocol")
     p.add_argument("--dts", default=",".join(f"{d:g}" for d in DTS),
                    help="growth steps Δtg in hours; the smallest is the reference (1e9: one step per period)")
@@ -374,35 +372,28 @@ def parse_args(argv):
     p.add_argument("--timeout", type=float, default=5400.0, help="seconds per configuration")
     p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
     common.add_worker_options(p)
-    return p.parse_args(argv)
+    return p
 
 
-def main(argv=None) -> int:
-    args = parse_args(sys.argv[1:] if argv is None else argv)
+def run(comm, args) -> int:
     if args.worker:
-        from mpi4py import MPI
-
-        common.write_worker_result(MPI.COMM_WORLD, args.json, run_case(MPI.COMM_WORLD, args.worker))
+        common.write_worker_result(comm, args.json, run_case(comm, args.worker))
         return 0
-    try:
-        from hyper import geometry as geo
-        from hyper import protocols
+    from hyper import geometry as geo
+    from hyper import protocols
 
-        if args.geometry not in geo.GEOMETRIES:
-            raise InputError(f"--geometry: unknown geometry {args.geometry!r}; known: {', '.join(geo.GEOMETRIES)}")
-        protocols.named(args.protocol)
-        dts = parse_dts(args.dts)
-        if args.quick:
-            dts = dts[1:]
-            if len(dts) < 2:
-                raise InputError("--quick leaves fewer than two growth steps: give more in --dts")
-        if not (math.isfinite(args.tolerance) and 0 < args.tolerance < 1):
-            raise InputError(f"--tolerance must be a fraction in (0, 1), got {args.tolerance}")
-        if args.ranks < 1:
-            raise InputError(f"--ranks must be a positive integer, got {args.ranks}")
-    except InputError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+    if args.geometry not in geo.GEOMETRIES:
+        raise InputError(f"--geometry: unknown geometry {args.geometry!r}; known: {', '.join(geo.GEOMETRIES)}")
+    protocols.named(args.protocol)
+    dts = parse_dts(args.dts)
+    if args.quick:
+        dts = dts[1:]
+        if len(dts) < 2:
+            raise InputError("--quick leaves fewer than two growth steps: give more in --dts")
+    if not (math.isfinite(args.tolerance) and 0 < args.tolerance < 1):
+        raise InputError(f"--tolerance must be a fraction in (0, 1), got {args.tolerance}")
+    if args.ranks < 1:
+        raise InputError(f"--ranks must be a positive integer, got {args.ranks}")
 
     started = time.perf_counter()
     host = common.machine()
@@ -425,7 +416,7 @@ def main(argv=None) -> int:
     sweep = [keep_series(run(_case(dt_label(dt), args, dt))) for dt in dts]
     reference = sweep[0]
     if "failed" in reference:
-        print("error: the reference run failed; nothing written", file=sys.stderr)
+        cli.error(comm, "the reference run failed; nothing written")
         return 1
     for row in sweep:
         row["reference"] = row is reference
@@ -517,6 +508,8 @@ def main(argv=None) -> int:
           f"(load average {os.getloadavg()[0]:.2f})")
     return 0
 
+
+main = cli.entry(parser, run)
 
 if __name__ == "__main__":
     sys.exit(main())

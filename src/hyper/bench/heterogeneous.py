@@ -17,7 +17,6 @@ results/bench/heterogeneous.json and heterogeneous.png. Runs on any number of ra
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import time
@@ -29,7 +28,7 @@ import numpy as np
 from mpi4py import MPI
 
 from hyper import geometry as geo
-from hyper import heterogeneity, io, plot, protocols, signaling
+from hyper import cli, heterogeneity, io, plot, protocols, signaling
 from hyper.bench import common
 from hyper.coupled import CoupledModel, GrowthSettings
 from hyper.log import info
@@ -108,15 +107,16 @@ def chart(result: dict, path: Path) -> None:
     plot.save(fig, path, dpi=120)
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hyper.bench heterogeneous", description=__doc__.splitlines()[0])
-    parser.add_argument("--geometry", default="BFLH_VHF_Left")
-    parser.add_argument("--end", type=float, default=336.0, help="end of the cut mwf protocol (h, default 336)")
-    parser.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt)
-    parser.add_argument("--output", type=Path, default=Path("results/bench"))
-    args = parser.parse_args(argv)
-    comm = MPI.COMM_WORLD
+def parser() -> cli.Parser:
+    p = cli.Parser("bench heterogeneous", __doc__)
+    p.add_argument("--geometry", default="BFLH_VHF_Left")
+    p.add_argument("--end", type=float, default=336.0, help="end of the cut mwf protocol (h)")
+    p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step (h)")
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    return p
 
+
+def run(comm, args) -> int:
     host = common.machine()
     load_start = host["load_average_at_start"]
     geometry = geo.load(args.geometry, comm)
@@ -146,3 +146,6 @@ def main(argv=None) -> int:
     info(comm, f"load average {load_start[0]:.2f} -> {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores; "
                f"-> {args.output / 'heterogeneous.json'}")
     return 0
+
+
+main = cli.entry(parser, run)

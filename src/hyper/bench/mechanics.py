@@ -17,7 +17,6 @@ Writes results/bench/mechanics.json and mechanics.png (--output: another folder)
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -25,8 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import plot
+from hyper import cli, plot
 from hyper.bench import common
+from hyper.params import InputError
 
 ALPHAS = (0.1, 0.2, 0.35, 0.55, 0.8, 1.0)
 
@@ -171,26 +171,25 @@ def chart(path: Path, result: dict) -> None:
     plot.save(fig, path, dpi=120)
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hyper.bench mechanics", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--geometries", default="idealized,BFLH_VHF_Left")
-    parser.add_argument("--ranks", default="1,2")
-    parser.add_argument("--quadrature-geometry", default="idealized")
-    parser.add_argument("--estimated-timeout", type=float, default=900.0, help="seconds")
-    parser.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
-    common.add_worker_options(parser)
-    args = parser.parse_args(argv)
+def parser() -> cli.Parser:
+    p = cli.Parser("bench mechanics", __doc__)
+    p.add_argument("--geometries", default="idealized,BFLH_VHF_Left", help="comma-separated geometries")
+    p.add_argument("--ranks", default="1,2", help="comma-separated rank counts of the contractions")
+    p.add_argument("--quadrature-geometry", default="idealized", help="the mesh of the quadrature comparison")
+    p.add_argument("--estimated-timeout", type=float, default=900.0, help="seconds")
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    common.add_worker_options(p)
+    return p
 
+
+def run(comm, args) -> int:
     if args.worker:
         case = args.worker
         if case["kind"] == "jacobian":
             result = _worker_jacobian(case["geometry"], case["degree"])
         else:
             result = _worker_newton(case["geometry"])
-        from mpi4py import MPI
-
-        common.write_worker_result(MPI.COMM_WORLD, args.json, result)
+        common.write_worker_result(comm, args.json, result)
         return 0
 
     from hyper.geometry import GEOMETRIES
@@ -198,8 +197,7 @@ def main(argv=None) -> int:
     geometries = args.geometries.split(",")
     unknown = [g for g in geometries + [args.quadrature_geometry] if g not in GEOMETRIES]
     if unknown:
-        print(f"error: unknown geometry {unknown[0]!r}; known: {', '.join(GEOMETRIES)}", file=sys.stderr)
-        return 2
+        raise InputError(f"unknown geometry {unknown[0]!r}; known: {', '.join(GEOMETRIES)}")
     ranks = [int(r) for r in args.ranks.split(",")]
 
     started = time.perf_counter()
@@ -261,6 +259,8 @@ def main(argv=None) -> int:
     print(f"wrote {out / 'mechanics.json'} and {out / 'mechanics.png'}")
     return 0
 
+
+main = cli.entry(parser, run)
 
 if __name__ == "__main__":
     sys.exit(main())

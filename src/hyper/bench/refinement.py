@@ -24,7 +24,6 @@ rank. Writes results/bench/refinement.json and refinement.png.
 
 from __future__ import annotations
 
-import argparse
 import json
 import resource
 import time
@@ -32,8 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import plot
+from hyper import cli, plot
 from hyper.bench import common
+from hyper.params import InputError
 
 ALPHAS = (0.1, 0.2, 0.35, 0.55, 0.8, 1.0)
 
@@ -161,25 +161,24 @@ def chart(path: Path, result: dict) -> None:
     plot.save(fig, path, dpi=130)
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hyper.bench refinement", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--levels", type=int, default=3, help="meshes: the given one and LEVELS-1 refinements (default 3)")
-    parser.add_argument("--memory-gib", type=float, default=22.0,
-                        help="memory available to the factorisation, GiB (default 22: a 24 GiB machine less 2)")
-    parser.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
-    args = parser.parse_args(argv)
+def parser() -> cli.Parser:
+    p = cli.Parser("bench refinement", __doc__)
+    p.add_argument("--levels", type=int, default=3, help="meshes: the given one and LEVELS-1 refinements")
+    p.add_argument("--memory-gib", type=float, default=22.0,
+                   help="memory available to the factorisation, GiB (22: a 24 GiB machine less 2)")
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    return p
+
+
+def run(comm, args) -> int:
     if not 2 <= args.levels <= 4:
-        parser.error("--levels must be 2, 3 or 4")
+        raise InputError("--levels must be 2, 3 or 4")
 
     import dolfinx_solver  # noqa: F401
-
-    from mpi4py import MPI
 
     from hyper import io
     from hyper.log import info
 
-    comm = MPI.COMM_WORLD
     rows = run_levels(comm, args.levels, log=lambda msg: info(comm, msg))
     result = {"benchmark": "refinement", "ranks": comm.size, "machine": common.machine(), "levels": rows,
               "forces": {k: observed_orders(rows, k)
@@ -198,6 +197,8 @@ def main(argv=None) -> int:
                    f"{fit['unknowns_at_limit']:.3g} unknowns; wrote {args.output / 'refinement.json'}")
     return 0
 
+
+main = cli.entry(parser, run)
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -18,7 +18,6 @@ OMP_NUM_THREADS=1: the throughput is per core.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -27,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import io, plot, signaling as S, signaling_c
+from hyper import cli, io, plot, signaling as S, signaling_c
 from hyper.bench import common
 from hyper.protocols import named
 
@@ -244,12 +243,14 @@ def _charts(result: dict, folder: Path) -> list[Path]:
     return paths
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hyper.bench signaling", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="shorter windows and fewer dt values (about a minute)")
-    parser.add_argument("--output", type=Path, default=Path("results/bench"), help="folder (default: results/bench)")
-    args = parser.parse_args(argv)
+def parser() -> cli.Parser:
+    p = cli.Parser("bench signaling", __doc__)
+    p.add_argument("--quick", action="store_true", help="shorter windows and fewer dt values (about a minute)")
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    return p
+
+
+def run(comm, args) -> int:
 
     print("reference (DOP853, rtol 1e-13) ...", flush=True)
     params, protocol, y0 = S.SignalingParams(), named("mwf"), S.rest_state()
@@ -299,3 +300,6 @@ def main(argv=None) -> int:
     charts = _charts(result, folder)
     print(f"wrote {path}, " + ", ".join(map(str, charts)))
     return 0
+
+
+main = cli.entry(parser, run, world=False)

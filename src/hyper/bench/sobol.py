@@ -15,7 +15,6 @@ side, are what to read.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -26,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import io, plot, signaling as S, sobol
+from hyper import cli, io, plot, signaling as S, sobol
 from hyper.bench import common
 from hyper.protocols import named
 
@@ -78,13 +77,16 @@ def _backends(members: int) -> dict:
     return out
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hyper.bench sobol", description=__doc__.splitlines()[0])
-    parser.add_argument("--samples", type=int, default=2048, help="base samples per CLI run (default: 2048)")
-    parser.add_argument("--chunk", type=int, default=4096, help="rows per chunk (default: 4096)")
-    parser.add_argument("--members", type=int, default=4096, help="batch of the backend comparison (default: 4096)")
-    parser.add_argument("--output", type=Path, default=Path("results/bench"))
-    args = parser.parse_args(argv)
+def parser() -> cli.Parser:
+    p = cli.Parser("bench sobol", __doc__)
+    p.add_argument("--samples", type=int, default=2048, help="base samples per CLI run")
+    p.add_argument("--chunk", type=int, default=4096, help="rows per chunk")
+    p.add_argument("--members", type=int, default=4096, help="batch of the backend comparison")
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    return p
+
+
+def run(comm, args) -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         runs = [_cli(ranks, args.samples, args.chunk, Path(tmp) / f"n{ranks}") for ranks in (1, 2)]
@@ -129,3 +131,7 @@ def main(argv=None) -> int:
           f"identical: {backends['identical']}")
     print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores; -> {args.output / 'sobol.json'}")
     return 0
+
+
+# Only its child processes use MPI.
+main = cli.entry(parser, run, world=False)
