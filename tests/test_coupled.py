@@ -89,3 +89,34 @@ def test_two_ranks_reproduce_the_serial_csa_series():
     parallel = csa_series(comm)
     serial = csa_series(MPI.COMM_SELF)
     np.testing.assert_allclose(parallel[:, 1:3], serial[:, 1:3], rtol=1e-8)
+
+
+def test_a_monitor_times_the_phases_and_an_integrator_replaces_the_signaling():
+    """What a benchmark plugs in (a recording monitor, another ODE integrator) sees every
+    phase and every period, and changes nothing in the answer."""
+    from hyper.bench.common import Timings
+    from hyper.coupled import PHASES
+
+    g = geo.load("cylinder", MPI.COMM_SELF)
+    a0 = fibers.fiber_field(g)
+    settings = GrowthSettings(growth_dt=24.0)
+    plain = [r.csa_ratio for r in CoupledModel(g, a0, short_protocol(), params=GROWING, settings=settings).run()]
+
+    periods = []
+
+    def integrator(*args, **kwargs):
+        periods.append(args[3:5])
+        return signaling.integrate(*args, **kwargs)
+
+    clock = Timings()
+    model = CoupledModel(g, a0, short_protocol(), params=GROWING, settings=settings, integrator=integrator,
+                         monitor=clock)
+    reports = list(model.run())
+    assert [r.csa_ratio for r in reports] == plain
+    assert periods == [(t0, t1) for t0, t1, _ in short_protocol().periods()]
+    assert set(clock.calls) == set(PHASES)
+    assert clock.calls["signaling"] == len(periods)
+    assert clock.calls["mechanics"] >= sum(1 for r in reports[1:] if r.newton_iterations)
+    assert clock.calls["jacobian assembly"] == model.jacobian.assemblies
+    assert clock.calls["measures"] == clock.calls["growth update"] / 2  # grow and accept per solved step
+    assert clock.seconds["jacobian assembly"] <= clock.seconds["mechanics"]

@@ -314,13 +314,13 @@ def measures(model, until=None) -> list:
 
 
 def save_state(comm, model, path):
-    ckpt.write(comm, path, *model.local_state(), series={}, attrs={"run_digest": "test"})
+    ckpt.write(comm, path, *ckpt.model_state(model), series={}, attrs={"run_digest": "test"})
 
 
 def resumed(comm, path) -> list:
     model = heterogeneous_model(comm)
-    saved = ckpt.read(comm, path, "test", model.local_original_cells())
-    model.set_local_state(saved.rows, saved.glob)
+    saved = ckpt.read(comm, path, "test", ckpt.local_original_cells(model.geometry.mesh))
+    ckpt.restore_model(model, saved.rows, saved.glob)
     return measures(model)
 
 

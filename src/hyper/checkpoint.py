@@ -8,7 +8,7 @@ a kill during the write leaves the previous checkpoint in place, never half a fi
                 ranks (that wrote it), created, versions, complete (written last)
     cells/original      (n,) original cell indices (the mesh file's), ascending
     cells/<name>        (n, ...) one row per cell in that order: the model's per-cell
-                        state (see `CoupledModel.local_state`) and the snapshots
+                        state (see `model_state`) and the snapshots
     global/<name>       scalars and small arrays (CSA/V ratios, time, step, protocol
                         position, multipliers, Jacobian count, uniform signaling state)
     series/<name>       the time series so far
@@ -24,6 +24,7 @@ checkpoint is resumed only by a run with the same digest.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime
 import errno
 import fcntl
@@ -33,12 +34,15 @@ import math
 import os
 import socket
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Mapping
 
 import numpy as np
 
 from hyper import io
 from hyper.params import InputError
+
+if TYPE_CHECKING:
+    from hyper.coupled import CoupledModel
 
 KIND = "hyper.grow checkpoint"
 FORMAT = 1
@@ -197,6 +201,128 @@ def read(comm, path: Path, run_digest: str, local_original: np.ndarray) -> Check
     if isinstance(mine, str):
         raise InputError(mine)
     return Checkpoint(*mine)
+
+
+# ------------------------------------------------------------------- the model's state
+
+
+def local_original_cells(mesh) -> np.ndarray:
+    """The original (mesh file) index of each local cell, owned then ghost."""
+    imap = mesh.topology.index_map(mesh.topology.dim)
+    return np.asarray(mesh.topology.original_cell_index, dtype=np.int64)[: imap.size_local + imap.num_ghosts]
+
+
+def model_state(model: CoupledModel) -> tuple[np.ndarray, dict, dict]:
+    """(original index of each owned cell, per-cell arrays, global values) of a model.
+
+    Per-cell arrays have one row per owned cell. The mixed solution is stored as
+    each cell's own dof values in the element's order: that order follows the cell's
+    vertices as the mesh file lists them, so it is the same on any partition (P2 has
+    one dof per edge, so no dof transformation enters). Ḡ and A are per quadrature
+    point of the cell, whose points are placed by the same vertex order.
+    """
+    problem, growth, jacobian = model.problem, model.growth, model.jacobian
+    cells = growth.cells
+    original = local_original_cells(model.geometry.mesh)[cells]
+    wdofs = problem.W.dofmap.list[cells]
+    per_cell = {
+        "w": problem.w.x.array[wdofs],
+        "Gbar": growth.Gbar,
+        "A": growth.A,
+    }
+    glob = {
+        "multipliers": np.asarray(problem.multipliers, dtype=float),
+        "csa_ratio": model.csa_ratio,
+        "volume_ratio": model.volume_ratio,
+        "t": model.t,
+        "step": model.step,
+        "period": model.period,
+        "period_step": model.period_step,
+        "jacobian_count": jacobian.count,
+        "csa0": model.csa0,
+        "volume0": model.volume0,
+    }
+    if jacobian.point is not None:
+        w_j, g_j = jacobian.point
+        per_cell["jacobian_w"] = w_j[wdofs]
+        per_cell["jacobian_Gbar"] = g_j.reshape(-1, 9)[growth.dofs]
+    per_cell_y = model.y.ndim == 2
+    (per_cell if per_cell_y else glob)["y"] = model.y.T if per_cell_y else model.y
+    if np.ndim(model.kM):
+        per_cell["kM"] = np.asarray(model.kM)
+    else:
+        glob["kM"] = float(model.kM)
+    if model.period_states is not None:
+        glob["period_times"] = model.period_times
+        ys = model.period_states
+        if per_cell_y:
+            per_cell["period_states"] = np.moveaxis(ys, 2, 0)  # (cell, time, species)
+        else:
+            glob["period_states"] = ys
+    for f in dataclasses.fields(model.params):
+        value = getattr(model.params, f.name)
+        if isinstance(value, np.ndarray):
+            per_cell[f"params.{f.name}"] = value
+    return original, per_cell, glob
+
+
+def restore_model(model: CoupledModel, rows: Callable[[str], np.ndarray | None], glob: Mapping[str, Any]) -> None:
+    """Take over a state saved by `model_state` (on any partition).
+
+    ``rows(name)`` gives a per-cell array for this rank's cells, owned then ghost (the
+    local cell numbering), or None where the state has no such array.
+    """
+    import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
+
+    from dolfinx import fem
+
+    problem, growth = model.problem, model.growth
+    nowned = len(growth.cells)
+    mesh = model.geometry.mesh
+    nlocal = nowned + mesh.topology.index_map(mesh.topology.dim).num_ghosts
+    local = np.arange(nlocal, dtype=np.int32)
+    wdofs = problem.W.dofmap.list[local]
+    w = problem.w
+    w.x.array[wdofs] = rows("w")
+    w.x.scatter_forward()
+    problem.multipliers = np.array(glob["multipliers"], dtype=float)
+    growth.set(np.array(rows("Gbar")[:nowned]), np.array(rows("A")[:nowned]))
+
+    # per-cell parameters (random fields) come from the state: they are part of it
+    names = [f"params.{f.name}" for f in dataclasses.fields(model.params)]
+    params = {name.split(".", 1)[1]: rows(name)[:nowned] for name in names if rows(name) is not None}
+    if params:
+        model.params = dataclasses.replace(model.params, **params)
+        model.kM0 = model.params.kM
+    y = rows("y")
+    model.y = np.ascontiguousarray(y[:nowned].T) if y is not None else np.array(glob["y"], dtype=float)
+    kM = rows("kM")
+    model.kM = np.array(kM[:nowned]) if kM is not None else float(glob["kM"])
+    model.csa_ratio = float(glob["csa_ratio"])
+    model.volume_ratio = float(glob["volume_ratio"])
+    model.t = float(glob["t"])
+    model.step = int(glob["step"])
+    model.period = int(glob["period"])
+    model.period_step = int(glob["period_step"])
+    if "period_times" in glob:
+        model.period_times = np.array(glob["period_times"], dtype=float)
+        ys = rows("period_states")
+        model.period_states = (np.ascontiguousarray(np.moveaxis(ys[:nowned], 0, 2)) if ys is not None
+                               else np.array(glob["period_states"], dtype=float))
+    else:
+        model.period_times = model.period_states = None
+
+    point = None
+    jw = rows("jacobian_w")
+    if jw is not None:
+        pw = np.zeros_like(w.x.array)
+        pw[wdofs] = jw
+        g = fem.Function(growth.space)
+        g.x.array.reshape(-1, 9)[growth.dofs.ravel()] = rows("jacobian_Gbar")[:nowned].reshape(-1, 9)
+        g.x.scatter_forward()
+        point = (pw, g.x.array.copy())
+    model.jacobian.rebuild(int(glob["jacobian_count"]), point)
+    model.resumed = True
 
 
 # ------------------------------------------------------------------------------- locks

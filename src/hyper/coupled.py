@@ -15,7 +15,7 @@ import contextlib
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Iterator
+from typing import Callable, Iterator
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 
@@ -77,6 +77,22 @@ JACOBIAN_LAG = 10
 LAG_OPTION = "snes_lag_jacobian"
 
 
+class NoTiming:
+    """The monitor a model has unless given one: it times nothing.
+
+    A monitor is any object whose ``track(name)`` is a context manager around one
+    phase of the work; `CoupledModel` names its phases in `PHASES`.
+    """
+
+    def track(self, name: str) -> contextlib.AbstractContextManager:
+        return contextlib.nullcontext()
+
+
+# The phases a model times through its monitor. "jacobian assembly" happens inside
+# "mechanics" (the Newton solves); the others do not overlap.
+PHASES = ("signaling", "mechanics", "jacobian assembly", "growth update", "measures")
+
+
 class GrowthFailure(RuntimeError):
     """A growth step failed for good (Newton after every allowed cut, or the signaling
     ODEs); the model is back at the state after its last completed step."""
@@ -99,15 +115,16 @@ class LaggedJacobian:
     assembles the same matrix again there.
     """
 
-    def __init__(self, problem: MechanicsProblem, growth_function: fem.Function, lag: int):
+    def __init__(self, problem: MechanicsProblem, growth_function: fem.Function, lag: int, monitor=None):
         self.problem = problem
+        self.monitor = monitor if monitor is not None else NoTiming()
         self.growth_function = growth_function
         self.lag = lag if lag >= 1 else 0  # PETSc's -1/-2: never again after the first
         self.count = 0  # Newton iterations so far, over all solves
         self.assemblies = 0
         self.point: tuple[np.ndarray, np.ndarray] | None = None  # (w, Ḡ) local arrays
         self._refresh = False
-        K = problem._K
+        K = problem.jacobian_matrix
         problem.snes.setJacobian(self._jacobian, K, K)
 
     def refresh(self) -> None:
@@ -117,8 +134,9 @@ class LaggedJacobian:
     def _jacobian(self, snes, x, K, P) -> None:
         due = self.count == 0 or (self.lag > 0 and self.count % self.lag == 0)
         if due or self._refresh:
-            self.problem._assemble_jacobian(snes, x, K, P)
-            self.point = (self.problem.w.x.array.copy(), self.growth_function.x.array.copy())
+            with self.monitor.track("jacobian assembly"):
+                self.problem.assemble_jacobian(x)
+                self.point = (self.problem.w.x.array.copy(), self.growth_function.x.array.copy())
             self.assemblies += 1
             self._refresh = False
         self.count += 1
@@ -132,9 +150,9 @@ class LaggedJacobian:
         problem, g = self.problem, self.growth_function
         saved = problem.w.x.array.copy(), problem.multipliers.copy(), g.x.array.copy()
         g.x.array[:] = point[1]
-        x = problem._x
-        x.getArray()[: problem._nowned] = point[0][: problem._nowned]
-        problem._assemble_jacobian(problem.snes, x, problem._K, problem._K)
+        x, n = problem.solution_vector, problem.owned_size
+        x.getArray()[:n] = point[0][:n]
+        problem.assemble_jacobian(x)
         problem.w.x.array[:] = saved[0]
         problem.multipliers = saved[1]
         g.x.array[:] = saved[2]
@@ -180,7 +198,12 @@ class PlaneSection:
 
 
 class CoupledModel:
-    """Owns the mechanics problem, the growth field and the signaling state of one run."""
+    """Owns the mechanics problem, the growth field and the signaling state of one run.
+
+    ``integrator`` advances the signaling ODEs, with the signature of
+    `signaling.integrate` (the default); ``monitor`` times the `PHASES` of the run
+    (default `NoTiming`).
+    """
 
     def __init__(
         self,
@@ -193,12 +216,16 @@ class CoupledModel:
         settings: GrowthSettings = GrowthSettings(),
         petsc_options: dict | None = None,
         linear_solver: str = "lu",
+        integrator: Callable | None = None,
+        monitor=None,
     ):
         self.geometry = geometry
         self.comm = geometry.mesh.comm
         self.protocol = protocol
         self.params = params if params is not None else signaling.SignalingParams()
         self.settings = settings
+        self.integrator = integrator if integrator is not None else signaling.integrate
+        self.monitor = monitor if monitor is not None else NoTiming()
         self.growth = growth.GrowthField(geometry.mesh, a0, geometry.quadrature_degree)
         kwargs = {} if material is None else {"material": material}
         options = dict(petsc_options or {})
@@ -217,7 +244,7 @@ class CoupledModel:
                 **kwargs,
             )
         self.growth.set_deformation(self.problem.F)
-        self.jacobian = LaggedJacobian(self.problem, self.growth.function, lag)
+        self.jacobian = LaggedJacobian(self.problem, self.growth.function, lag, self.monitor)
         if geometry.midsection is not None:
             self.section = growth.FacetSection(geometry, self.problem.F)
         else:
@@ -276,16 +303,19 @@ class CoupledModel:
         """Newton from the previous state; a failure with a lagged Jacobian is retried
         once with a fresh one before the caller cuts the step."""
         try:
-            return self.problem.solve()
+            with self.monitor.track("mechanics"):
+                return self.problem.solve()
         except SolverError:
             if self.jacobian.lag == 1:
                 raise
             self.jacobian.refresh()
-            return self.problem.solve()
+            with self.monitor.track("mechanics"):
+                return self.problem.solve()
 
     def _grow(self, theta, halvings: int = 0) -> tuple[int, int]:
         """Grow by ϑ and solve; on a failed solve, retry as two half increments √ϑ."""
-        self.growth.grow(theta)
+        with self.monitor.track("growth update"):
+            self.growth.grow(theta)
         try:
             iterations = self._solve()
         except SolverError:
@@ -296,19 +326,9 @@ class CoupledModel:
             its1, h1 = self._grow(root, halvings + 1)
             its2, h2 = self._grow(root, halvings + 1)
             return its1 + its2, max(h1, h2)
-        self.growth.accept()
+        with self.monitor.track("growth update"):
+            self.growth.accept()
         return iterations, halvings
-
-    def _set_growth(self, Gbar: np.ndarray, A: np.ndarray) -> None:
-        g = self.growth
-        g.Gbar, g.A = Gbar, A
-        values = g.function.x.array.reshape(-1, 9)
-        values[self._growth_dofs.ravel()] = Gbar.reshape(-1, 9)
-        g.function.x.scatter_forward()
-
-    @property
-    def _growth_dofs(self) -> np.ndarray:
-        return self.growth.space.dofmap.list[self.growth.cells]
 
     def _step(self, theta, t0: float, t1: float) -> tuple[int, int]:
         """One growth step; if it cannot be solved, the state before it comes back."""
@@ -319,7 +339,7 @@ class CoupledModel:
         except SolverError as err:
             self.problem.w.x.array[:] = w
             self.problem.multipliers = mult
-            self._set_growth(Gbar, A)
+            self.growth.set(Gbar, A)
             raise GrowthFailure(
                 f"growth step {self.step + 1} ({t0:g} h to {t1:g} h): Newton did not converge "
                 f"with the step cut {self.settings.max_halvings} time(s): {err}",
@@ -339,9 +359,10 @@ class CoupledModel:
                 times = step_times(t0, t1, s.growth_dt)
                 error = ys = None
                 try:
-                    _, ys = signaling.integrate(
-                        self.params, self.protocol, self.y, t0, t1, s.signaling_dt, out_times=times, kM=self.kM
-                    )
+                    with self.monitor.track("signaling"):
+                        _, ys = self.integrator(
+                            self.params, self.protocol, self.y, t0, t1, s.signaling_dt, out_times=times, kM=self.kM
+                        )
                 except SignalingError as err:
                     error = str(err)
                 # per-cell ODEs may fail on some ranks only: every rank stops alike
@@ -362,8 +383,9 @@ class CoupledModel:
                 # nothing grows, so the previous equilibrium stands.
                 if self.comm.allreduce(bool(np.any(theta != 1.0)), op=MPI.LOR):
                     iterations, halvings = self._step(theta, float(times[k - 1]), float(times[k]))
-                    self.csa_ratio = self.section.area() / self.csa0
-                    self.volume_ratio = self.problem.volume() / self.volume0
+                    with self.monitor.track("measures"):
+                        self.csa_ratio = self.section.area() / self.csa0
+                        self.volume_ratio = self.problem.volume() / self.volume0
                     self.kM = self.kM0 * growth.feedback(self.csa_ratio, s.feedback)
                 self.y = ys[k]
                 self.t = float(times[k])
@@ -372,120 +394,6 @@ class CoupledModel:
                 yield self._report(iterations, halvings)
             self.period += 1
             self.period_times = self.period_states = None
-
-    # -- restart -----------------------------------------------------------------------
-
-    def local_original_cells(self) -> np.ndarray:
-        """The original (mesh file) index of each local cell, owned then ghost."""
-        mesh = self.geometry.mesh
-        imap = mesh.topology.index_map(mesh.topology.dim)
-        return np.asarray(mesh.topology.original_cell_index, dtype=np.int64)[: imap.size_local + imap.num_ghosts]
-
-    def local_state(self) -> tuple[np.ndarray, dict, dict]:
-        """(original index of each owned cell, per-cell arrays, global values).
-
-        Per-cell arrays have one row per owned cell. The mixed solution is stored as
-        each cell's own dof values in the element's order: that order follows the cell's
-        vertices as the mesh file lists them, so it is the same on any partition (P2 has
-        one dof per edge, so no dof transformation enters). Ḡ and A are per quadrature
-        point of the cell, whose points are placed by the same vertex order.
-        """
-        cells = self.growth.cells
-        original = self.local_original_cells()[cells]
-        wdofs = self.problem.W.dofmap.list[cells]
-        gdofs = self._growth_dofs
-        per_cell = {
-            "w": self.problem.w.x.array[wdofs],
-            "Gbar": self.growth.Gbar,
-            "A": self.growth.A,
-        }
-        glob = {
-            "multipliers": np.asarray(self.problem.multipliers, dtype=float),
-            "csa_ratio": self.csa_ratio,
-            "volume_ratio": self.volume_ratio,
-            "t": self.t,
-            "step": self.step,
-            "period": self.period,
-            "period_step": self.period_step,
-            "jacobian_count": self.jacobian.count,
-            "csa0": self.csa0,
-            "volume0": self.volume0,
-        }
-        if self.jacobian.point is not None:
-            w_j, g_j = self.jacobian.point
-            per_cell["jacobian_w"] = w_j[wdofs]
-            per_cell["jacobian_Gbar"] = g_j.reshape(-1, 9)[gdofs]
-        per_cell_y = self.y.ndim == 2
-        (per_cell if per_cell_y else glob)["y"] = self.y.T if per_cell_y else self.y
-        if np.ndim(self.kM):
-            per_cell["kM"] = np.asarray(self.kM)
-        else:
-            glob["kM"] = float(self.kM)
-        if self.period_states is not None:
-            glob["period_times"] = self.period_times
-            ys = self.period_states
-            if per_cell_y:
-                per_cell["period_states"] = np.moveaxis(ys, 2, 0)  # (cell, time, species)
-            else:
-                glob["period_states"] = ys
-        for f in dataclasses.fields(self.params):
-            value = getattr(self.params, f.name)
-            if isinstance(value, np.ndarray):
-                per_cell[f"params.{f.name}"] = value
-        return original, per_cell, glob
-
-    def set_local_state(self, rows, glob: dict) -> None:
-        """Take over a state saved by `local_state` (on any partition).
-
-        ``rows(name)`` gives a per-cell array for this rank's cells, owned then ghost (the
-        local cell numbering), or None where the state has no such array.
-        """
-        nowned = len(self.growth.cells)
-        mesh = self.geometry.mesh
-        nlocal = nowned + mesh.topology.index_map(mesh.topology.dim).num_ghosts
-        local = np.arange(nlocal, dtype=np.int32)
-        wdofs = self.problem.W.dofmap.list[local]
-        w = self.problem.w
-        w.x.array[wdofs] = rows("w")
-        w.x.scatter_forward()
-        self.problem.multipliers = np.array(glob["multipliers"], dtype=float)
-        self._set_growth(np.array(rows("Gbar")[:nowned]), np.array(rows("A")[:nowned]))
-
-        # per-cell parameters (random fields) come from the state: they are part of it
-        params = {name.split(".", 1)[1]: rows(name)[:nowned]
-                  for name in _param_names(self.params) if rows(name) is not None}
-        if params:
-            self.params = dataclasses.replace(self.params, **params)
-            self.kM0 = self.params.kM
-        y = rows("y")
-        self.y = np.ascontiguousarray(y[:nowned].T) if y is not None else np.array(glob["y"], dtype=float)
-        kM = rows("kM")
-        self.kM = np.array(kM[:nowned]) if kM is not None else float(glob["kM"])
-        self.csa_ratio = float(glob["csa_ratio"])
-        self.volume_ratio = float(glob["volume_ratio"])
-        self.t = float(glob["t"])
-        self.step = int(glob["step"])
-        self.period = int(glob["period"])
-        self.period_step = int(glob["period_step"])
-        if "period_times" in glob:
-            self.period_times = np.array(glob["period_times"], dtype=float)
-            ys = rows("period_states")
-            self.period_states = (np.ascontiguousarray(np.moveaxis(ys[:nowned], 0, 2)) if ys is not None
-                                  else np.array(glob["period_states"], dtype=float))
-        else:
-            self.period_times = self.period_states = None
-
-        point = None
-        jw = rows("jacobian_w")
-        if jw is not None:
-            pw = np.zeros_like(w.x.array)
-            pw[wdofs] = jw
-            g = fem.Function(self.growth.space)
-            g.x.array.reshape(-1, 9)[self._growth_dofs.ravel()] = rows("jacobian_Gbar")[:nowned].reshape(-1, 9)
-            g.x.scatter_forward()
-            point = (pw, g.x.array.copy())
-        self.jacobian.rebuild(int(glob["jacobian_count"]), point)
-        self.resumed = True
 
     def settings_attributes(self) -> dict:
         return dataclasses.asdict(self.settings)
@@ -519,6 +427,3 @@ def _taken_from_database(name: str):
         if value is not None:
             db.setValue(name, value)
 
-
-def _param_names(params) -> list[str]:
-    return [f"params.{f.name}" for f in dataclasses.fields(params)]

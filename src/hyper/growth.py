@@ -88,9 +88,9 @@ class GrowthField:
         self.space = fem.functionspace(mesh, element)
         self.points, self.weights = basix.make_quadrature(cell, degree)
         self.cells = np.arange(mesh.topology.index_map(mesh.topology.dim).size_local, dtype=np.int32)
-        self._dofs = self.space.dofmap.list[self.cells]
+        self.dofs = self.space.dofmap.list[self.cells]  # (owned cell, quadrature point)
         nq = self.points.shape[0]
-        if self._dofs.shape[1] != nq:
+        if self.dofs.shape[1] != nq:
             raise RuntimeError("quadrature space and rule disagree on the number of points")
 
         fib = fem.Expression(a0, self.points).eval(mesh, self.cells).reshape(-1, nq, 3)
@@ -105,8 +105,14 @@ class GrowthField:
 
     def _write(self, Gbar) -> None:
         values = self.function.x.array.reshape(-1, 9)
-        values[self._dofs.ravel()] = Gbar.reshape(-1, 9)
+        values[self.dofs.ravel()] = Gbar.reshape(-1, 9)
         self.function.x.scatter_forward()
+
+    def set(self, Gbar, A) -> None:
+        """Take over Ḡ and A (a saved state, or the one before a failed step)."""
+        self.Gbar, self.A = Gbar, A
+        self._previous = Gbar
+        self._write(Gbar)
 
     def set_deformation(self, F) -> None:
         """Give the UFL deformation gradient whose values update A after each solve."""

@@ -150,7 +150,7 @@ class MechanicsProblem:
         self.w = fem.Function(self.W, name="w")
         self.u = self.w.sub(0)
         self.p = self.w.sub(1)
-        self._p_dofs = self.W.sub(1).collapse()[1]
+        self._p_dofs = np.asarray(self.W.sub(1).collapse()[1])
         self.alpha = fem.Constant(mesh, 0.0)
 
         u, p = ufl.split(self.w)
@@ -189,7 +189,7 @@ class MechanicsProblem:
 
         self.snes = PETSc.SNES().create(self.comm)
         self.snes.setFunction(self._assemble_residual, self._F)
-        self.snes.setJacobian(self._assemble_jacobian, self._K, self._K)
+        self.snes.setJacobian(self._snes_jacobian, self._K, self._K)
         self.snes.setOptionsPrefix(options_prefix)
         preset = ITERATIVE_PETSC_OPTIONS if linear_solver == "iterative" else {}
         _set_options(self.snes, options_prefix, {**DEFAULT_PETSC_OPTIONS, **preset, **(petsc_options or {})})
@@ -302,8 +302,38 @@ class MechanicsProblem:
             constraint = self.comm.allreduce(self._B @ self.w.x.array[: self._nowned], op=MPI.SUM)
             out[self._nowned:] = constraint[: self._nmult]
 
-    def _assemble_jacobian(self, snes, x, K, P) -> None:
+    def _snes_jacobian(self, snes, x, K, P) -> None:
+        self.assemble_jacobian(x)
+
+    # -- public ------------------------------------------------------------------------
+
+    @property
+    def jacobian_matrix(self) -> PETSc.Mat:
+        """The Newton matrix [[J, B], [Bᵀ, 0]] (an assembled AIJ matrix, rows as in
+        `solution_vector`)."""
+        return self._K
+
+    @property
+    def solution_vector(self) -> PETSc.Vec:
+        """The Newton unknowns as SNES sees them: this rank's `owned_size` dofs of w,
+        then on the last rank the multipliers."""
+        return self._x
+
+    @property
+    def owned_size(self) -> int:
+        """The dofs of w this rank owns: the first entries of w's local array."""
+        return self._nowned
+
+    @property
+    def pressure_dofs(self) -> np.ndarray:
+        """The positions of the pressure dofs in w's local array (owned, then ghost)."""
+        return self._p_dofs
+
+    def assemble_jacobian(self, x: PETSc.Vec) -> None:
+        """Take the state (w, μ) from the Newton unknowns ``x`` and assemble
+        `jacobian_matrix` there."""
         self._set_state(x)
+        K = self._K
         K.zeroEntries()
         fem.petsc.assemble_matrix(K, self._jacobian_form)
         if len(self.multipliers):
@@ -311,8 +341,6 @@ class MechanicsProblem:
             K.setValues(self._rows, self._mult_index, self._B.T.copy(), addv=add)
             K.setValues(self._mult_index, self._rows, self._B, addv=add)
         K.assemble()
-
-    # -- public ------------------------------------------------------------------------
 
     @property
     def num_dofs(self) -> int:

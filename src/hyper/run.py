@@ -442,8 +442,8 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAP
         # a checkpoint write killed halfway leaves its temporary file: never read, remove it
         ckpt.on_rank0(comm, lambda: Path(str(path) + io.PARTIAL).unlink(missing_ok=True))
         if ckpt.on_rank0(comm, path.is_file):
-            saved = ckpt.read(comm, path, run_digest, model.local_original_cells())
-            model.set_local_state(saved.rows, saved.glob)
+            saved = ckpt.read(comm, path, run_digest, ckpt.local_original_cells(model.geometry.mesh))
+            ckpt.restore_model(model, saved.rows, saved.glob)
             series.restore(saved.series)
             segments = int(saved.attrs["segments"]) + 1
             info(comm, f"{spec.label}: resuming from {path} at step {model.step} (t = {model.t:g} h), "
@@ -451,7 +451,7 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAP
     wall0 = series.wall_s
 
     def save(status: str) -> None:
-        original, per_cell, glob = model.local_state()
+        original, per_cell, glob = ckpt.model_state(model)
         snap_cells, snap_glob = snaps.state()
         ckpt.write(comm, path, original, {**per_cell, **snap_cells}, {**glob, **snap_glob}, series.arrays(),
                    {"run_digest": run_digest, "step": model.step, "t": model.t, "segments": segments,

@@ -38,15 +38,15 @@ Writes results/bench/atlas.json, atlas.png (Pareto charts) and failure_map.png.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import platform
 import time
 from pathlib import Path
 
 import numpy as np
 
+from hyper import cli, plot
+from hyper.bench import common
 from hyper.bench import growth as growth_bench
 
 THETAS = (1.005, 1.05, 1.2, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, 10.0)
@@ -107,7 +107,7 @@ def measure_dimension(cases: list[tuple[dict, int]], timeout: float, log) -> lis
     rows = []
     for case, ranks in cases:
         log(f"  {case['label']} on {ranks} rank(s) …")
-        row = growth_bench._run_worker(case, ranks, timeout)
+        row = common.run_worker("growth", case, ranks, timeout)
         row.pop("series", None)
         row["ranks"] = ranks
         rows.append(row)
@@ -243,7 +243,7 @@ def matplotlib_ticker():
 
 
 def pareto_chart(path: Path, result: dict) -> None:
-    plt = growth_bench._plt()
+    plt = plot.pyplot()
     panels = [(name, rows) for name, rows in result["dimensions"].items()]
     collected = result["collected"]
     if "ode_dt" in collected:
@@ -313,12 +313,11 @@ def pareto_chart(path: Path, result: dict) -> None:
         ax.axis("off")
     fig.suptitle("speed against accuracy: error of the final CSA/V ratios (or N) against time")
     fig.tight_layout()
-    fig.savefig(path, dpi=120, format="png")
-    plt.close(fig)
+    plot.save(fig, path, dpi=120)
 
 
 def failure_chart(path: Path, result: dict) -> None:
-    plt = growth_bench._plt()
+    plt = plot.pyplot()
     fig, axes = plt.subplots(1, 4, figsize=(20, 4.2))
     collected = result["collected"]
     ax = axes[0]
@@ -392,36 +391,33 @@ def failure_chart(path: Path, result: dict) -> None:
     else:
         ax.axis("off")
     fig.tight_layout()
-    fig.savefig(path, dpi=120, format="png")
-    plt.close(fig)
+    plot.save(fig, path, dpi=120)
 
 
-def _charts(output: Path, result: dict, io) -> None:
-    with io.atomic_path(output / "atlas.png") as tmp:
-        pareto_chart(tmp, result)
-    with io.atomic_path(output / "failure_map.png") as tmp:
-        failure_chart(tmp, result)
+def _charts(output: Path, result: dict) -> None:
+    pareto_chart(output / "atlas.png", result)
+    failure_chart(output / "failure_map.png", result)
 
 
 # -------------------------------------------------------------------------------- main
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hyper.bench atlas", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--geometries", default="idealized,BFLH_VHF_Left",
-                        help="comma-separated geometries (default idealized,BFLH_VHF_Left)")
-    parser.add_argument("--protocol", default="mwf", help="named protocol (default mwf)")
-    parser.add_argument("--timeout", type=float, default=1800.0, help="seconds per run before it counts as failed")
-    parser.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
-    parser.add_argument("--replot", action="store_true", help="redraw the charts from OUTPUT/atlas.json, run nothing")
-    args = parser.parse_args(argv)
+def parser() -> cli.Parser:
+    p = cli.Parser("bench atlas", __doc__)
+    p.add_argument("--geometries", default="idealized,BFLH_VHF_Left", help="comma-separated geometries")
+    p.add_argument("--protocol", default="mwf", help="named protocol")
+    p.add_argument("--timeout", type=float, default=1800.0, help="seconds per run before it counts as failed")
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    p.add_argument("--replot", action="store_true", help="redraw the charts from OUTPUT/atlas.json, run nothing")
+    return p
 
+
+def run(comm, args) -> int:
     from hyper import io
 
     if args.replot:
         result = json.loads((args.output / "atlas.json").read_text())
-        _charts(args.output, result, io)
+        _charts(args.output, result)
         return 0
 
     from hyper import geometry as geo
@@ -429,13 +425,10 @@ def main(argv=None) -> int:
     from hyper.params import InputError
 
     geometries = [g for g in args.geometries.split(",") if g]
-    try:
-        for name in geometries:
-            if name not in geo.GEOMETRIES:
-                raise InputError(f"unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
-        protocols.named(args.protocol)
-    except InputError as err:
-        parser.error(str(err))
+    for name in geometries:
+        if name not in geo.GEOMETRIES:
+            raise InputError(f"unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
+    protocols.named(args.protocol)
 
     start = time.perf_counter()
     dimensions = {}
@@ -444,13 +437,13 @@ def main(argv=None) -> int:
         dimensions[name] = measure_dimension(cases, args.timeout, lambda m: print(m, flush=True))
     print("atlas: failure map, growth step", flush=True)
     failure = {"growth_step": newton_growth_step(), "iterative": ITERATIVE_FINDINGS}
-    result = {"benchmark": "atlas", "host": platform.node(), "protocol": args.protocol,
+    result = {"benchmark": "atlas", "machine": common.machine(), "protocol": args.protocol,
               "dimensions": dimensions, "failure": failure, "collected": collect(args.output),
               "versions": io.versions(), "wall_s": time.perf_counter() - start}
     args.output.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(args.output / "atlas.json") as tmp:
         tmp.write_text(json.dumps(result, indent=2, default=float) + "\n")
-    _charts(args.output, result, io)
+    _charts(args.output, result)
     for name, rows in dimensions.items():
         for row in rows:
             err = _error(row)
@@ -465,6 +458,8 @@ def main(argv=None) -> int:
     print(f"wrote {args.output / 'atlas.json'}, atlas.png, failure_map.png")
     return 0
 
+
+main = cli.entry(parser, run)
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -17,10 +17,11 @@ error. Writes results/bench/fidelity.json.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
+from hyper import cli
+from hyper.bench import common
 from hyper.bench import growth as growth_bench
 
 REFERENCE = {"growth_dt": 6.0, "signaling_dt": 0.05}
@@ -57,35 +58,33 @@ def compare(rows: dict[str, dict], accuracy: float) -> dict:
     return out
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hyper.bench fidelity", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--geometries", default="TA_VHF_Right", help="comma-separated geometries")
-    parser.add_argument("--accuracy", type=float, default=1e-3, help="requested error, fraction of the growth")
-    parser.add_argument("--timeout", type=float, default=7200.0, help="seconds per run")
-    parser.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
-    args = parser.parse_args(argv)
+def parser() -> cli.Parser:
+    p = cli.Parser("bench fidelity", __doc__)
+    p.add_argument("--geometries", default="TA_VHF_Right", help="comma-separated geometries")
+    p.add_argument("--accuracy", type=float, default=1e-3, help="requested error, fraction of the growth")
+    p.add_argument("--timeout", type=float, default=7200.0, help="seconds per run")
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    return p
 
+
+def run(comm, args) -> int:
     from hyper import geometry as geo
     from hyper import io
     from hyper.params import InputError
 
     geometries = [g for g in args.geometries.split(",") if g]
-    try:
-        for name in geometries:
-            if name not in geo.GEOMETRIES:
-                raise InputError(f"unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
-        plans = {name: cases(name, args.accuracy) for name in geometries}
-    except InputError as err:
-        parser.error(str(err))
+    for name in geometries:
+        if name not in geo.GEOMETRIES:
+            raise InputError(f"unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
+    plans = {name: cases(name, args.accuracy) for name in geometries}
 
-    result = {"benchmark": "fidelity", "accuracy": args.accuracy, "reference_settings": REFERENCE,
+    result = {"benchmark": "fidelity", "machine": common.machine(), "accuracy": args.accuracy, "reference_settings": REFERENCE,
               "geometries": {}, "versions": io.versions()}
     for name, plan in plans.items():
         rows = {}
         for key, case in plan.items():
             print(f"fidelity: {name}: {case['label']} …", flush=True)
-            row = growth_bench._run_worker(case, 1, args.timeout)
+            row = common.run_worker("growth", case, 1, args.timeout)
             row.pop("series", None)
             rows[key] = row
         result["geometries"][name] = {"runs": rows, "comparison": compare(rows, args.accuracy)}
@@ -103,6 +102,8 @@ def main(argv=None) -> int:
     print(f"wrote {args.output / 'fidelity.json'}")
     return 0
 
+
+main = cli.entry(parser, run)
 
 if __name__ == "__main__":
     raise SystemExit(main())

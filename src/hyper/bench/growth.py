@@ -32,20 +32,17 @@ growth_series.png (CSA and volume against time per Δtg). ``--quick`` leaves out
 
 from __future__ import annotations
 
-import argparse
-import contextlib
 import json
 import math
 import os
-import platform
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from hyper import cli, plot
+from hyper.bench import common
 from hyper.params import InputError
 
 DTS = (0.5, 1.0, 2.0, 6.0, 24.0, 1e9)  # h
@@ -174,57 +171,6 @@ def signaling_check(protocol_name: str, dt: float = 0.05) -> dict:
     return out
 
 
-class _Clock:
-    """Seconds and calls accumulated by the wrapped callables."""
-
-    def __init__(self):
-        self.seconds: dict[str, float] = {}
-        self.calls: dict[str, int] = {}
-
-    def wrap(self, name: str, fn):
-        self.seconds.setdefault(name, 0.0)
-        self.calls.setdefault(name, 0)
-
-        def timed(*args, **kwargs):
-            start = time.perf_counter()
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                self.seconds[name] += time.perf_counter() - start
-                self.calls[name] += 1
-
-        return timed
-
-
-@contextlib.contextmanager
-def _instrumented(model, method: str):
-    """Time the signaling calls, Newton solves (of which Jacobian assemblies), growth
-    updates and measures (CSA, volume) of a model.
-
-    The coupled loop calls ``signaling.integrate`` through the module, so the module
-    attribute is swapped for the duration (each configuration runs in its own process).
-    """
-    from hyper import signaling
-
-    clock = _Clock()
-    integrate = signaling.integrate
-    signaling.integrate = clock.wrap("signaling", integrate if method == "rk4" else _paper_signaling)
-    model.problem.solve = clock.wrap("newton", model.problem.solve)
-    model.growth.grow = clock.wrap("growth_update", model.growth.grow)
-    model.growth.accept = clock.wrap("growth_accept", model.growth.accept)
-    model.section.area = clock.wrap("csa", model.section.area)
-    model.problem.volume = clock.wrap("volume", model.problem.volume)
-    # SNES asks for the matrix at every Newton iteration and the model's LaggedJacobian
-    # assembles only when due, so this times assemblies; model.jacobian counts them.
-    snes = model.problem.snes
-    J, P, (jacobian, args, kwargs) = snes.getJacobian()
-    snes.setJacobian(clock.wrap("jacobian", jacobian), J, P, args=args, kargs=kwargs)
-    try:
-        yield clock
-    finally:
-        signaling.integrate = integrate
-
-
 def run_case(comm, case: dict) -> dict:
     """Run one configuration; its final ratios, counts, timings (rank 0's view, times
     as the slowest rank's wall and the ranks' summed CPU) and the CSA/volume series."""
@@ -234,7 +180,7 @@ def run_case(comm, case: dict) -> dict:
 
     from hyper import fibers, geometry as geo
     from hyper import protocols
-    from hyper.coupled import CoupledModel, GrowthSettings
+    from hyper.coupled import PHASES, CoupledModel, GrowthSettings
     from hyper.log import Progress
 
     if case.get("signaling", "rk4") not in SIGNALING:
@@ -247,24 +193,26 @@ def run_case(comm, case: dict) -> dict:
     geometry = geo.load(case["geometry"], comm, quadrature_degree=case.get("quadrature_degree", 4))
     for _ in range(case.get("refine", 0)):
         geometry = geo.refine(geometry)
-    model = CoupledModel(geometry, fibers.fiber_field(geometry), protocol, settings=settings)
+    clock = common.Timings()
+    integrator = _paper_signaling if case.get("signaling", "rk4") == "rk45" else None
+    model = CoupledModel(geometry, fibers.fiber_field(geometry), protocol, settings=settings, integrator=integrator,
+                         monitor=clock)
     setup_wall = time.perf_counter() - wall0
 
     series = {"t": [], "csa_ratio": [], "volume_ratio": []}
     iterations = halvings = 0
     progress = Progress(comm, protocol.end, f"  {case['label']}", every=60.0)
-    with _instrumented(model, case.get("signaling", "rk4")) as clock:
-        comm.barrier()
-        wall1, cpu1 = time.perf_counter(), time.process_time()
-        for report in model.run():
-            series["t"].append(report.t)
-            series["csa_ratio"].append(report.csa_ratio)
-            series["volume_ratio"].append(report.volume_ratio)
-            iterations += report.newton_iterations
-            halvings = max(halvings, report.halvings)
-            progress.update(report.t, f"CSA/CSA0 {report.csa_ratio:.5f}")
-        wall = time.perf_counter() - wall1
-        cpu = time.process_time() - cpu1
+    comm.barrier()
+    wall1, cpu1 = time.perf_counter(), time.process_time()
+    for report in model.run():
+        series["t"].append(report.t)
+        series["csa_ratio"].append(report.csa_ratio)
+        series["volume_ratio"].append(report.volume_ratio)
+        iterations += report.newton_iterations
+        halvings = max(halvings, report.halvings)
+        progress.update(report.t, f"CSA/CSA0 {report.csa_ratio:.5f}")
+    wall = time.perf_counter() - wall1
+    cpu = time.process_time() - cpu1
     setup_cpu = cpu1 - cpu0
 
     def slowest(x):
@@ -273,7 +221,8 @@ def run_case(comm, case: dict) -> dict:
     def total(x):
         return comm.allreduce(x, op=MPI.SUM)
 
-    seconds = {k: slowest(v) for k, v in clock.seconds.items()}
+    # every rank runs every phase, so every rank has the same names to reduce
+    seconds = {k: slowest(clock.seconds[k]) for k in PHASES}
     return {
         **case,
         "ranks": comm.size,
@@ -281,7 +230,7 @@ def run_case(comm, case: dict) -> dict:
         "csa_ratio": model.csa_ratio,
         "volume_ratio": model.volume_ratio,
         "growth_steps": model.step,
-        "newton_solves": clock.calls["newton"],
+        "newton_solves": clock.calls["mechanics"],
         "newton_iterations": iterations,
         "jacobian_assemblies": model.jacobian.assemblies,
         "max_halvings": halvings,
@@ -291,55 +240,22 @@ def run_case(comm, case: dict) -> dict:
         "wall_s": slowest(wall),
         "cpu_s": total(cpu),
         "signaling_s": seconds["signaling"],
-        "newton_s": seconds["newton"],
-        "jacobian_s": seconds["jacobian"],
-        "growth_update_s": slowest(clock.seconds["growth_update"] + clock.seconds["growth_accept"]),
-        "measures_s": slowest(clock.seconds["csa"] + clock.seconds["volume"]),
-        "other_s": slowest(wall - sum(clock.seconds.values()) + clock.seconds["jacobian"]),
+        "newton_s": seconds["mechanics"],
+        "jacobian_s": seconds["jacobian assembly"],
+        "growth_update_s": seconds["growth update"],
+        "measures_s": seconds["measures"],
+        "other_s": slowest(wall - sum(clock.seconds[k] for k in PHASES if k != "jacobian assembly")),
         "signaling_share": seconds["signaling"] / slowest(wall),
         "mechanics_share": 1.0 - seconds["signaling"] / slowest(wall),
         "series": series,
     }
 
 
-def _run_worker(case: dict, ranks: int, timeout: float, bench: str = "growth", extra: tuple = ()) -> dict:
-    """``python -m hyper.bench BENCH --worker CASE`` (``run_case``) in a fresh process, under
-    mpirun for several ranks; ``extra`` are further arguments of the worker."""
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "result.json"
-        cmd = [sys.executable, "-m", "hyper.bench", bench, "--worker", json.dumps(case), "--json", str(out), *extra]
-        if ranks > 1:
-            mpirun = Path(sys.executable).with_name("mpirun")
-            cmd = [str(mpirun), "-n", str(ranks), *cmd]
-        env = {**os.environ, "OMP_NUM_THREADS": "1"}
-        load = os.getloadavg()
-        start = time.perf_counter()
-        try:
-            subprocess.run(cmd, check=True, timeout=timeout, env=env, stderr=subprocess.PIPE, text=True)
-        except subprocess.TimeoutExpired:
-            return {**case, "failed": f"no result within {timeout:g} s"}
-        except subprocess.CalledProcessError as err:
-            return {**case, "failed": "\n".join((err.stderr or "").strip().splitlines()[-5:])}
-        result = json.loads(out.read_text())
-        result["process_wall_s"] = time.perf_counter() - start
-        result["load_average_before"], result["load_average_after"] = load, os.getloadavg()
-        return result
-
-
 # ------------------------------------------------------------------------------ charts
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def pareto_chart(path: Path, result: dict) -> None:
-    plt = _plt()
+    plt = plot.pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 5.2))
     rows = [r for r in result["sweep"] if "errors" in r and not r["reference"]]
     # an error of exactly zero (the same bits as the reference) is drawn at this floor
@@ -374,13 +290,12 @@ def pareto_chart(path: Path, result: dict) -> None:
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
+    plot.save(fig, path, dpi=130)
 
 
 def series_chart(path: Path, result: dict, series: dict[str, dict]) -> None:
     """CSA and volume growth against time per Δtg, and their deviation from the reference."""
-    plt = _plt()
+    plt = plot.pyplot()
     fig, axes = plt.subplots(2, 2, figsize=(12, 7), sharex=True)
     ref = series[result["reference"]["label"]]
     t_ref = np.asarray(ref["t"])
@@ -402,8 +317,7 @@ def series_chart(path: Path, result: dict, series: dict[str, dict]) -> None:
     fig.suptitle(f"{result['geometry']}, {result['protocol']}: growth step Δtg "
                  f"(reference {result['reference']['label']})", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
+    plot.save(fig, path, dpi=130)
 
 
 # -------------------------------------------------------------------------------- main
@@ -446,10 +360,9 @@ def _summary(run: dict) -> str:
             f"signaling {100 * run['signaling_share']:.0f} %")
 
 
-def parse_args(argv):
-    p = argparse.ArgumentParser(prog="python -m hyper.bench growth", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--geometry", default="idealized")
+def parser() -> cli.Parser:
+    p = cli.Parser("bench growth", __doc__)
+    p.add_argument("--geometry", default="idealized", help="the mesh")
     p.add_argument("--protocol", default="mwf", help="named protocol")
     p.add_argument("--dts", default=",".join(f"{d:g}" for d in DTS),
                    help="growth steps Δtg in hours; the smallest is the reference (1e9: one step per period)")
@@ -457,53 +370,39 @@ def parse_args(argv):
     p.add_argument("--tolerance", type=float, default=TOLERANCE, help="error allowed, as a fraction of the growth")
     p.add_argument("--ranks", type=int, default=1, help="MPI ranks per configuration")
     p.add_argument("--timeout", type=float, default=5400.0, help="seconds per configuration")
-    p.add_argument("--output-dir", type=Path, default=Path("results/bench"))
-    p.add_argument("--worker", help=argparse.SUPPRESS)
-    p.add_argument("--json", help=argparse.SUPPRESS)
-    return p.parse_args(argv)
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    common.add_worker_options(p)
+    return p
 
 
-def _worker(args) -> int:
-    from mpi4py import MPI
-
-    comm = MPI.COMM_WORLD
-    result = run_case(comm, json.loads(args.worker))
-    if comm.rank == 0:
-        Path(args.json).write_text(json.dumps(result))
-    return 0
-
-
-def main(argv=None) -> int:
-    args = parse_args(sys.argv[1:] if argv is None else argv)
+def run(comm, args) -> int:
     if args.worker:
-        return _worker(args)
-    try:
-        from hyper import geometry as geo
-        from hyper import protocols
+        common.write_worker_result(comm, args.json, run_case(comm, args.worker))
+        return 0
+    from hyper import geometry as geo
+    from hyper import protocols
 
-        if args.geometry not in geo.GEOMETRIES:
-            raise InputError(f"--geometry: unknown geometry {args.geometry!r}; known: {', '.join(geo.GEOMETRIES)}")
-        protocols.named(args.protocol)
-        dts = parse_dts(args.dts)
-        if args.quick:
-            dts = dts[1:]
-            if len(dts) < 2:
-                raise InputError("--quick leaves fewer than two growth steps: give more in --dts")
-        if not (math.isfinite(args.tolerance) and 0 < args.tolerance < 1):
-            raise InputError(f"--tolerance must be a fraction in (0, 1), got {args.tolerance}")
-        if args.ranks < 1:
-            raise InputError(f"--ranks must be a positive integer, got {args.ranks}")
-    except InputError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+    if args.geometry not in geo.GEOMETRIES:
+        raise InputError(f"--geometry: unknown geometry {args.geometry!r}; known: {', '.join(geo.GEOMETRIES)}")
+    protocols.named(args.protocol)
+    dts = parse_dts(args.dts)
+    if args.quick:
+        dts = dts[1:]
+        if len(dts) < 2:
+            raise InputError("--quick leaves fewer than two growth steps: give more in --dts")
+    if not (math.isfinite(args.tolerance) and 0 < args.tolerance < 1):
+        raise InputError(f"--tolerance must be a fraction in (0, 1), got {args.tolerance}")
+    if args.ranks < 1:
+        raise InputError(f"--ranks must be a positive integer, got {args.ranks}")
 
     started = time.perf_counter()
-    load_start = os.getloadavg()
+    host = common.machine()
+    load_start = host["load_average_at_start"]
     print(f"growth benchmark: {args.geometry}/{args.protocol}, Δtg = {', '.join(dt_label(d) for d in dts)}, "
           f"{args.ranks} rank(s), load average {load_start[0]:.2f} on {os.cpu_count()} cores", flush=True)
 
     def run(case):
-        result = _run_worker(case, args.ranks, args.timeout)
+        result = common.run_worker("growth", case, args.ranks, args.timeout)
         print(_summary(result), flush=True)
         return result
 
@@ -517,7 +416,7 @@ def main(argv=None) -> int:
     sweep = [keep_series(run(_case(dt_label(dt), args, dt))) for dt in dts]
     reference = sweep[0]
     if "failed" in reference:
-        print("error: the reference run failed; nothing written", file=sys.stderr)
+        cli.error(comm, "the reference run failed; nothing written")
         return 1
     for row in sweep:
         row["reference"] = row is reference
@@ -571,8 +470,7 @@ def main(argv=None) -> int:
                 "rk45_over_rk4_signaling": paper["signaling_s"] / rk4}
 
     result = {
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                    "load_average_at_start": load_start, "load_average_at_end": os.getloadavg(),
+        "machine": {**host, "load_average_at_end": os.getloadavg(),
                     "note": "shared machine: absolute times vary; CPU time and ratios measured side by side"},
         "geometry": args.geometry,
         "protocol": args.protocol,
@@ -600,7 +498,7 @@ def main(argv=None) -> int:
                       "signaling time of our RK4 (0.05 h) measured in the 1 h sweep run (same samples)",
         "wall_s": time.perf_counter() - started,
     }
-    out = args.output_dir
+    out = args.output
     out.mkdir(parents=True, exist_ok=True)
     (out / "growth.json").write_text(json.dumps(result, indent=1))
     pareto_chart(out / "growth.png", result)
@@ -610,6 +508,8 @@ def main(argv=None) -> int:
           f"(load average {os.getloadavg()[0]:.2f})")
     return 0
 
+
+main = cli.entry(parser, run)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -9,18 +9,16 @@ results/bench/heterogeneous.json and heterogeneous.png. Runs on any number of ra
   compiled backend side by side, in cell-steps per CPU-second of the rank (CPU time, so
   the number stands on a shared machine), and whether both give the same bits.
 - Shares: one heterogeneous coupled run (ε = 0.01) of ``mwf`` cut at --end hours, with
-  the wall time of every ``signaling.integrate`` call, of the Newton solves, of the CSA
-  and volume measures and of the growth-tensor updates, as shares of the run's wall time.
+  the wall time of its signaling, of the Newton solves, of the CSA and volume measures
+  and of the growth-tensor updates (the model's phases, timed by its monitor), as
+  shares of the run's wall time.
   The goal is signaling under 10 %.
 """
 
 from __future__ import annotations
 
-import argparse
-import contextlib
 import json
 import os
-import platform
 import time
 from pathlib import Path
 
@@ -29,38 +27,13 @@ import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
 from mpi4py import MPI
 
-from hyper import fibers, geometry as geo
-from hyper import heterogeneity, io, protocols, signaling
+from hyper import cli, fibers, heterogeneity, io, plot, protocols, signaling
+from hyper import geometry as geo
+from hyper.bench import common
 from hyper.coupled import CoupledModel, GrowthSettings
 from hyper.log import info
 
 WINDOW = (168.0, 336.0)  # h: the first training week of mwf
-
-
-class Timer:
-    """Accumulated wall time of the calls of one function."""
-
-    def __init__(self, fn):
-        self.fn, self.seconds, self.calls = fn, 0.0, 0
-
-    def __call__(self, *args, **kwargs):
-        start = time.perf_counter()
-        try:
-            return self.fn(*args, **kwargs)
-        finally:
-            self.seconds += time.perf_counter() - start
-            self.calls += 1
-
-
-@contextlib.contextmanager
-def timed_integrate():
-    """Route every `signaling.integrate` call (the coupled model's too) through a Timer."""
-    timer = Timer(signaling.integrate)
-    signaling.integrate = timer
-    try:
-        yield timer
-    finally:
-        signaling.integrate = timer.fn
 
 
 def throughput(comm, params, y0, window=WINDOW) -> dict:
@@ -88,34 +61,24 @@ def throughput(comm, params, y0, window=WINDOW) -> dict:
 def shares(comm, geometry, a0, params, end: float, growth_dt: float) -> dict:
     mwf = protocols.named("mwf")
     protocol = protocols.Protocol(tuple(s for s in mwf.sessions if s.start < end), end=end, name=f"mwf_to_{end:g}h")
-    model = CoupledModel(geometry, a0, protocol, params=params, settings=GrowthSettings(growth_dt=growth_dt))
-    timers = {
-        "newton": Timer(model.problem.solve),
-        "measures_area": Timer(model.section.area),
-        "measures_volume": Timer(model.problem.volume),
-        "growth_update": Timer(model.growth.grow),
-        "growth_accept": Timer(model.growth.accept),
-    }
-    model.problem.solve, model.section.area, model.problem.volume = (
-        timers["newton"], timers["measures_area"], timers["measures_volume"])
-    model.growth.grow, model.growth.accept = timers["growth_update"], timers["growth_accept"]
+    clock = common.Timings()
+    model = CoupledModel(geometry, a0, protocol, params=params, settings=GrowthSettings(growth_dt=growth_dt),
+                         monitor=clock)
     comm.barrier()
     cpu0, start = time.process_time(), time.perf_counter()
-    with timed_integrate() as sig:
-        reports = list(model.run())
+    reports = list(model.run())
     wall = time.perf_counter() - start
     cpu = time.process_time() - cpu0
-    parts = {"signaling": sig.seconds, **{k: t.seconds for k, t in timers.items()}}
-    parts["measures"] = parts.pop("measures_area") + parts.pop("measures_volume")
-    parts["growth"] = parts.pop("growth_update") + parts.pop("growth_accept")
+    parts = {"signaling": clock.seconds["signaling"], "newton": clock.seconds["mechanics"],
+             "measures": clock.seconds["measures"], "growth": clock.seconds["growth update"]}
     parts["other"] = wall - sum(parts.values())
     # the slowest rank sets the pace: report rank 0's split with the max wall over ranks
     return {
         "protocol_end_h": end,
         "growth_steps": model.step,
-        "solves": timers["newton"].calls,
+        "solves": clock.calls["mechanics"],
         "newton_iterations": int(sum(r.newton_iterations for r in reports)),
-        "signaling_calls": sig.calls,
+        "signaling_calls": clock.calls["signaling"],
         "wall_s": wall,
         "wall_s_max_over_ranks": comm.allreduce(wall, op=MPI.MAX),
         "cpu_share": cpu / wall,
@@ -127,11 +90,7 @@ def shares(comm, geometry, a0, params, end: float, growth_dt: float) -> dict:
 
 
 def chart(result: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = plot.pyplot()
     t, s = result["throughput"], result["coupled"]
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8))
     a.bar(["compiled (c)", "numpy"], [t["c"]["mean"], t["numpy"]["mean"]], color=["tab:green", "tab:gray"])
@@ -145,29 +104,28 @@ def chart(result: dict, path: Path) -> None:
     for i, k in enumerate(names):
         b.text(100 * s["shares"][k], i, f" {100 * s['shares'][k]:.1f} %", va="center", fontsize=8)
     fig.tight_layout()
-    with io.atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
+    plot.save(fig, path, dpi=120)
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hyper.bench heterogeneous", description=__doc__.splitlines()[0])
-    parser.add_argument("--geometry", default="BFLH_VHF_Left")
-    parser.add_argument("--end", type=float, default=336.0, help="end of the cut mwf protocol (h, default 336)")
-    parser.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt)
-    parser.add_argument("--output", type=Path, default=Path("results/bench"))
-    args = parser.parse_args(argv)
-    comm = MPI.COMM_WORLD
+def parser() -> cli.Parser:
+    p = cli.Parser("bench heterogeneous", __doc__)
+    p.add_argument("--geometry", default="BFLH_VHF_Left")
+    p.add_argument("--end", type=float, default=336.0, help="end of the cut mwf protocol (h)")
+    p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step (h)")
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    return p
 
-    load_start = os.getloadavg()
+
+def run(comm, args) -> int:
+    host = common.machine()
+    load_start = host["load_average_at_start"]
     geometry = geo.load(args.geometry, comm)
     a0 = fibers.fiber_field(geometry)
     params = heterogeneity.cell_params(geometry.mesh, heterogeneity.Heterogeneity(epsilon=0.01), seed=1)
     rest = signaling.rest_state()
     y0 = np.repeat(rest[:, None], params.size, axis=1)
     result = {
-        "machine": {"cpus": os.cpu_count(), "processor": platform.processor(), "ranks": comm.size,
-                    "load_average_at_start": load_start},
+        "machine": {**host, "ranks": comm.size},
         "versions": io.versions(),
         "geometry": args.geometry,
         "throughput": throughput(comm, params, y0),
@@ -188,3 +146,6 @@ def main(argv=None) -> int:
     info(comm, f"load average {load_start[0]:.2f} -> {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores; "
                f"-> {args.output / 'heterogeneous.json'}")
     return 0
+
+
+main = cli.entry(parser, run)

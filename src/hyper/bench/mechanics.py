@@ -10,25 +10,23 @@
    for a 26 GiB table. Its failure is recorded, and degrees 4, 8, 12, 16 are timed to
    extrapolate the assembly time linearly in the number of quadrature points.
 2. A contraction α = 0 → 1 (6 steps) per geometry and rank count, each in its own
-   `mpirun -n R` subprocess: time per solve, per Newton iteration, unknowns.
+   process (`mpirun -n R` for R > 1): time per solve, per Newton iteration, unknowns.
 
-Writes results/bench/mechanics.json and mechanics.png.
+Writes results/bench/mechanics.json and mechanics.png (--output: another folder).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
-import os
-import platform
-import shutil
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from hyper import cli, plot
+from hyper.bench import common
+from hyper.params import InputError
 
 ALPHAS = (0.1, 0.2, 0.35, 0.55, 0.8, 1.0)
 
@@ -125,33 +123,11 @@ def _worker_newton(geometry_name: str) -> dict:
             "reaction_force": problem.reaction_force()}
 
 
-def _run_worker(args: list[str], ranks: int, timeout: float) -> dict | None:
-    """Run this module as a worker under mpirun; its JSON result, or None on timeout."""
-    mpirun = Path(sys.executable).parent / "mpirun"
-    launcher = [str(mpirun) if mpirun.exists() else shutil.which("mpirun"), "-n", str(ranks)]
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "result.json"
-        cmd = launcher + [sys.executable, "-m", "hyper.bench", "mechanics", "--worker", *args, "--json", str(out)]
-        env = dict(os.environ, OMP_NUM_THREADS="1")
-        try:
-            subprocess.run(cmd, check=True, timeout=timeout, env=env, stdout=subprocess.DEVNULL,
-                           stderr=subprocess.PIPE, text=True)
-        except subprocess.TimeoutExpired:
-            return {"failed": f"no result within {timeout:g} s"}
-        except subprocess.CalledProcessError as err:
-            return {"failed": (err.stderr or "").strip().splitlines()[-1:]}
-        return json.loads(out.read_text())
-
-
 # ------------------------------------------------------------------------------- main
 
 
 def chart(path: Path, result: dict) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = plot.pyplot()
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
     q = result["jacobian_assembly"]
     labels, values = [], []
@@ -192,29 +168,28 @@ def chart(path: Path, result: dict) -> None:
     ax2.set_ylabel("time per Newton iteration (s)")
     ax2.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    plot.save(fig, path, dpi=120)
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hyper.bench mechanics", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--geometries", default="idealized,BFLH_VHF_Left")
-    parser.add_argument("--ranks", default="1,2")
-    parser.add_argument("--quadrature-geometry", default="idealized")
-    parser.add_argument("--estimated-timeout", type=float, default=900.0, help="seconds")
-    parser.add_argument("--output-dir", default="results/bench")
-    parser.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
-    parser.add_argument("--json", help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
+def parser() -> cli.Parser:
+    p = cli.Parser("bench mechanics", __doc__)
+    p.add_argument("--geometries", default="idealized,BFLH_VHF_Left", help="comma-separated geometries")
+    p.add_argument("--ranks", default="1,2", help="comma-separated rank counts of the contractions")
+    p.add_argument("--quadrature-geometry", default="idealized", help="the mesh of the quadrature comparison")
+    p.add_argument("--estimated-timeout", type=float, default=900.0, help="seconds")
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    common.add_worker_options(p)
+    return p
 
+
+def run(comm, args) -> int:
     if args.worker:
-        kind, *rest = args.worker
-        result = _worker_jacobian(*rest) if kind == "jacobian" else _worker_newton(*rest)
-        from mpi4py import MPI
-
-        if MPI.COMM_WORLD.rank == 0:
-            Path(args.json).write_text(json.dumps(result))
+        case = args.worker
+        if case["kind"] == "jacobian":
+            result = _worker_jacobian(case["geometry"], case["degree"])
+        else:
+            result = _worker_newton(case["geometry"])
+        common.write_worker_result(comm, args.json, result)
         return 0
 
     from hyper.geometry import GEOMETRIES
@@ -222,15 +197,16 @@ def main(argv=None) -> int:
     geometries = args.geometries.split(",")
     unknown = [g for g in geometries + [args.quadrature_geometry] if g not in GEOMETRIES]
     if unknown:
-        print(f"error: unknown geometry {unknown[0]!r}; known: {', '.join(GEOMETRIES)}", file=sys.stderr)
-        return 2
+        raise InputError(f"unknown geometry {unknown[0]!r}; known: {', '.join(GEOMETRIES)}")
     ranks = [int(r) for r in args.ranks.split(",")]
 
     started = time.perf_counter()
+    host = common.machine()
     print(f"Jacobian assembly, fixed degree 4 vs UFL estimate, on {args.quadrature_geometry}", flush=True)
     runs = {}
     for degree in ("4", "8", "12", "16", "estimated"):
-        runs[degree] = _run_worker(["jacobian", args.quadrature_geometry, degree], 1, args.estimated_timeout)
+        case = {"kind": "jacobian", "geometry": args.quadrature_geometry, "degree": degree}
+        runs[degree] = common.run_worker("mechanics", case, 1, args.estimated_timeout)
         print(f"  degree {degree}: {runs[degree]}", flush=True)
     fixed, estimated = runs["4"], runs["estimated"]
     timed = [r for r in runs.values() if "assemble_s" in r]
@@ -259,7 +235,7 @@ def main(argv=None) -> int:
     for name in geometries:
         for nr in ranks:
             print(f"contraction {name} on {nr} rank(s)", flush=True)
-            run = _run_worker(["newton", name], nr, 3600)
+            run = common.run_worker("mechanics", {"kind": "newton", "geometry": name}, nr, 3600)
             newton.append(run)
             print(f"  {run['unknowns']} unknowns, {run['newton_iterations']} Newton iterations, "
                   f"{run['s_per_newton_iteration']:.3f} s per iteration, {run['s_per_solve']:.2f} s per solve",
@@ -270,20 +246,21 @@ def main(argv=None) -> int:
             run["speedup_per_iteration_vs_1_rank"] = serial[0]["s_per_newton_iteration"] / run["s_per_newton_iteration"]
 
     result = {
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                    "note": "shared 2-core machine: absolute times vary, ratios measured side by side"},
+        "machine": {**host, "note": "shared machine: absolute times vary, ratios measured side by side"},
         "jacobian_assembly": quadrature,
         "newton": newton,
         "alphas": ALPHAS,
         "wall_s": time.perf_counter() - started,
     }
-    out = Path(args.output_dir)
+    out = args.output
     out.mkdir(parents=True, exist_ok=True)
     (out / "mechanics.json").write_text(json.dumps(result, indent=1))
     chart(out / "mechanics.png", result)
     print(f"wrote {out / 'mechanics.json'} and {out / 'mechanics.png'}")
     return 0
 
+
+main = cli.entry(parser, run)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -24,14 +24,16 @@ rank. Writes results/bench/refinement.json and refinement.png.
 
 from __future__ import annotations
 
-import argparse
 import json
-import platform
 import resource
 import time
 from pathlib import Path
 
 import numpy as np
+
+from hyper import cli, plot
+from hyper.bench import common
+from hyper.params import InputError
 
 ALPHAS = (0.1, 0.2, 0.35, 0.55, 0.8, 1.0)
 
@@ -123,11 +125,7 @@ def memory_limit(rows: list[dict], memory_gib: float) -> dict:
 
 
 def chart(path: Path, result: dict) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = plot.pyplot()
     rows = result["levels"]
     h = np.array([2.0 ** -r["level"] for r in rows])
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
@@ -160,31 +158,29 @@ def chart(path: Path, result: dict) -> None:
     ax2.set_title(f"direct solver memory ({result['ranks']} rank(s))")
     ax2.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=130, format="png")
-    plt.close(fig)
+    plot.save(fig, path, dpi=130)
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hyper.bench refinement", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--levels", type=int, default=3, help="meshes: the given one and LEVELS-1 refinements (default 3)")
-    parser.add_argument("--memory-gib", type=float, default=22.0,
-                        help="memory available to the factorisation, GiB (default 22: a 24 GiB machine less 2)")
-    parser.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
-    args = parser.parse_args(argv)
+def parser() -> cli.Parser:
+    p = cli.Parser("bench refinement", __doc__)
+    p.add_argument("--levels", type=int, default=3, help="meshes: the given one and LEVELS-1 refinements")
+    p.add_argument("--memory-gib", type=float, default=22.0,
+                   help="memory available to the factorisation, GiB (22: a 24 GiB machine less 2)")
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    return p
+
+
+def run(comm, args) -> int:
     if not 2 <= args.levels <= 4:
-        parser.error("--levels must be 2, 3 or 4")
+        raise InputError("--levels must be 2, 3 or 4")
 
     import dolfinx_solver  # noqa: F401
-
-    from mpi4py import MPI
 
     from hyper import io
     from hyper.log import info
 
-    comm = MPI.COMM_WORLD
     rows = run_levels(comm, args.levels, log=lambda msg: info(comm, msg))
-    result = {"benchmark": "refinement", "ranks": comm.size, "host": platform.node(), "levels": rows,
+    result = {"benchmark": "refinement", "ranks": comm.size, "machine": common.machine(), "levels": rows,
               "forces": {k: observed_orders(rows, k)
                          for k in ("reaction_force", "reaction_force_current", "spring_force")},
               "lu_memory": memory_limit(rows, args.memory_gib), "versions": io.versions()}
@@ -192,8 +188,7 @@ def main(argv=None) -> int:
         args.output.mkdir(parents=True, exist_ok=True)
         with io.atomic_path(args.output / "refinement.json") as tmp:
             tmp.write_text(json.dumps(result, indent=2) + "\n")
-        with io.atomic_path(args.output / "refinement.png") as tmp:
-            chart(tmp, result)
+        chart(args.output / "refinement.png", result)
         for key, value in result["forces"].items():
             if "order" in value:
                 info(comm, f"{key}: observed order {value['order']:.2f}, Richardson limit {value['richardson_limit']:.6f} N")
@@ -202,6 +197,8 @@ def main(argv=None) -> int:
                    f"{fit['unknowns_at_limit']:.3g} unknowns; wrote {args.output / 'refinement.json'}")
     return 0
 
+
+main = cli.entry(parser, run)
 
 if __name__ == "__main__":
     raise SystemExit(main())

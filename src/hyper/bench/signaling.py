@@ -18,7 +18,6 @@ OMP_NUM_THREADS=1: the throughput is per core.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -27,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import io, signaling as S
+from hyper import cli, io, plot, signaling as S
+from hyper.bench import common
 from hyper.signaling import compiled as signaling_c
 from hyper.protocols import named
 
@@ -175,11 +175,7 @@ def speed_accuracy(dts, reference_N: float) -> list[dict]:
 
 
 def _charts(result: dict, folder: Path) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = plot.pyplot()
     paths = []
     rows = result["throughput"]
     fig, ax = plt.subplots(figsize=(6.5, 4.2), constrained_layout=True)
@@ -202,12 +198,12 @@ def _charts(result: dict, folder: Path) -> list[Path]:
     ax.set_ylim(top=ax.get_ylim()[1] * 3)  # room for the ratios
     ax.set_xlabel("members in the batch")
     ax.set_ylabel("member-steps per second (one core)")
-    load = result["machine"]["load_average_at_start"]
+    load = result["machine"]["load_average_at_start"][0]
     ax.set_title(f"Batch RK4 throughput, mwf protocol (open: 30-h window; load {load:.1f} on "
                  f"{result['machine']['cpus']} cores)", fontsize=9)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    paths.append(_save(fig, folder / "signaling_throughput.png"))
+    paths.append(plot.save(fig, folder / "signaling_throughput.png", dpi=130))
 
     rows = result["speed_accuracy"]
     single = result["single_vs_rk45"]
@@ -244,25 +240,18 @@ def _charts(result: dict, folder: Path) -> list[Path]:
     ta.set_title("Cost of one 9-week run (×: time until SignalingError)")
     ta.grid(alpha=0.3, which="both")
     ta.legend(fontsize=8)
-    paths.append(_save(fig, folder / "signaling_speed_accuracy.png"))
+    paths.append(plot.save(fig, folder / "signaling_speed_accuracy.png", dpi=130))
     return paths
 
 
-def _save(fig, path: Path) -> Path:
-    import matplotlib.pyplot as plt
-
-    with io.atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=130)
-    plt.close(fig)
-    return path
+def parser() -> cli.Parser:
+    p = cli.Parser("bench signaling", __doc__)
+    p.add_argument("--quick", action="store_true", help="shorter windows and fewer dt values (about a minute)")
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    return p
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hyper.bench signaling", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="shorter windows and fewer dt values (about a minute)")
-    parser.add_argument("--output", type=Path, default=Path("results/bench"), help="folder (default: results/bench)")
-    args = parser.parse_args(argv)
+def run(comm, args) -> int:
 
     print("reference (DOP853, rtol 1e-13) ...", flush=True)
     params, protocol, y0 = S.SignalingParams(), named("mwf"), S.rest_state()
@@ -280,11 +269,9 @@ def main(argv=None) -> int:
     print("throughput ...", flush=True)
     repeat = 1 if args.quick else 2
     result = {
-        "machine": {"python": platform.python_version(), "numpy": np.__version__, "cpus": os.cpu_count(),
-                    "processor": platform.processor() or platform.machine(),
-                    "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS"),
-                    # other work on the machine slows every number; the ratios suffer least
-                    "load_average_at_start": os.getloadavg()[0]},
+        # other work on the machine slows every number; the ratios suffer least
+        "machine": {**common.machine(), "python": platform.python_version(), "numpy": np.__version__,
+                    "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS")},
         "quick": args.quick,
         "chunk": S.CHUNK,
         "c_block": signaling_c.BLOCK,
@@ -301,7 +288,7 @@ def main(argv=None) -> int:
     result["single_vs_rk45"] = single_vs_rk45(reference_N, repeat=3)
     print("speed-accuracy ...", flush=True)
     result["speed_accuracy"] = speed_accuracy(QUICK_DTS if args.quick else DTS, reference_N)
-    result["machine"]["load_average_at_end"] = os.getloadavg()[0]
+    result["machine"]["load_average_at_end"] = os.getloadavg()
     failed = [r["dt"] for r in result["speed_accuracy"] if r["failed"]]
     stable = [r["dt"] for r in result["speed_accuracy"] if not r["failed"]]
     result["largest_stable_dt"] = max(stable) if stable else None
@@ -314,3 +301,6 @@ def main(argv=None) -> int:
     charts = _charts(result, folder)
     print(f"wrote {path}, " + ", ".join(map(str, charts)))
     return 0
+
+
+main = cli.entry(parser, run, world=False)

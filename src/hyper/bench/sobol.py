@@ -15,10 +15,8 @@ side, are what to read.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -27,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import io, signaling as S, sobol
+from hyper import cli, io, plot, signaling as S, sobol
+from hyper.bench import common
 from hyper.protocols import named
 
 
@@ -78,20 +77,23 @@ def _backends(members: int) -> dict:
     return out
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hyper.bench sobol", description=__doc__.splitlines()[0])
-    parser.add_argument("--samples", type=int, default=2048, help="base samples per CLI run (default: 2048)")
-    parser.add_argument("--chunk", type=int, default=4096, help="rows per chunk (default: 4096)")
-    parser.add_argument("--members", type=int, default=4096, help="batch of the backend comparison (default: 4096)")
-    parser.add_argument("--output", type=Path, default=Path("results/bench"))
-    args = parser.parse_args(argv)
+def parser() -> cli.Parser:
+    p = cli.Parser("bench sobol", __doc__)
+    p.add_argument("--samples", type=int, default=2048, help="base samples per CLI run")
+    p.add_argument("--chunk", type=int, default=4096, help="rows per chunk")
+    p.add_argument("--members", type=int, default=4096, help="batch of the backend comparison")
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    return p
+
+
+def run(comm, args) -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         runs = [_cli(ranks, args.samples, args.chunk, Path(tmp) / f"n{ranks}") for ranks in (1, 2)]
     one, two = runs
     backends = _backends(args.members)
     result = {
-        "machine": {"cpus": os.cpu_count(), "processor": platform.processor(), "load_average": os.getloadavg()},
+        "machine": common.machine(),
         "versions": io.versions(),
         "samples": args.samples,
         "runs": runs,
@@ -106,11 +108,7 @@ def main(argv=None) -> int:
     with io.atomic_path(args.output / "sobol.json") as path:
         path.write_text(json.dumps(result, indent=2))
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = plot.pyplot()
     fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.6))
     a.bar(["1 rank", "2 ranks"], [r["evaluations_per_s"] for r in runs], color=["tab:blue", "tab:orange"])
     a.set_ylabel("evaluations / s")
@@ -121,9 +119,7 @@ def main(argv=None) -> int:
     b.set_ylabel("member-steps / s / core")
     b.set_title(f"RK4 backends: {backends['ratio_c_over_numpy']:.1f}x")
     fig.tight_layout()
-    with io.atomic_path(args.output / "sobol.png") as path:
-        fig.savefig(path, format="png", dpi=120)
-    plt.close(fig)
+    plot.save(fig, args.output / "sobol.png", dpi=120)
 
     print(f"1 rank: {one['evaluations_per_s']:.0f} evaluations/s ({one['evaluation_wall_s']:.1f} s), "
           f"2 ranks: {two['evaluations_per_s']:.0f} evaluations/s ({two['evaluation_wall_s']:.1f} s): "
@@ -135,3 +131,7 @@ def main(argv=None) -> int:
           f"identical: {backends['identical']}")
     print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores; -> {args.output / 'sobol.json'}")
     return 0
+
+
+# Only its child processes use MPI.
+main = cli.entry(parser, run, world=False)

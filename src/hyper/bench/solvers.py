@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import resource
 import tempfile
 import time
@@ -45,6 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hyper import plot
+from hyper.bench import common
 from hyper.bench.refinement import memory_fit
 
 THETA = 1.05
@@ -81,8 +82,8 @@ def _fieldsplit(problem, comm, options: dict) -> None:
 
     Vu, dofs = problem.W.sub(0).collapse()
     dofs = np.asarray(dofs).ravel()
-    first, last = problem._K.getOwnershipRange()
-    owned = np.flatnonzero(dofs < problem._nowned)
+    first, last = problem.jacobian_matrix.getOwnershipRange()
+    owned = np.flatnonzero(dofs < problem.owned_size)
     order = np.argsort(dofs[owned])
     u_rows = (dofs[owned][order] + first).astype(np.int32)
     nodes = (owned[order] // 3)[::3]
@@ -159,8 +160,9 @@ def run_case(case: dict, comm, save: Path | None) -> dict:
     if "failed" not in row:
         row["volume_ratio"] = problem.volume() / geometry.reference_volume()
         if save is not None:
-            np.save(save / f"w_{comm.rank}.npy", problem.w.x.array[: problem._nowned])
-            np.save(save / f"p_{comm.rank}.npy", np.asarray(problem._p_dofs)[np.asarray(problem._p_dofs) < problem._nowned])
+            n, p_dofs = problem.owned_size, problem.pressure_dofs
+            np.save(save / f"w_{comm.rank}.npy", problem.w.x.array[:n])
+            np.save(save / f"p_{comm.rank}.npy", p_dofs[p_dofs < n])
     return row
 
 
@@ -168,9 +170,7 @@ def run_case(case: dict, comm, save: Path | None) -> dict:
 
 
 def _run_worker(case: dict, ranks: int, timeout: float, save: Path | None) -> dict:
-    from hyper.bench.growth import _run_worker as run_worker
-
-    row = run_worker(case, ranks, timeout, bench="solvers", extra=() if save is None else ("--save", str(save)))
+    row = common.run_worker("solvers", case, ranks, timeout, extra=() if save is None else ("--save", str(save)))
     row["ranks"] = ranks
     return row
 
@@ -193,9 +193,7 @@ def compare(reference: Path, other: Path, ranks: int) -> dict:
 
 
 def chart(path: Path, result: dict) -> None:
-    from hyper.bench.growth import _plt
-
-    plt = _plt()
+    plt = plot.pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.3))
     styles = {"lu": ("o-", "MUMPS LU"), "iterative": ("s-", "GMRES + BLR LU (1e-4)")}
     ax = axes[0]
@@ -240,8 +238,7 @@ def chart(path: Path, result: dict) -> None:
     ax.set_title("where it stalls", fontsize=9, pad=28)
     ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
-    fig.savefig(path, dpi=120, format="png")
-    plt.close(fig)
+    plot.save(fig, path, dpi=120)
 
 
 def main(argv=None) -> int:
@@ -256,26 +253,20 @@ def main(argv=None) -> int:
     parser.add_argument("--timeout", type=float, default=3600.0, help="seconds per run before it counts as failed")
     parser.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
     parser.add_argument("--replot", action="store_true", help="redraw the chart from OUTPUT/solvers.json, run nothing")
-    parser.add_argument("--worker", help=argparse.SUPPRESS)
-    parser.add_argument("--json", type=Path, help=argparse.SUPPRESS)
+    common.add_worker_options(parser)
     parser.add_argument("--save", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
 
     if args.worker:
         from mpi4py import MPI
 
-        comm = MPI.COMM_WORLD
-        row = run_case(json.loads(args.worker), comm, args.save)
-        if comm.rank == 0:
-            args.json.write_text(json.dumps(row, default=float))
+        common.write_worker_result(MPI.COMM_WORLD, args.json, run_case(args.worker, MPI.COMM_WORLD, args.save))
         return 0
 
     from hyper import io
 
     if args.replot:
-        result = json.loads((args.output / "solvers.json").read_text())
-        with io.atomic_path(args.output / "solvers.png") as tmp:
-            chart(tmp, result)
+        chart(args.output / "solvers.png", json.loads((args.output / "solvers.json").read_text()))
         return 0
     try:
         levels = [int(v) for v in args.levels.split(",") if v]
@@ -331,15 +322,14 @@ def main(argv=None) -> int:
                                 args.timeout, None))
     measured = {"levels": rows, "precision": precision, "gamg": gamg}
     rows, precision, gamg = ({**measured, **kept}[part] for part in PARTS)
-    result = {"benchmark": "solvers", "host": platform.node(), "ranks": args.ranks, "theta": THETA,
+    result = {"benchmark": "solvers", "machine": common.machine(), "ranks": args.ranks, "theta": THETA,
               "levels": rows, "precision": precision, "gamg": gamg, "parts_run": parts,
               "memory_fit": {s: memory_fit([r for r in rows if r["solver"] == s]) for s in ("lu", "iterative")},
               "versions": io.versions(), "wall_s": time.perf_counter() - start}
     args.output.mkdir(parents=True, exist_ok=True)
     with io.atomic_path(args.output / "solvers.json") as tmp:
         tmp.write_text(json.dumps(result, indent=2, default=float) + "\n")
-    with io.atomic_path(args.output / "solvers.png") as tmp:
-        chart(tmp, result)
+    chart(args.output / "solvers.png", result)
     for r in precision + gamg:
         print(f"{r.get('variant', r['solver']):40s} {r['geometry']:12s} precision {r.get('precision', '-')}: " +
               (f"FAILED {r['failed']}" if "failed" in r else
