@@ -122,6 +122,10 @@ class RunSpec:
     linear_solver: str = "lu"
     # the fidelity choice (--accuracy) that set the steps; "auto" completes it with the solver
     choice: fidelity.Choice | None = None
+    # the discretisation: uniform refinements of the mesh, and the quadrature degree
+    # (None: the geometry's own, 4)
+    refine: int = 0
+    quadrature_degree: int | None = None
 
     def __post_init__(self):
         if self.settings is None:
@@ -133,6 +137,12 @@ class RunSpec:
                              f"got {self.linear_solver!r}")
         if (self.heterogeneity is None) != (self.seed is None):
             raise InputError("per-cell parameters need both a heterogeneity model and a seed")
+        if isinstance(self.refine, bool) or not isinstance(self.refine, int) or self.refine < 0:
+            raise InputError(f"expected an integer >= 0, got {self.refine!r}", field="refine")
+        if self.quadrature_degree is not None and not (isinstance(self.quadrature_degree, int)
+                                                       and 1 <= self.quadrature_degree <= 12):
+            raise InputError(f"expected an integer in [1, 12], got {self.quadrature_degree!r}",
+                             field="quadrature_degree")
 
     @property
     def label(self) -> str:
@@ -150,6 +160,11 @@ class RunSpec:
         }
         if self.heterogeneity is not None:
             out["heterogeneity"] = {**self.heterogeneity.attributes(), "seed": self.seed}
+        # only where they differ from the defaults, so that the digests of default runs stay
+        if self.refine:
+            out["refine"] = self.refine
+        if self.quadrature_degree is not None:
+            out["quadrature_degree"] = self.quadrature_degree
         return out
 
     def digest(self) -> str:
@@ -158,7 +173,15 @@ class RunSpec:
     def load_geometry(self, comm):
         from hyper import geometry as geo
 
-        return self.mesh.load(comm) if self.mesh is not None else geo.load(self.geometry, comm)
+        if self.mesh is not None:
+            if self.refine or self.quadrature_degree is not None:
+                raise InputError("refinement and quadrature degree apply to the built-in geometries only")
+            return self.mesh.load(comm)
+        kwargs = {} if self.quadrature_degree is None else {"quadrature_degree": self.quadrature_degree}
+        geometry = geo.load(self.geometry, comm, **kwargs)
+        for _ in range(self.refine):
+            geometry = geo.refine(geometry)
+        return geometry
 
     def fiber_field(self, geometry):
         from hyper import fibers
@@ -390,10 +413,11 @@ class Result:
     choice: fidelity.Choice | None = None  # the spec's, with the linear solver where it was chosen
 
 
-def build(comm, spec: RunSpec, *, monitor=None):
+def build(comm, spec: RunSpec, *, monitor=None, integrator=None):
     """The coupled model of ``spec``, its fibre field, the linear solver's attributes and
     the fidelity choice completed with it (``auto``: by `fidelity.linear_solver` from the
-    unknowns and the memory available)."""
+    unknowns and the memory available). ``monitor`` and ``integrator`` go to the model
+    (`hyper.coupled.CoupledModel`): a timing monitor, another ODE integrator."""
     from hyper.coupled import CoupledModel
     from hyper.mechanics import taylor_hood_unknowns
 
@@ -409,7 +433,7 @@ def build(comm, spec: RunSpec, *, monitor=None):
             choice = choice.with_linear_solver(unknowns, memory)
             solver, reason = choice.linear_solver, choice.linear_solver_reason
         info(comm, f"fidelity: {reason}")
-    kwargs = {} if monitor is None else {"monitor": monitor}
+    kwargs = {name: value for name, value in (("monitor", monitor), ("integrator", integrator)) if value is not None}
     model = CoupledModel(geometry, a0, spec.protocol, params=spec.cell_params(geometry), settings=spec.settings,
                          petsc_options=dict(spec.petsc_options), linear_solver=solver, **kwargs)
     return model, a0, {"linear_solver": solver, "linear_solver_reason": reason}, choice
