@@ -15,6 +15,7 @@ import argparse
 import contextlib
 import importlib
 import logging
+import re
 import signal
 import sys
 from importlib import metadata
@@ -112,6 +113,15 @@ def error(comm, message: str) -> None:
 def warning(comm, message: str) -> None:
     if comm is None or comm.rank == 0:
         print(f"warning: {message}", file=sys.stderr, flush=True)
+
+
+def petsc_option(text: str) -> tuple[str, str]:
+    """KEY=VALUE of a --petsc-option, the key without dash or prefix (they are the solver's)."""
+    key, sep, value = text.partition("=")
+    if not sep or not re.fullmatch(r"[a-z][a-z0-9_]*", key) or not value or re.search(r"\s", value):
+        raise InputError(f"--petsc-option {text!r}: expected KEY=VALUE with a PETSc option name without "
+                         "its dash and prefix, e.g. snes_max_it=50")
+    return key, value
 
 
 # -------------------------------------------------------------------------------- locks

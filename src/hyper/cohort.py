@@ -486,9 +486,9 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings]:
     if args.ranks_per_job < 1 or comm.size % args.ranks_per_job:
         raise InputError(f"--ranks-per-job must be >= 1 and divide the number of MPI ranks ({comm.size}), "
                          f"got {args.ranks_per_job}")
-    if args.plot_geometry not in geo.GEOMETRIES:
-        raise InputError(f"--plot-geometry: unknown geometry {args.plot_geometry!r}; "
-                         f"known: {', '.join(geo.GEOMETRIES)}")
+    for name in args.geometries:
+        run.check_geometry(comm, name, "--geometries")
+    run.check_geometry(comm, args.plot_geometry, "--plot-geometry")
     if args.snapshot_every < 1:
         raise InputError(f"--snapshot-every must be a positive integer, got {args.snapshot_every}")
     settings = build(GrowthSettings, {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings"},

@@ -286,10 +286,9 @@ def parser() -> cli.Parser:
     return p
 
 
-def plan(args) -> tuple[list[farm.Job], heterogeneity.Heterogeneity, Path]:
+def plan(comm, args) -> tuple[list[farm.Job], heterogeneity.Heterogeneity, Path]:
     """Jobs, heterogeneity and the sample folder; InputError on bad input."""
-    if args.geometry not in geo.GEOMETRIES:
-        raise InputError(f"--geometry: unknown geometry {args.geometry!r}; known: {', '.join(geo.GEOMETRIES)}")
+    run.check_geometry(comm, args.geometry)
     (protocol,) = protocols.from_option(args.protocol) if args.protocol != "all" else (None,)
     if protocol is None:
         raise InputError("--protocol: an ensemble runs one protocol, not 'all'")
@@ -317,7 +316,7 @@ def plan(args) -> tuple[list[farm.Job], heterogeneity.Heterogeneity, Path]:
 
 
 def ensemble(comm, args) -> int:
-    jobs, het, folder = plan(args)
+    jobs, het, folder = plan(comm, args)
     if args.ranks_per_job < 1 or comm.size % args.ranks_per_job:
         raise InputError(f"--ranks-per-job must be >= 1 and divide the number of ranks ({comm.size}), "
                          f"got {args.ranks_per_job}")

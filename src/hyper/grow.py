@@ -6,26 +6,18 @@
     hyper grow --geometry idealized --protocol mwf --accuracy 1e-3
     hyper grow --ask signaling --protocol mwf --accuracy 1e-3 --output results/signaling/mwf.h5
 
-Writes per run an HDF5 time series (t, csa_ratio, volume_ratio, kM, the signaling
-states, Newton iterations, step cuts) with parameters, protocol, settings and versions
-as attributes, and an XDMF file of snapshots (growth displacement, det Ḡ, fibres) for
-ParaView; with several protocols, the paper's Fig. 4C–E analog (--plot).
+Writes per run an HDF5 time series (t, CSA and volume ratios, kM, the signaling states,
+Newton iterations, step cuts) with its provenance as attributes, an XDMF file of
+snapshots (u, det Ḡ, fibres) for ParaView and the paper's Fig. 4C–E analog (--plot).
 
-Fidelity (hyper.fidelity). --accuracy A runs the cheapest model and the longest growth
-and RK4 steps whose error, from the tables measured by hyper bench growth and
-signaling, stays within A of the growth (half for each step), and the linear solver
-that fits the memory; it prints the choice and stores it as the result's `fidelity`
-attributes. --ask signaling answers a question about N alone: only the signaling ODEs
-run (no mesh, no DOLFINx), each protocol's series written as hyper signaling writes it,
-with A a fraction of N (exit status 3 if the ODEs fail).
+--accuracy A (hyper.fidelity): the cheapest model, the longest steps whose tabulated
+error stays within A of the growth, and the linear solver that fits the memory; the
+choice is printed and stored as the result's `fidelity` attributes. --ask signaling:
+N alone, the signaling ODEs without a mesh or DOLFINx (exit status 3 if they fail).
 
-Restart (hyper.run). Every --checkpoint-every growth steps, and at the first step
-boundary after a SIGTERM (what Slurm sends before a time limit), the run saves its
-whole state in RESULT.ckpt.h5 (atomically). Running the same command again resumes from
-it and gives the result of an uninterrupted run. A growth step whose Newton solve fails
-is cut in halves (up to --max-halvings times); if it still fails, the run stops with a
-checkpoint and RESULT.status.json, and may be resumed with a larger --max-halvings.
-Outputs appear only when complete; a second run on the same result stops at once.
+Restart (hyper.run): a checkpoint RESULT.ckpt.h5 every --checkpoint-every growth steps
+and after a SIGTERM; the same command resumes to the uninterrupted result. A step whose
+Newton solve still fails after --max-halvings cuts stops the run (RESULT.status.json).
 
 Exit status: 0 done; 2 bad input (nothing written); 3 a growth step failed for good;
 4 another run holds the output; 143 stopped by SIGTERM (run the same command again).
@@ -35,29 +27,20 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import re
 import sys
 from pathlib import Path
 
 from hyper import cli, fidelity, io, protocols, run, signaling
 from hyper.checkpoint import inspect, on_rank0
 from hyper.log import hms, info
-from hyper.params import InputError, as_attributes, build
+from hyper.params import InputError, build
+from hyper.signaling.cli import answer
 
 SIGNALING_SAMPLE_EVERY = 0.5  # h, the series of --ask signaling, as hyper signaling samples it
 DATA = Path(__file__).resolve().parents[2] / "data" / "defreitas.csv"
 # the options that set GrowthSettings' fields, for errors that name what the user typed
 SETTING_OPTIONS = {"growth_dt": "--growth-dt", "signaling_dt": "--signaling-dt", "feedback": "--feedback",
                    "max_halvings": "--max-halvings"}
-_RESULT_SUFFIXES = (".hdf5", ".xdmf", ".png", ".csv", ".json", ".toml", ".txt", ".npy")
-
-
-def petsc_option(text: str) -> tuple[str, str]:
-    key, sep, value = text.partition("=")
-    if not sep or not re.fullmatch(r"[a-z][a-z0-9_]*", key) or not value or re.search(r"\s", value):
-        raise InputError(f"--petsc-option {text!r}: expected KEY=VALUE with a PETSc option name without "
-                         "its dash and prefix, e.g. snes_max_it=50")
-    return key, value
 
 
 def scene_options(p: cli.Parser) -> None:
@@ -79,19 +62,17 @@ def scene_options(p: cli.Parser) -> None:
 
 def parser(ask: str = "growth") -> cli.Parser:
     if ask == "signaling":
-        p = cli.Parser("grow --ask signaling", "A signaling question: the signaling ODEs alone for each protocol "
-                       "(no mesh, no DOLFINx), with the fidelity choice as attributes.")
+        p = cli.Parser("grow --ask signaling", "A signaling question: the ODEs alone for each protocol, no mesh.")
         scene_options(p)
-        p.add_argument("--output", type=Path, default=Path("results/signaling"),
-                       help="an .h5 file (one protocol) or a folder")
+        p.add_argument("--output", type=Path, default=Path("results/signaling"), help="an .h5 file or a folder")
         return p
     from hyper.coupled import GrowthSettings
     from hyper.growth import FEEDBACK_LAWS
 
     p = cli.Parser("grow", __doc__)
     p.add_argument("--geometry", help="geometry id (idealized, cylinder, BFLH_VHF_Left, …); idealized by default")
-    p.add_argument("--mesh", type=Path, help="a tetrahedral XDMF mesh of your own instead of --geometry (facet tags "
-                   "'ft_small': 1, 2 the ends, 3 the lateral surface; fibres along its principal axis)")
+    p.add_argument("--mesh", type=Path, help="your own tetrahedral XDMF mesh instead of --geometry (facet tags "
+                   "'ft_small': 1, 2 the ends, 3 the side; fibres along its principal axis)")
     p.add_argument("--mesh-unit", help=f"length unit of --mesh ({' or '.join(run.MESH_UNITS)}); m by default")
     scene_options(p)
     p.add_argument("--output", type=Path, default=Path("results/grow"), help="an .h5 file (one protocol) or a folder")
@@ -103,9 +84,8 @@ def parser(ask: str = "growth") -> cli.Parser:
                    help="P = Fe S (the original code) instead of the consistent det(Fg) Fe S Fg⁻ᵀ")
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run stops")
-    p.add_argument("--linear-solver", choices=run.LINEAR_SOLVERS,
-                   help="MUMPS LU, GMRES preconditioned by MUMPS's block low-rank LU (less memory, same answer), "
-                        "or auto (LU while it fits in memory); lu, or auto with --accuracy")
+    p.add_argument("--linear-solver", choices=run.LINEAR_SOLVERS, help="MUMPS LU, GMRES with MUMPS's block "
+                   "low-rank LU (less memory, same answer) or auto (LU while it fits); lu, or auto with --accuracy")
     p.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
                    help="a PETSc option of the mechanics solver, e.g. snes_max_it=50 (repeatable)")
     p.add_argument("--snapshot-every", type=int, default=run.SNAPSHOT_EVERY, help="XDMF snapshot every K growth steps")
@@ -116,28 +96,10 @@ def parser(ask: str = "growth") -> cli.Parser:
     return p
 
 
-def outputs(out: Path, stems: list[str]) -> list[Path]:
-    """The result files: ``out`` itself (an .h5 file, one run) or STEM.h5 per run in the folder ``out``."""
-    single_file = out.suffix == ".h5"
-    if single_file and len(stems) > 1:
-        raise InputError(f"--output {out}: several protocols need a folder, not an .h5 file")
-    if out.suffix.lower() in _RESULT_SUFFIXES:
-        raise InputError(f"--output {out}: expected an .h5 file or a folder, got a {out.suffix} file")
-    if not single_file and out.exists() and not out.is_dir():
-        raise InputError(f"--output {out}: exists and is not a folder")
-    if single_file and out.is_dir():
-        raise InputError(f"--output {out}: is a folder; give the result file a name that ends in .h5")
-    for parent in (out if not single_file else out.parent, *out.parents):
-        if parent.exists() and not parent.is_dir():
-            raise InputError(f"--output {out}: {parent} is a file, not a folder")
-    return [out] if single_file else [out / f"{stem}.h5" for stem in stems]
-
-
 def choose(scene: fidelity.Scene, args, growth_dt=None) -> fidelity.Choice | None:
-    if args.accuracy is None:
-        return None
     try:
-        return fidelity.choose(scene, args.accuracy, growth_dt=growth_dt, signaling_dt=args.signaling_dt)
+        return None if args.accuracy is None else fidelity.choose(scene, args.accuracy, growth_dt=growth_dt,
+                                                                  signaling_dt=args.signaling_dt)
     except InputError as err:
         raise InputError(f"--accuracy {args.accuracy:g}: {err}") from None
 
@@ -155,21 +117,10 @@ class Plan:
     choice: fidelity.Choice | None  # from --accuracy; None: the fixed steps
 
     # what every run of the command shares
-    @property
-    def geometry(self) -> str:
-        return self.specs[0].geometry
-
-    @property
-    def mesh(self) -> run.MeshFile | None:
-        return self.specs[0].mesh
-
-    @property
-    def settings(self):
-        return self.specs[0].settings
-
-    @property
-    def linear_solver(self) -> str:
-        return self.specs[0].linear_solver
+    geometry = property(lambda self: self.specs[0].geometry)
+    mesh = property(lambda self: self.specs[0].mesh)
+    settings = property(lambda self: self.specs[0].settings)
+    linear_solver = property(lambda self: self.specs[0].linear_solver)
 
 
 def plan(comm, argv) -> Plan:
@@ -178,8 +129,6 @@ def plan(comm, argv) -> Plan:
 
 
 def plan_from(comm, args) -> Plan:
-    from hyper import fibers
-    from hyper import geometry as geo
     from hyper.coupled import LAG_OPTION, GrowthSettings, jacobian_lag
 
     if args.mesh is not None and args.geometry is not None:
@@ -189,14 +138,7 @@ def plan_from(comm, args) -> Plan:
     mesh = run.MeshFile(args.mesh, args.mesh_unit or "m") if args.mesh is not None else None
     name = args.mesh.stem if mesh is not None else (args.geometry or "idealized")
     if mesh is None:
-        if name not in geo.GEOMETRIES:
-            raise InputError(f"--geometry: unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
-        path = geo.MESHES_DIR / geo.GEOMETRIES[name]
-        if not path.is_file():
-            raise InputError(f"--geometry {name}: {path}: no such mesh file")
-        if name in geo.ANATOMICAL and not on_rank0(comm, lambda: io.is_complete(fibers.fiber_path(name))):
-            raise InputError(f"--geometry {name}: {fibers.fiber_path(name)}: no complete fibre file; compute it "
-                             f"with `hyper fibers --geometries {name}`")
+        run.check_geometry(comm, name)
     runs = protocols.from_option(args.protocol)
     params = signaling.load_params(args.params) if args.params else signaling.SignalingParams()
     # hyper grow takes uniform parameters only (per-cell ones are hyper ensemble's)
@@ -210,14 +152,14 @@ def plan_from(comm, args) -> Plan:
     settings = build(GrowthSettings, SETTING_OPTIONS, growth_dt=growth_dt, signaling_dt=signaling_dt,
                      feedback=args.feedback, grow_during_sessions=not args.skip_sessions,
                      consistent_stress=not args.fe_stress, max_halvings=args.max_halvings)
-    petsc_options = dict(petsc_option(text) for text in args.petsc_option)
+    petsc_options = dict(cli.petsc_option(text) for text in args.petsc_option)
     if LAG_OPTION in petsc_options:
         jacobian_lag(petsc_options[LAG_OPTION])
     for option, value, least in (("--snapshot-every", args.snapshot_every, 1),
                                  ("--checkpoint-every", args.checkpoint_every, 0)):
         if value < least:
             raise InputError(f"{option}: expected an integer >= {least} (growth steps), got {value}")
-    results = outputs(args.output, [f"{name}_{p.name}" for p in runs])
+    results = io.result_paths(args.output, [f"{name}_{p.name}" for p in runs])
     plot = args.plot or (args.output.with_suffix(".png") if args.output.suffix == ".h5"
                          else args.output / f"{name}_growth.png")
     if plot.suffix != ".png":
@@ -241,23 +183,11 @@ def answer_signaling(comm, args) -> int:
     params = signaling.load_params(args.params) if args.params else signaling.SignalingParams()
     scene = fidelity.Scene(None, ",".join(p.name for p in runs), heterogeneous=False, ask="signaling")
     choice = choose(scene, args) or fidelity.assess(scene, None, args.signaling_dt or fidelity.SIGNALING_DT0)
-    results = outputs(args.output, [p.name for p in runs])
+    paths = io.result_paths(args.output, [p.name for p in runs])
     info(comm, f"fidelity: {choice.describe()}")
-
-    def answer():
-        for protocol, h5 in zip(runs, results):
-            series = signaling.run(params, protocol, choice.signaling_dt, SIGNALING_SAMPLE_EVERY)
-            io.write_series(
-                h5, series,
-                attrs={"model": "signaling (MODEL.md §1)", "integrator": "RK4", "dt": choice.signaling_dt,
-                       "sample_every": SIGNALING_SAMPLE_EVERY, "N_final": float(series["N"][-1])},
-                groups={"parameters": as_attributes(params), "protocol": protocol.to_attributes(),
-                        "fidelity": choice.as_attributes()},
-            )
-            info(comm, f"{protocol.name}: N({protocol.end:g} h) = {series['N'][-1]:.6f}; no mesh built -> {h5}")
-
     try:
-        on_rank0(comm, answer)
+        on_rank0(comm, lambda: answer(comm, runs, paths, params, choice.signaling_dt, SIGNALING_SAMPLE_EVERY,
+                                      groups={"fidelity": choice.as_attributes()}))
     except signaling.SignalingError as err:
         cli.error(comm, str(err))
         return cli.EXIT_FAILED

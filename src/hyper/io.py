@@ -19,6 +19,8 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
+from hyper.params import InputError
+
 PARTIAL = ".partial"
 
 
@@ -155,3 +157,25 @@ def atomic_xdmf(comm, path: str | Path) -> Iterator[Any]:
                 os.replace(stage / path.name, path)
             shutil.rmtree(stage, ignore_errors=True)
         comm.barrier()
+
+
+# what --output may not end in: the name of another kind of file, taken for a folder by mistake
+OTHER_SUFFIXES = (".hdf5", ".xdmf", ".png", ".csv", ".json", ".toml", ".txt", ".npy")
+
+
+def result_paths(out: Path, stems: list[str]) -> list[Path]:
+    """The result files of an --output: ``out`` itself (an .h5 file, one run) or STEM.h5
+    per run in the folder ``out``; InputError, before anything is written, where neither fits."""
+    single_file = out.suffix == ".h5"
+    if single_file and len(stems) > 1:
+        raise InputError(f"--output {out}: several protocols need a folder, not an .h5 file")
+    if out.suffix.lower() in OTHER_SUFFIXES:
+        raise InputError(f"--output {out}: expected an .h5 file or a folder, got a {out.suffix} file")
+    if not single_file and out.exists() and not out.is_dir():
+        raise InputError(f"--output {out}: exists and is not a folder")
+    if single_file and out.is_dir():
+        raise InputError(f"--output {out}: is a folder; give the result file a name that ends in .h5")
+    for parent in (out if not single_file else out.parent, *out.parents):
+        if parent.exists() and not parent.is_dir():
+            raise InputError(f"--output {out}: {parent} is a file, not a folder")
+    return [out] if single_file else [out / f"{stem}.h5" for stem in stems]

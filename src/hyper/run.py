@@ -104,6 +104,23 @@ class MeshFile:
         return {"mesh_sha256": ckpt.file_digest(*files), "unit": self.unit, "tags": self.tags}
 
 
+def check_geometry(comm, name: str, option: str = "--geometry") -> None:
+    """A built-in geometry that can run: known, its mesh file there, and (anatomical
+    meshes) its fibre field computed. Collective (rank 0 looks at the files)."""
+    from hyper import fibers
+    from hyper import geometry as geo
+
+    if name not in geo.GEOMETRIES:
+        raise InputError(f"{option}: unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
+    path = geo.MESHES_DIR / geo.GEOMETRIES[name]
+    if not ckpt.on_rank0(comm, path.is_file):
+        raise InputError(f"{option} {name}: {path}: no such mesh file")
+    fibres = fibers.fiber_path(name) if name in geo.ANATOMICAL else None
+    if fibres is not None and not ckpt.on_rank0(comm, lambda: io.is_complete(fibres)):
+        raise InputError(f"{option} {name}: {fibres}: no complete fibre file; compute it with "
+                         f"`hyper fibers --geometries {name}`")
+
+
 @dataclasses.dataclass(frozen=True)
 class RunSpec:
     """Everything that defines one run's result, and how it is solved."""

@@ -32,6 +32,30 @@ def parser() -> cli.Parser:
     return p
 
 
+def write(path: Path, series: dict, params, protocol, dt: float, sample_every: float, groups=None) -> None:
+    """A signaling result: the series, the integrator's settings, parameters and protocol
+    (and any other attribute ``groups``, e.g. a fidelity choice)."""
+    from hyper import io
+
+    io.write_series(
+        path, series,
+        attrs={"model": "signaling (MODEL.md §1)", "integrator": "RK4", "dt": dt, "sample_every": sample_every,
+               "N_final": float(series["N"][-1])},
+        groups={"parameters": as_attributes(params), "protocol": protocol.to_attributes(), **(groups or {})},
+    )
+
+
+def answer(comm, runs: list, paths: list[Path], params, dt: float, sample_every: float, groups=None) -> dict:
+    """Integrate each protocol of ``runs`` and write its result to the path beside it; the series by name."""
+    results = {}
+    for protocol, path in zip(runs, paths):
+        results[protocol.name] = series(params, protocol, dt, sample_every)
+        write(path, results[protocol.name], params, protocol, dt, sample_every, groups)
+        log.info(comm, f"{protocol.name}: N({protocol.end:g} h) = {results[protocol.name]['N'][-1]:.6f}; "
+                       f"no mesh built -> {path}")
+    return results
+
+
 def run(comm, args) -> int:
     from hyper import io
 
@@ -41,28 +65,13 @@ def run(comm, args) -> int:
         raise InputError(f"--plot must name a .png file, got {args.plot}")
     params = load_params(args.params)
     runs = protocols.from_option(args.protocol)
-    if args.output.suffix == ".h5":
-        if len(runs) > 1:
-            raise InputError(f"--output {args.output}: with several protocols give a folder, not an .h5 file")
-        paths = [args.output]
-    else:
-        paths = [args.output / f"{p.name}.h5" for p in runs]
+    paths = io.result_paths(args.output, [p.name for p in runs])
     try:
-        results = {p.name: series(params, p, dt, sample_every) for p in runs}
+        results = answer(comm, runs, paths, params, dt, sample_every)
         insets = {p.name: first_day(params, p, dt) for p in runs}
     except SignalingError as err:
         cli.error(comm, str(err))
         return cli.EXIT_SOME_FAILED
-    for protocol, path in zip(runs, paths):
-        result = results[protocol.name]
-        io.write_series(
-            path,
-            result,
-            attrs={"model": "signaling (MODEL.md §1)", "integrator": "RK4", "dt": dt, "sample_every": sample_every,
-                   "N_final": float(result["N"][-1])},
-            groups={"parameters": as_attributes(params), "protocol": protocol.to_attributes()},
-        )
-        log.info(comm, f"{protocol.name}: N({protocol.end:g} h) = {result['N'][-1]:.6f}; wrote {path}")
     if args.plot is not None:
         from hyper import plot
         from hyper.signaling.plot import figure_protocols
