@@ -46,10 +46,10 @@ def write(path: Path, series: dict, params, protocol, dt: float, sample_every: f
 
 
 def answer(comm, runs: list, paths: list[Path], params, dt: float, sample_every: float, groups=None) -> dict:
-    """Integrate each protocol of ``runs`` and write its result to the path beside it; the series by name."""
-    results = {}
+    """Integrate each protocol of ``runs`` and write its result to the path beside it; the
+    series by name. All are integrated before any is written: a failure writes nothing."""
+    results = {protocol.name: series(params, protocol, dt, sample_every) for protocol in runs}
     for protocol, path in zip(runs, paths):
-        results[protocol.name] = series(params, protocol, dt, sample_every)
         write(path, results[protocol.name], params, protocol, dt, sample_every, groups)
         log.info(comm, f"{protocol.name}: N({protocol.end:g} h) = {results[protocol.name]['N'][-1]:.6f}; "
                        f"no mesh built -> {path}")
@@ -67,8 +67,8 @@ def run(comm, args) -> int:
     runs = protocols.from_option(args.protocol)
     paths = io.result_paths(args.output, [p.name for p in runs])
     try:
-        results = answer(comm, runs, paths, params, dt, sample_every)
         insets = {p.name: first_day(params, p, dt) for p in runs}
+        results = answer(comm, runs, paths, params, dt, sample_every)
     except SignalingError as err:
         cli.error(comm, str(err))
         return cli.EXIT_SOME_FAILED
