@@ -178,38 +178,28 @@ def run_case(comm, case: dict) -> dict:
 
     from mpi4py import MPI
 
-    from hyper import fibers, geometry as geo
-    from hyper import protocols
-    from hyper.coupled import PHASES, CoupledModel, GrowthSettings
+    from hyper import protocols, run
+    from hyper.coupled import PHASES, GrowthSettings
     from hyper.log import Progress
 
     if case.get("signaling", "rk4") not in SIGNALING:
         raise InputError(f"signaling must be one of {', '.join(SIGNALING)}, got {case['signaling']!r}")
-    settings = GrowthSettings(**case["settings"])
-    protocol = protocols.named(case["protocol"])
+    spec = run.RunSpec(case["geometry"], protocols.named(case["protocol"]), settings=GrowthSettings(**case["settings"]),
+                       refine=case.get("refine", 0), quadrature_degree=case.get("quadrature_degree"))
 
     comm.barrier()
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    geometry = geo.load(case["geometry"], comm, quadrature_degree=case.get("quadrature_degree", 4))
-    for _ in range(case.get("refine", 0)):
-        geometry = geo.refine(geometry)
     clock = common.Timings()
     integrator = _paper_signaling if case.get("signaling", "rk4") == "rk45" else None
-    model = CoupledModel(geometry, fibers.fiber_field(geometry), protocol, settings=settings, integrator=integrator,
-                         monitor=clock)
+    model = run.build(comm, spec, monitor=clock, integrator=integrator)[0]
     setup_wall = time.perf_counter() - wall0
 
-    series = {"t": [], "csa_ratio": [], "volume_ratio": []}
-    iterations = halvings = 0
-    progress = Progress(comm, protocol.end, f"  {case['label']}", every=60.0)
+    series = run.Series()
+    progress = Progress(comm, spec.protocol.end, f"  {case['label']}", every=60.0)
     comm.barrier()
     wall1, cpu1 = time.perf_counter(), time.process_time()
     for report in model.run():
-        series["t"].append(report.t)
-        series["csa_ratio"].append(report.csa_ratio)
-        series["volume_ratio"].append(report.volume_ratio)
-        iterations += report.newton_iterations
-        halvings = max(halvings, report.halvings)
+        series.append(report, model, time.perf_counter() - wall1)
         progress.update(report.t, f"CSA/CSA0 {report.csa_ratio:.5f}")
     wall = time.perf_counter() - wall1
     cpu = time.process_time() - cpu1
@@ -231,9 +221,9 @@ def run_case(comm, case: dict) -> dict:
         "volume_ratio": model.volume_ratio,
         "growth_steps": model.step,
         "newton_solves": clock.calls["mechanics"],
-        "newton_iterations": iterations,
+        "newton_iterations": sum(series.rows["newton_iterations"]),
         "jacobian_assemblies": model.jacobian.assemblies,
-        "max_halvings": halvings,
+        "max_halvings": max(series.rows["halvings"], default=0),
         "signaling_calls": clock.calls["signaling"],
         "setup_wall_s": slowest(setup_wall),
         "setup_cpu_s": total(setup_cpu),
@@ -247,7 +237,7 @@ def run_case(comm, case: dict) -> dict:
         "other_s": slowest(wall - sum(clock.seconds[k] for k in PHASES if k != "jacobian assembly")),
         "signaling_share": seconds["signaling"] / slowest(wall),
         "mechanics_share": 1.0 - seconds["signaling"] / slowest(wall),
-        "series": series,
+        "series": {name: series.rows[name] for name in ("t", "csa_ratio", "volume_ratio")},
     }
 
 
