@@ -178,23 +178,24 @@ def run_case(comm, case: dict) -> dict:
 
     from mpi4py import MPI
 
-    from hyper import protocols, run
+    from hyper import protocols
     from hyper.coupled import PHASES, GrowthSettings
     from hyper.log import Progress
+    from hyper.run import RunSpec, Series, build
 
     if case.get("signaling", "rk4") not in SIGNALING:
         raise InputError(f"signaling must be one of {', '.join(SIGNALING)}, got {case['signaling']!r}")
-    spec = run.RunSpec(case["geometry"], protocols.named(case["protocol"]), settings=GrowthSettings(**case["settings"]),
-                       refine=case.get("refine", 0), quadrature_degree=case.get("quadrature_degree"))
+    spec = RunSpec(case["geometry"], protocols.named(case["protocol"]), settings=GrowthSettings(**case["settings"]),
+                   refine=case.get("refine", 0), quadrature_degree=case.get("quadrature_degree"))
 
     comm.barrier()
     wall0, cpu0 = time.perf_counter(), time.process_time()
     clock = common.Timings()
     integrator = _paper_signaling if case.get("signaling", "rk4") == "rk45" else None
-    model = run.build(comm, spec, monitor=clock, integrator=integrator)[0]
+    model = build(comm, spec, monitor=clock, integrator=integrator)[0]
     setup_wall = time.perf_counter() - wall0
 
-    series = run.Series()
+    series = Series()
     progress = Progress(comm, spec.protocol.end, f"  {case['label']}", every=60.0)
     comm.barrier()
     wall1, cpu1 = time.perf_counter(), time.process_time()
