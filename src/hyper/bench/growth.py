@@ -1,6 +1,6 @@
 """Growth-step benchmark: accuracy of the coupled model against its cost in the growth step Δtg.
 
-    python -m hyper.bench growth [--quick] [--dts 0.5,1,2,6,24,1e9] [--ranks 1]
+    python -m hyper.bench growth [--quick] [--dts 0.5 1 2 6 24 1e9] [--ranks 1]
 
 On one geometry and protocol (default: the idealized shape, ``mwf``, 9 weeks) the
 coupled model runs once per growth step Δtg (1e9 h: one step per period, since periods
@@ -56,14 +56,11 @@ def dt_label(dt: float) -> str:
     return "1/period" if dt >= ONE_STEP_PER_PERIOD else f"{dt:g} h"
 
 
-def parse_dts(text: str) -> tuple[float, ...]:
-    """'0.5,1,24' → (0.5, 1.0, 24.0): distinct, finite, positive, sorted ascending."""
-    try:
-        values = [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise InputError(f"--dts: expected comma-separated growth steps in hours, got {text!r}") from None
+def checked_dts(values) -> tuple[float, ...]:
+    """The growth steps of --dts sorted ascending; at least two, distinct, finite and positive."""
     if len(values) < 2 or not all(math.isfinite(v) and v > 0 for v in values) or len(set(values)) != len(values):
-        raise InputError(f"--dts: expected at least two distinct finite positive hours, got {text!r}")
+        raise InputError(f"--dts: expected at least two distinct finite positive hours, "
+                         f"got {' '.join(f'{v:g}' for v in values)}")
     return tuple(sorted(values))
 
 
@@ -355,7 +352,7 @@ def parser() -> cli.Parser:
     p = cli.Parser("bench growth", __doc__)
     p.add_argument("--geometry", default="idealized", help="the mesh")
     p.add_argument("--protocol", default="mwf", help="named protocol")
-    p.add_argument("--dts", default=",".join(f"{d:g}" for d in DTS),
+    p.add_argument("--dts", nargs="+", type=float, metavar="H", default=list(DTS),
                    help="growth steps Δtg in hours; the smallest is the reference (1e9: one step per period)")
     p.add_argument("--quick", action="store_true", help="leave out the finest Δtg (a check, not the result)")
     p.add_argument("--tolerance", type=float, default=TOLERANCE, help="error allowed, as a fraction of the growth")
@@ -376,7 +373,7 @@ def run(comm, args) -> int:
     if args.geometry not in geo.GEOMETRIES:
         raise InputError(f"--geometry: unknown geometry {args.geometry!r}; known: {', '.join(geo.GEOMETRIES)}")
     protocols.named(args.protocol)
-    dts = parse_dts(args.dts)
+    dts = checked_dts(args.dts)
     if args.quick:
         dts = dts[1:]
         if len(dts) < 2:
