@@ -6,11 +6,12 @@ import pytest
 
 from hyper.bench.growth import (
     cheapest_within,
+    checked_dts,
     dt_label,
     extrapolate,
     growth_errors,
     observed_order,
-    parse_dts,
+    parser,
     relative_effect,
 )
 from hyper.params import InputError
@@ -55,9 +56,12 @@ def test_observed_order_and_richardson_limit_recover_a_power_law():
     assert math.isnan(observed_order((0.5, 1.0, 2.0), 1e-4, -1e-4))
 
 
-def test_dts_parsing_and_labels():
-    assert parse_dts("24, 0.5,1e9") == (0.5, 24.0, 1e9)
-    for bad in ("", "1", "1,1", "1,-2", "a,b", "1,inf"):
+def test_dts_checking_and_labels():
+    assert checked_dts([24.0, 0.5, 1e9]) == (0.5, 24.0, 1e9)
+    for bad in ([1.0], [1.0, 1.0], [1.0, -2.0], [1.0, math.inf]):
         with pytest.raises(InputError, match="--dts"):
-            parse_dts(bad)
+            checked_dts(bad)
+    assert parser().parse_args(["--dts", "24", "0.5", "1e9"]).dts == [24.0, 0.5, 1e9]
+    with pytest.raises(InputError, match="--dts"):
+        parser().parse_args(["--dts", "a", "b"])
     assert dt_label(0.5) == "0.5 h" and dt_label(1e9) == "1/period"

@@ -34,7 +34,7 @@ def test_compare_measures_u_against_u_and_p_against_its_change_from_rest(tmp_pat
     assert diff["p"] == pytest.approx(1e-5, rel=1e-6)
 
 
-def test_parts_not_run_are_kept_from_the_previous_results(tmp_path):
+def test_parts_not_run_are_kept_from_the_previous_results(tmp_path, capsys):
     import json
 
     failed = {"geometry": "idealized", "unknowns": 11306, "failed": "an earlier run's failure"}
@@ -47,7 +47,11 @@ def test_parts_not_run_are_kept_from_the_previous_results(tmp_path):
     assert new["precision"] == old["precision"] and new["gamg"] == old["gamg"]
     assert [r["solver"] for r in new["levels"]] == ["lu", "iterative"]
     assert new["levels"][1]["difference_from_lu"]["u"] < 1e-9
-    with pytest.raises(SystemExit):
-        solvers.main(["--parts", "levels,bogus", "--output", str(tmp_path)])
-    with pytest.raises(SystemExit):  # the kept parts ran on 2 ranks
-        solvers.main(["--parts", "levels", "--ranks", "1", "--output", str(tmp_path)])
+    capsys.readouterr()
+    assert solvers.main(["--parts", "levels", "bogus", "--output", str(tmp_path)]) == 2
+    assert "error:" in capsys.readouterr().err
+    assert solvers.main(["--parts", "levels", "--levels", "4", "--output", str(tmp_path)]) == 2
+    assert "error:" in capsys.readouterr().err
+    # the kept parts ran on 2 ranks
+    assert solvers.main(["--parts", "levels", "--ranks", "1", "--output", str(tmp_path)]) == 2
+    assert "error:" in capsys.readouterr().err

@@ -1,6 +1,6 @@
 """The atlas: error against wall time for every numerical choice, and where methods fail.
 
-    python -m hyper.bench atlas [--geometries idealized,BFLH_VHF_Left] [--protocol mwf]
+    python -m hyper.bench atlas [--geometries idealized BFLH_VHF_Left] [--protocol mwf]
 
 Errors are of what users read: |x - x_ref| / (x_ref - 1) for x = CSA/CSA0 and V/V0 at
 the protocol's end (a fraction of the growth), and the relative error of N for the
@@ -404,7 +404,8 @@ def _charts(output: Path, result: dict) -> None:
 
 def parser() -> cli.Parser:
     p = cli.Parser("bench atlas", __doc__)
-    p.add_argument("--geometries", default="idealized,BFLH_VHF_Left", help="comma-separated geometries")
+    p.add_argument("--geometries", nargs="+", metavar="ID", default=["idealized", "BFLH_VHF_Left"],
+                   help="geometries of the dimensions measured here")
     p.add_argument("--protocol", default="mwf", help="named protocol")
     p.add_argument("--timeout", type=float, default=1800.0, help="seconds per run before it counts as failed")
     p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
@@ -424,15 +425,14 @@ def run(comm, args) -> int:
     from hyper import protocols
     from hyper.params import InputError
 
-    geometries = [g for g in args.geometries.split(",") if g]
-    for name in geometries:
+    for name in args.geometries:
         if name not in geo.GEOMETRIES:
             raise InputError(f"unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
     protocols.named(args.protocol)
 
     start = time.perf_counter()
     dimensions = {}
-    for name, cases in dimension_cases(geometries, args.protocol).items():
+    for name, cases in dimension_cases(args.geometries, args.protocol).items():
         print(f"atlas: {name}", flush=True)
         dimensions[name] = measure_dimension(cases, args.timeout, lambda m: print(m, flush=True))
     print("atlas: failure map, growth step", flush=True)

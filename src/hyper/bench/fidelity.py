@@ -60,7 +60,7 @@ def compare(rows: dict[str, dict], accuracy: float) -> dict:
 
 def parser() -> cli.Parser:
     p = cli.Parser("bench fidelity", __doc__)
-    p.add_argument("--geometries", default="TA_VHF_Right", help="comma-separated geometries")
+    p.add_argument("--geometries", nargs="+", metavar="ID", default=["TA_VHF_Right"], help="geometries")
     p.add_argument("--accuracy", type=float, default=1e-3, help="requested error, fraction of the growth")
     p.add_argument("--timeout", type=float, default=7200.0, help="seconds per run")
     p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
@@ -72,11 +72,10 @@ def run(comm, args) -> int:
     from hyper import io
     from hyper.params import InputError
 
-    geometries = [g for g in args.geometries.split(",") if g]
-    for name in geometries:
+    for name in args.geometries:
         if name not in geo.GEOMETRIES:
             raise InputError(f"unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
-    plans = {name: cases(name, args.accuracy) for name in geometries}
+    plans = {name: cases(name, args.accuracy) for name in args.geometries}
 
     result = {"benchmark": "fidelity", "machine": common.machine(), "accuracy": args.accuracy, "reference_settings": REFERENCE,
               "geometries": {}, "versions": io.versions()}

@@ -1,6 +1,6 @@
 """Growth-step benchmark: accuracy of the coupled model against its cost in the growth step Δtg.
 
-    python -m hyper.bench growth [--quick] [--dts 0.5,1,2,6,24,1e9] [--ranks 1]
+    python -m hyper.bench growth [--quick] [--dts 0.5 1 2 6 24 1e9] [--ranks 1]
 
 On one geometry and protocol (default: the idealized shape, ``mwf``, 9 weeks) the
 coupled model runs once per growth step Δtg (1e9 h: one step per period, since periods
@@ -56,14 +56,11 @@ def dt_label(dt: float) -> str:
     return "1/period" if dt >= ONE_STEP_PER_PERIOD else f"{dt:g} h"
 
 
-def parse_dts(text: str) -> tuple[float, ...]:
-    """'0.5,1,24' → (0.5, 1.0, 24.0): distinct, finite, positive, sorted ascending."""
-    try:
-        values = [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise InputError(f"--dts: expected comma-separated growth steps in hours, got {text!r}") from None
+def checked_dts(values) -> tuple[float, ...]:
+    """The growth steps of --dts sorted ascending; at least two, distinct, finite and positive."""
     if len(values) < 2 or not all(math.isfinite(v) and v > 0 for v in values) or len(set(values)) != len(values):
-        raise InputError(f"--dts: expected at least two distinct finite positive hours, got {text!r}")
+        raise InputError(f"--dts: expected at least two distinct finite positive hours, "
+                         f"got {' '.join(f'{v:g}' for v in values)}")
     return tuple(sorted(values))
 
 
@@ -178,38 +175,29 @@ def run_case(comm, case: dict) -> dict:
 
     from mpi4py import MPI
 
-    from hyper import fibers, geometry as geo
     from hyper import protocols
-    from hyper.coupled import PHASES, CoupledModel, GrowthSettings
+    from hyper.coupled import PHASES, GrowthSettings
     from hyper.log import Progress
+    from hyper.run import RunSpec, Series, build
 
     if case.get("signaling", "rk4") not in SIGNALING:
         raise InputError(f"signaling must be one of {', '.join(SIGNALING)}, got {case['signaling']!r}")
-    settings = GrowthSettings(**case["settings"])
-    protocol = protocols.named(case["protocol"])
+    spec = RunSpec(case["geometry"], protocols.named(case["protocol"]), settings=GrowthSettings(**case["settings"]),
+                   refine=case.get("refine", 0), quadrature_degree=case.get("quadrature_degree"))
 
     comm.barrier()
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    geometry = geo.load(case["geometry"], comm, quadrature_degree=case.get("quadrature_degree", 4))
-    for _ in range(case.get("refine", 0)):
-        geometry = geo.refine(geometry)
     clock = common.Timings()
     integrator = _paper_signaling if case.get("signaling", "rk4") == "rk45" else None
-    model = CoupledModel(geometry, fibers.fiber_field(geometry), protocol, settings=settings, integrator=integrator,
-                         monitor=clock)
+    model = build(comm, spec, monitor=clock, integrator=integrator)[0]
     setup_wall = time.perf_counter() - wall0
 
-    series = {"t": [], "csa_ratio": [], "volume_ratio": []}
-    iterations = halvings = 0
-    progress = Progress(comm, protocol.end, f"  {case['label']}", every=60.0)
+    series = Series()
+    progress = Progress(comm, spec.protocol.end, f"  {case['label']}", every=60.0)
     comm.barrier()
     wall1, cpu1 = time.perf_counter(), time.process_time()
     for report in model.run():
-        series["t"].append(report.t)
-        series["csa_ratio"].append(report.csa_ratio)
-        series["volume_ratio"].append(report.volume_ratio)
-        iterations += report.newton_iterations
-        halvings = max(halvings, report.halvings)
+        series.append(report, model, time.perf_counter() - wall1)
         progress.update(report.t, f"CSA/CSA0 {report.csa_ratio:.5f}")
     wall = time.perf_counter() - wall1
     cpu = time.process_time() - cpu1
@@ -231,9 +219,9 @@ def run_case(comm, case: dict) -> dict:
         "volume_ratio": model.volume_ratio,
         "growth_steps": model.step,
         "newton_solves": clock.calls["mechanics"],
-        "newton_iterations": iterations,
+        "newton_iterations": sum(series.rows["newton_iterations"]),
         "jacobian_assemblies": model.jacobian.assemblies,
-        "max_halvings": halvings,
+        "max_halvings": max(series.rows["halvings"], default=0),
         "signaling_calls": clock.calls["signaling"],
         "setup_wall_s": slowest(setup_wall),
         "setup_cpu_s": total(setup_cpu),
@@ -247,7 +235,7 @@ def run_case(comm, case: dict) -> dict:
         "other_s": slowest(wall - sum(clock.seconds[k] for k in PHASES if k != "jacobian assembly")),
         "signaling_share": seconds["signaling"] / slowest(wall),
         "mechanics_share": 1.0 - seconds["signaling"] / slowest(wall),
-        "series": series,
+        "series": {name: series.rows[name] for name in ("t", "csa_ratio", "volume_ratio")},
     }
 
 
@@ -364,7 +352,7 @@ def parser() -> cli.Parser:
     p = cli.Parser("bench growth", __doc__)
     p.add_argument("--geometry", default="idealized", help="the mesh")
     p.add_argument("--protocol", default="mwf", help="named protocol")
-    p.add_argument("--dts", default=",".join(f"{d:g}" for d in DTS),
+    p.add_argument("--dts", nargs="+", type=float, metavar="H", default=list(DTS),
                    help="growth steps Δtg in hours; the smallest is the reference (1e9: one step per period)")
     p.add_argument("--quick", action="store_true", help="leave out the finest Δtg (a check, not the result)")
     p.add_argument("--tolerance", type=float, default=TOLERANCE, help="error allowed, as a fraction of the growth")
@@ -385,7 +373,7 @@ def run(comm, args) -> int:
     if args.geometry not in geo.GEOMETRIES:
         raise InputError(f"--geometry: unknown geometry {args.geometry!r}; known: {', '.join(geo.GEOMETRIES)}")
     protocols.named(args.protocol)
-    dts = parse_dts(args.dts)
+    dts = checked_dts(args.dts)
     if args.quick:
         dts = dts[1:]
         if len(dts) < 2:

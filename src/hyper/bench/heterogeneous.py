@@ -27,11 +27,11 @@ import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
 from mpi4py import MPI
 
-from hyper import cli, fibers, heterogeneity, io, plot, protocols, signaling
-from hyper import geometry as geo
+from hyper import cli, heterogeneity, io, plot, protocols, signaling
 from hyper.bench import common
-from hyper.coupled import CoupledModel, GrowthSettings
+from hyper.coupled import GrowthSettings
 from hyper.log import info
+from hyper.run import RunSpec, build
 
 WINDOW = (168.0, 336.0)  # h: the first training week of mwf
 
@@ -58,12 +58,14 @@ def throughput(comm, params, y0, window=WINDOW) -> dict:
     return out
 
 
-def shares(comm, geometry, a0, params, end: float, growth_dt: float) -> dict:
+def mwf_until(end: float) -> protocols.Protocol:
+    """``mwf`` cut at ``end`` hours."""
     mwf = protocols.named("mwf")
-    protocol = protocols.Protocol(tuple(s for s in mwf.sessions if s.start < end), end=end, name=f"mwf_to_{end:g}h")
-    clock = common.Timings()
-    model = CoupledModel(geometry, a0, protocol, params=params, settings=GrowthSettings(growth_dt=growth_dt),
-                         monitor=clock)
+    return protocols.Protocol(tuple(s for s in mwf.sessions if s.start < end), end=end, name=f"mwf_to_{end:g}h")
+
+
+def shares(comm, model, clock: common.Timings) -> dict:
+    """Run ``model`` (built with the monitor ``clock``) to its protocol's end."""
     comm.barrier()
     cpu0, start = time.process_time(), time.perf_counter()
     reports = list(model.run())
@@ -74,7 +76,7 @@ def shares(comm, geometry, a0, params, end: float, growth_dt: float) -> dict:
     parts["other"] = wall - sum(parts.values())
     # the slowest rank sets the pace: report rank 0's split with the max wall over ranks
     return {
-        "protocol_end_h": end,
+        "protocol_end_h": model.protocol.end,
         "growth_steps": model.step,
         "solves": clock.calls["mechanics"],
         "newton_iterations": int(sum(r.newton_iterations for r in reports)),
@@ -109,7 +111,7 @@ def chart(result: dict, path: Path) -> None:
 
 def parser() -> cli.Parser:
     p = cli.Parser("bench heterogeneous", __doc__)
-    p.add_argument("--geometry", default="BFLH_VHF_Left")
+    p.add_argument("--geometry", default="BFLH_VHF_Left", help="the mesh")
     p.add_argument("--end", type=float, default=336.0, help="end of the cut mwf protocol (h)")
     p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step (h)")
     p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
@@ -119,17 +121,18 @@ def parser() -> cli.Parser:
 def run(comm, args) -> int:
     host = common.machine()
     load_start = host["load_average_at_start"]
-    geometry = geo.load(args.geometry, comm)
-    a0 = fibers.fiber_field(geometry)
-    params = heterogeneity.cell_params(geometry.mesh, heterogeneity.Heterogeneity(epsilon=0.01), seed=1)
-    rest = signaling.rest_state()
-    y0 = np.repeat(rest[:, None], params.size, axis=1)
+    spec = RunSpec(args.geometry, mwf_until(args.end), settings=GrowthSettings(growth_dt=args.growth_dt),
+                   heterogeneity=heterogeneity.Heterogeneity(epsilon=0.01), seed=1)
+    clock = common.Timings()
+    model = build(comm, spec, monitor=clock)[0]
+    # the throughput integrates the per-cell parameters of the coupled run
+    y0 = np.repeat(signaling.rest_state()[:, None], model.params.size, axis=1)
     result = {
         "machine": {**host, "ranks": comm.size},
         "versions": io.versions(),
         "geometry": args.geometry,
-        "throughput": throughput(comm, params, y0),
-        "coupled": shares(comm, geometry, a0, params, args.end, args.growth_dt),
+        "throughput": throughput(comm, model.params, y0),
+        "coupled": shares(comm, model, clock),
     }
     result["machine"]["load_average_at_end"] = os.getloadavg()
     if comm.rank == 0:

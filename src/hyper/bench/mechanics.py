@@ -1,6 +1,6 @@
 """Mechanics benchmark: quadrature degree, Newton cost, 1 against 2 ranks.
 
-    python -m hyper.bench mechanics [--geometries idealized,BFLH_VHF_Left] [--ranks 1,2]
+    python -m hyper.bench mechanics [--geometries idealized BFLH_VHF_Left] [--ranks 1 2]
 
 1. One Jacobian assembly of the mechanics problem with the fixed quadrature degree (4)
    against the degree UFL estimates for the same form, on the same mesh (idealized),
@@ -173,10 +173,13 @@ def chart(path: Path, result: dict) -> None:
 
 def parser() -> cli.Parser:
     p = cli.Parser("bench mechanics", __doc__)
-    p.add_argument("--geometries", default="idealized,BFLH_VHF_Left", help="comma-separated geometries")
-    p.add_argument("--ranks", default="1,2", help="comma-separated rank counts of the contractions")
+    p.add_argument("--geometries", nargs="+", metavar="ID", default=["idealized", "BFLH_VHF_Left"],
+                   help="geometries of the contractions")
+    p.add_argument("--ranks", nargs="+", type=int, metavar="N", default=[1, 2],
+                   help="rank counts of the contractions")
     p.add_argument("--quadrature-geometry", default="idealized", help="the mesh of the quadrature comparison")
-    p.add_argument("--estimated-timeout", type=float, default=900.0, help="seconds")
+    p.add_argument("--estimated-timeout", type=float, default=900.0,
+                   help="seconds per Jacobian assembly of the quadrature comparison before it counts as failed")
     p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
     common.add_worker_options(p)
     return p
@@ -194,11 +197,11 @@ def run(comm, args) -> int:
 
     from hyper.geometry import GEOMETRIES
 
-    geometries = args.geometries.split(",")
-    unknown = [g for g in geometries + [args.quadrature_geometry] if g not in GEOMETRIES]
+    unknown = [g for g in args.geometries + [args.quadrature_geometry] if g not in GEOMETRIES]
     if unknown:
         raise InputError(f"unknown geometry {unknown[0]!r}; known: {', '.join(GEOMETRIES)}")
-    ranks = [int(r) for r in args.ranks.split(",")]
+    if min(args.ranks) < 1:
+        raise InputError(f"--ranks: expected positive rank counts, got {' '.join(map(str, args.ranks))}")
 
     started = time.perf_counter()
     host = common.machine()
@@ -232,8 +235,8 @@ def run(comm, args) -> int:
     print(json.dumps({k: v for k, v in quadrature.items() if k != "runs"}, indent=1), flush=True)
 
     newton = []
-    for name in geometries:
-        for nr in ranks:
+    for name in args.geometries:
+        for nr in args.ranks:
             print(f"contraction {name} on {nr} rank(s)", flush=True)
             run = common.run_worker("mechanics", {"kind": "newton", "geometry": name}, nr, 3600)
             newton.append(run)

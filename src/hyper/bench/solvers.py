@@ -1,6 +1,6 @@
 """Linear solvers side by side: MUMPS LU against GMRES with a BLR preconditioner, and GAMG.
 
-    python -m hyper.bench solvers [--levels 0,1,2] [--ranks 2] [--parts levels,precision,gamg]
+    python -m hyper.bench solvers [--levels 0 1 2] [--ranks 2] [--parts levels precision gamg]
 
 The scene is a growth solve: the resting idealized shape (refined `level` times, every
 tetrahedron into eight) takes one transverse growth increment Fg = I + (ϑ - 1)(I - a0⊗a0)
@@ -38,15 +38,17 @@ from __future__ import annotations
 import argparse
 import json
 import resource
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from hyper import plot
+from hyper import cli, plot
 from hyper.bench import common
 from hyper.bench.refinement import memory_fit
+from hyper.params import InputError
 
 THETA = 1.05
 PRECISIONS = (1e-4, 1e-3, 1e-2, 1e-1)
@@ -241,26 +243,25 @@ def chart(path: Path, result: dict) -> None:
     plot.save(fig, path, dpi=120)
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hyper.bench solvers", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--levels", default="0,1,2", help="refinement levels of the idealized shape (default 0,1,2)")
-    parser.add_argument("--ranks", type=int, default=2, help="MPI ranks per run (default 2)")
-    parser.add_argument("--precision-level", type=int, default=1, help="level of the BLR precision ladder (default 1)")
-    parser.add_argument("--parts", default=",".join(PARTS),
-                        help="which parts to run (default levels,precision,gamg); the others are kept from "
-                             "OUTPUT/solvers.json")
-    parser.add_argument("--timeout", type=float, default=3600.0, help="seconds per run before it counts as failed")
-    parser.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
-    parser.add_argument("--replot", action="store_true", help="redraw the chart from OUTPUT/solvers.json, run nothing")
-    common.add_worker_options(parser)
-    parser.add_argument("--save", type=Path, help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
+def parser() -> cli.Parser:
+    p = cli.Parser("bench solvers", __doc__)
+    p.add_argument("--levels", nargs="+", type=int, choices=range(4), metavar="LEVEL", default=[0, 1, 2],
+                   help="refinement levels of the idealized shape (0 to 3)")
+    p.add_argument("--ranks", type=int, default=2, help="MPI ranks per run")
+    p.add_argument("--precision-level", type=int, default=1, help="level of the BLR precision ladder")
+    p.add_argument("--parts", nargs="+", choices=PARTS, metavar="PART", default=list(PARTS),
+                   help=f"which parts to run ({', '.join(PARTS)}); the others are kept from OUTPUT/solvers.json")
+    p.add_argument("--timeout", type=float, default=3600.0, help="seconds per run before it counts as failed")
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    p.add_argument("--replot", action="store_true", help="redraw the chart from OUTPUT/solvers.json, run nothing")
+    common.add_worker_options(p)
+    p.add_argument("--save", type=Path, help=argparse.SUPPRESS)
+    return p
 
+
+def run(comm, args) -> int:
     if args.worker:
-        from mpi4py import MPI
-
-        common.write_worker_result(MPI.COMM_WORLD, args.json, run_case(args.worker, MPI.COMM_WORLD, args.save))
+        common.write_worker_result(comm, args.json, run_case(args.worker, comm, args.save))
         return 0
 
     from hyper import io
@@ -268,27 +269,18 @@ def main(argv=None) -> int:
     if args.replot:
         chart(args.output / "solvers.png", json.loads((args.output / "solvers.json").read_text()))
         return 0
-    try:
-        levels = [int(v) for v in args.levels.split(",") if v]
-    except ValueError:
-        parser.error(f"--levels: expected comma-separated integers, got {args.levels!r}")
-    if not levels or min(levels) < 0 or max(levels) > 3:
-        parser.error("--levels: between 0 and 3")
     if args.ranks < 1:
-        parser.error("--ranks: at least 1")
-    parts = [p for p in args.parts.split(",") if p]
-    if not parts or set(parts) - set(PARTS):
-        parser.error(f"--parts: comma-separated, from {', '.join(PARTS)}; got {args.parts!r}")
+        raise InputError("--ranks: at least 1")
     previous = json.loads((args.output / "solvers.json").read_text()) if (args.output / "solvers.json").exists() else {}
-    kept = {part: previous.get(part, []) for part in PARTS if part not in parts}
+    kept = {part: previous.get(part, []) for part in PARTS if part not in args.parts}
     if kept and previous.get("ranks", args.ranks) != args.ranks:
-        parser.error(f"--ranks {args.ranks}: the kept parts of {args.output / 'solvers.json'} ran on "
-                     f"{previous['ranks']} ranks; run all parts, or the same ranks")
+        raise InputError(f"--ranks {args.ranks}: the kept parts of {args.output / 'solvers.json'} ran on "
+                         f"{previous['ranks']} ranks; run all parts, or the same ranks")
 
     start = time.perf_counter()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for level in levels if "levels" in parts else ():
+        for level in args.levels if "levels" in args.parts else ():
             saved = {}
             for solver in ("lu", "iterative"):
                 saved[solver] = Path(tmp) / f"{solver}_{level}"
@@ -311,19 +303,19 @@ def main(argv=None) -> int:
                 print(f"  iterative - LU: {it['difference_from_lu']}; MUMPS memory x{it['memory_ratio']:.2f}, "
                       f"time x{it['time_ratio']:.2f}", flush=True)
     precision = []
-    for eps in PRECISIONS if "precision" in parts else ():
+    for eps in PRECISIONS if "precision" in args.parts else ():
         print(f"solvers: BLR precision {eps:g} on level {args.precision_level} …", flush=True)
         precision.append(_run_worker({"geometry": "idealized", "level": args.precision_level, "solver": "iterative",
                                       "precision": eps}, args.ranks, args.timeout, None))
     gamg = []
-    for name, variant in GAMG_CASES if "gamg" in parts else ():
+    for name, variant in GAMG_CASES if "gamg" in args.parts else ():
         print(f"solvers: {variant} fieldsplit on {name} …", flush=True)
         gamg.append(_run_worker({"geometry": name, "level": 0, "solver": "gamg", "variant": variant}, 1,
                                 args.timeout, None))
     measured = {"levels": rows, "precision": precision, "gamg": gamg}
     rows, precision, gamg = ({**measured, **kept}[part] for part in PARTS)
     result = {"benchmark": "solvers", "machine": common.machine(), "ranks": args.ranks, "theta": THETA,
-              "levels": rows, "precision": precision, "gamg": gamg, "parts_run": parts,
+              "levels": rows, "precision": precision, "gamg": gamg, "parts_run": args.parts,
               "memory_fit": {s: memory_fit([r for r in rows if r["solver"] == s]) for s in ("lu", "iterative")},
               "versions": io.versions(), "wall_s": time.perf_counter() - start}
     args.output.mkdir(parents=True, exist_ok=True)
@@ -338,5 +330,7 @@ def main(argv=None) -> int:
     return 0
 
 
+main = cli.entry(parser, run)
+
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(main())
