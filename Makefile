@@ -13,7 +13,7 @@ find_python = for p in $$(ls -d $$(pyenv root 2>/dev/null)/versions/3.12*/bin/py
 	if command -v $$p >/dev/null 2>&1 && $$p -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; \
 	then echo $$p; break; fi; done
 
-.PHONY: demo test test-serial test-mpi venv clean
+.PHONY: demo test test-serial test-mpi lint venv clean
 
 venv: $(VENV)/.installed
 
@@ -36,6 +36,9 @@ test-serial: venv
 
 test-mpi: venv
 	$(MPIRUN) -n 2 $(PY) -m pytest -q --with-mpi -m mpi -p no:cacheprovider
+
+lint: venv
+	$(VENV)/bin/ruff check src tests
 
 clean:
 	rm -rf $(VENV)

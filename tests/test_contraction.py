@@ -1,7 +1,6 @@
 """The contraction job, and convergence of the reaction force under refinement."""
 
 import dolfinx_solver  # noqa: F401
-
 import h5py
 import numpy as np
 import pytest
@@ -9,8 +8,8 @@ import ufl
 from dolfinx import fem
 from mpi4py import MPI
 
-from hyper import contraction
-from hyper import fibers, geometry as geo_mod
+from hyper import contraction, fibers
+from hyper import geometry as geo_mod
 from hyper.io import read_series
 from hyper.mechanics import MechanicsProblem
 

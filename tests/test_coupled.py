@@ -1,15 +1,14 @@
 """The coupled model: exact growth of a cylinder, and the same answer on 1 and 2 ranks."""
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx)
-
 import numpy as np
 import pytest
 import ufl
 from dolfinx import fem
 from mpi4py import MPI
 
-from hyper import fibers, geometry as geo
-from hyper import growth, material, signaling
+from hyper import fibers, growth, material, signaling
+from hyper import geometry as geo
 from hyper.coupled import CoupledModel, GrowthSettings
 from hyper.mechanics import MechanicsProblem
 from hyper.protocols import Protocol, Session

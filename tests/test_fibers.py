@@ -1,10 +1,9 @@
 """Stokes-flow fibres: the straight cylinder, unit length, storage and exact read-back on
 any number of ranks, and the CLI."""
 
-import dolfinx_solver  # noqa: F401  (must precede dolfinx)
-
 import shutil
 
+import dolfinx_solver  # noqa: F401  (must precede dolfinx)
 import h5py
 import numpy as np
 import pytest

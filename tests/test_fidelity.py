@@ -126,7 +126,8 @@ def test_grow_keeps_its_defaults_without_accuracy(tmp_path):
 def test_grow_ask_signaling_runs_the_odes_alone_without_dolfinx(tmp_path):
     out = tmp_path / "mwf.h5"
     script = ("import json, sys\nfrom hyper import grow\n"
-              f"code = grow.main(['--ask', 'signaling', '--protocol', 'mwf', '--accuracy', '1e-3', '--output', {str(out)!r}])\n"
+              "code = grow.main(['--ask', 'signaling', '--protocol', 'mwf', '--accuracy', '1e-3', "
+              f"'--output', {str(out)!r}])\n"
               "print(json.dumps({'code': code, 'dolfinx': 'dolfinx' in sys.modules}))\n")
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     result = subprocess.run([sys.executable, "-c", script], cwd=ROOT, env=env, capture_output=True, text=True,

@@ -1,15 +1,16 @@
 """Geometries: every mesh loads in metres with its tags; fibres; refinement; bad input."""
 
 import dolfinx_solver  # noqa: F401
-
 import numpy as np
 import pytest
 import ufl
-from dolfinx import fem, mesh as dmesh
+from dolfinx import fem
+from dolfinx import mesh as dmesh
 from dolfinx.io import XDMFFile
 from mpi4py import MPI
 
-from hyper import fibers, geometry as g
+from hyper import fibers
+from hyper import geometry as g
 from hyper.params import InputError
 
 # Paper: group means of the baseline volumes (cm³), MODEL.md §5.
@@ -177,7 +178,8 @@ def test_user_mesh_and_missing_tags(tmp_path):
 
     missing_end = tmp_path / "missing_end.xdmf"
     _write_box(missing_end, (1, 3, 3))
-    with pytest.raises(InputError, match=r"missing_end.xdmf: facet tag 2 \(end\) is missing; the file has tags \[1, 3\]"):
+    with pytest.raises(InputError,
+                       match=r"missing_end.xdmf: facet tag 2 \(end\) is missing; the file has tags \[1, 3\]"):
         g.load_file(missing_end, MPI.COMM_SELF)
     with pytest.raises(InputError, match=r"facet tag 7 \(midsection\) is missing"):
         g.load_file(good, MPI.COMM_SELF, midsection=7)

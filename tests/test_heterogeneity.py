@@ -2,17 +2,15 @@
 coupled model with per-cell parameters."""
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx)
-
 import numpy as np
 import pytest
 from dolfinx import mesh as dmesh
 from mpi4py import MPI
 from scipy import optimize
 
-from hyper import ensemble
-from hyper import fibers, geometry as geo
+from hyper import ensemble, fibers, signaling
+from hyper import geometry as geo
 from hyper import heterogeneity as het
-from hyper import signaling
 from hyper.coupled import CoupledModel, GrowthSettings
 from hyper.params import InputError
 from hyper.protocols import Protocol, Session
@@ -27,7 +25,8 @@ def short_protocol() -> Protocol:
 
 def coupled_run(params):
     g = geo.load("idealized", MPI.COMM_SELF)
-    model = CoupledModel(g, fibers.fiber_field(g), short_protocol(), params=params(g.mesh) if callable(params) else params,
+    model = CoupledModel(g, fibers.fiber_field(g), short_protocol(),
+                         params=params(g.mesh) if callable(params) else params,
                          settings=GrowthSettings(growth_dt=24.0))
     series = np.array([[r.t, r.csa_ratio, r.volume_ratio, r.kM, *r.states] for r in model.run()])
     return series, model
@@ -167,7 +166,8 @@ def test_cell_parameter_field_is_the_same_on_one_and_two_ranks(model):
 
 def test_ensemble_cli_rejects_bad_input_and_writes_nothing(tmp_path, capsys):
     out = tmp_path / "ens"
-    for argv in (["--epsilon", "1.5"], ["--geometry", "nowhere"], ["--samples", "0"], ["--model", "matern", "--length", "-1"]):
+    for argv in (["--epsilon", "1.5"], ["--geometry", "nowhere"], ["--samples", "0"],
+                 ["--model", "matern", "--length", "-1"]):
         assert ensemble.main([*argv, "--output", str(out)]) == 2
         assert "error:" in capsys.readouterr().err
     assert not out.exists()
@@ -179,7 +179,8 @@ def test_state_std_and_summary():
     np.testing.assert_allclose(ensemble.state_std(comm, y), 1.0)
     np.testing.assert_array_equal(ensemble.state_std(comm, np.ones(5)), 0.0)
     t = np.array([0.0, 1.0])
-    uniform = {"t": t, "csa_ratio": np.array([1, 1.10]), "volume_ratio": np.array([1, 1.10]), "kM": np.array([0.01, 0.009])}
+    uniform = {"t": t, "csa_ratio": np.array([1, 1.10]), "volume_ratio": np.array([1, 1.10]),
+               "kM": np.array([0.01, 0.009])}
     samples = {f"s{i}": {**uniform, "csa_ratio": np.array([1, c]), "volume_ratio": np.array([1, v]),
                          "roughness_N": 10.0, "roughness_detGbar": 8.0, "roughness_u": 2.0}
                for i, (c, v) in enumerate([(1.08, 1.09), (1.06, 1.09)])}

@@ -8,13 +8,13 @@ P11 = λ S11 is
     P11(λ) = c1 (λ - λ⁻²) + c2 (1 - λ⁻³) + (σpass fpass(λ/λ0) + α σact fact(λ/λ0)) / λ.
 """
 
-import dolfinx_solver  # noqa: F401
-
 import basix.ufl
+import dolfinx_solver  # noqa: F401
 import numpy as np
 import pytest
 import ufl
-from dolfinx import fem, mesh as dmesh
+from dolfinx import fem
+from dolfinx import mesh as dmesh
 from dolfinx.fem.petsc import NonlinearProblem
 from mpi4py import MPI
 
@@ -141,7 +141,8 @@ def test_box_uniaxial_stretch_matches_analytic(lam, alpha):
     w.x.array[pdofs] = mat.reference_pressure(PARAMS)
     problem = NonlinearProblem(
         R, w, bcs=bcs, petsc_options_prefix="test_box_",
-        petsc_options={"snes_linesearch_type": "basic", "snes_rtol": 1e-13, "snes_atol": 1e-9, "snes_stol": 0.0, "snes_max_it": 30,
+        petsc_options={"snes_linesearch_type": "basic", "snes_rtol": 1e-13, "snes_atol": 1e-9, "snes_stol": 0.0,
+                       "snes_max_it": 30,
                        "ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps"},
     )
     for s in np.linspace(0.0, lam - 1.0, 25)[1:]:

@@ -11,17 +11,17 @@ The reaction forces on Γ1 are then σzz A0 (reference normal) and P11 A0 (curre
 """
 
 import dolfinx_solver  # noqa: F401
-
 import numpy as np
 import pytest
 import ufl
-from dolfinx import fem, mesh as dmesh
+from dolfinx import fem
+from dolfinx import mesh as dmesh
 from mpi4py import MPI
 from petsc4py import PETSc
 from scipy.optimize import brentq
 
-from hyper import fibers, geometry as geo_mod
-from hyper import growth
+from hyper import fibers, growth
+from hyper import geometry as geo_mod
 from hyper import material as mat
 from hyper.mechanics import MechanicsProblem, SolverError, rigid_modes
 from test_material import nominal_stress

@@ -1,10 +1,9 @@
 """Mesh statistics: one mesh against fixed and independently computed numbers, the group
 means against the paper, the CLI, and 2 ranks against 1."""
 
-import dolfinx_solver  # noqa: F401  (must precede dolfinx)
-
 import csv
 
+import dolfinx_solver  # noqa: F401  (must precede dolfinx)
 import h5py
 import numpy as np
 import pytest

@@ -86,7 +86,8 @@ def _protocol(*sessions, end=100.0):
 @pytest.mark.parametrize(
     "sessions, end, message",
     [
-        (((0, 2, 0.5), (1, 1, 0.5)), 10, r"session 1: overlaps session 0: it starts at 1 h, before session 0 ends \(2 h\)"),
+        (((0, 2, 0.5), (1, 1, 0.5)), 10,
+         r"session 1: overlaps session 0: it starts at 1 h, before session 0 ends \(2 h\)"),
         (((5, 1, 0.5), (0, 1, 0.5)), 10, r"session 1: sessions must be sorted by start"),
         (((0, 1, 0.5), (2, 0, 0.5)), 10, r"session 1: duration must be > 0 h, got 0"),
         (((0, -1, 0.5),), 10, r"session 0: duration must be > 0 h, got -1"),
@@ -142,10 +143,14 @@ def test_load_from_toml(tmp_path):
     [
         ("end = 10\n[[session]]\nstart = 0\nduration = 1\n", r"session 0: missing intensity"),
         ("end = 10\nspeed = 3\n", r"unknown key\(s\) speed; known: end, name, session"),
-        ("end = 10\n[[session]]\nstart = 0\nduration = 1\nintensity = 0.5\nrpm = 2\n", r"session 0: unknown key\(s\) rpm"),
-        ("end = 10\n[[session]]\nstart = 0\nduration = 1\nintensity = 'high'\n", r"session 0: intensity: expected a number"),
-        ("end = 10\n[[session]]\nstart = 0\nduration = 1\nintensity = 2\n", r"session 0: intensity must lie in \[0, 1\]"),
-        ("end = 0.5\n[[session]]\nstart = 0\nduration = 1\nintensity = 0.5\n", r"end \(0.5 h\) lies before the end of the last session 0"),
+        ("end = 10\n[[session]]\nstart = 0\nduration = 1\nintensity = 0.5\nrpm = 2\n",
+         r"session 0: unknown key\(s\) rpm"),
+        ("end = 10\n[[session]]\nstart = 0\nduration = 1\nintensity = 'high'\n",
+         r"session 0: intensity: expected a number"),
+        ("end = 10\n[[session]]\nstart = 0\nduration = 1\nintensity = 2\n",
+         r"session 0: intensity must lie in \[0, 1\]"),
+        ("end = 0.5\n[[session]]\nstart = 0\nduration = 1\nintensity = 0.5\n",
+         r"end \(0.5 h\) lies before the end of the last session 0"),
         ("[[session]]\nstart = 0\nduration = 1\nintensity = 0.5\n", r"missing 'end'"),
         ("end = 10\nsession = 3\n", r"'session' must be an array of tables"),
         ("end = = 10\n", r"malformed TOML"),

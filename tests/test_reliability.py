@@ -293,8 +293,8 @@ def test_grow_array_script_stops_requeues_and_resumes(inputs, tmp_path):
 def heterogeneous_model(comm):
     """The cylinder with a per-cell synthesis rate (a field over the mesh file's cells):
     growth, Ḡ, A and the stress then differ from cell to cell and point to point."""
-    from hyper import fibers, geometry as geo
-    from hyper import protocols, signaling
+    from hyper import fibers, protocols, signaling
+    from hyper import geometry as geo
     from hyper.coupled import CoupledModel, GrowthSettings
 
     g = geo.load("cylinder", comm)

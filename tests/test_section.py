@@ -1,12 +1,11 @@
 """Exact plane cuts of tetrahedral meshes and Nanson's deformed area."""
 
-import dolfinx_solver  # noqa: F401  (must precede dolfinx)
-
 import math
 from pathlib import Path
 
 import basix.ufl
 import dolfinx
+import dolfinx_solver  # noqa: F401  (must precede dolfinx)
 import meshio
 import numpy as np
 import pytest

@@ -151,7 +151,7 @@ def test_rk4_has_order_four_on_a_smooth_stretch():
     dts = np.array([0.4, 0.2, 0.1, 0.05])
     errors = [np.max(np.abs(S.integrate(P0, protocol, y0, 0.0, 100.0, dt)[1][-1] / ref - 1)) for dt in dts]
     slope = np.polyfit(np.log(dts), np.log(errors), 1)[0]
-    print(f"\nsmooth stretch: errors {['%.2e' % e for e in errors]}, fitted order {slope:.3f}")
+    print(f"\nsmooth stretch: errors {[f'{e:.2e}' for e in errors]}, fitted order {slope:.3f}")
     assert 3.8 < slope < 4.3
 
 
@@ -162,7 +162,8 @@ def test_mwf_final_N_against_the_reference(mwf_reference):
         n = S.integrate(P0, protocol, Y0, 0.0, END, dt)[1][-1, 4]
         errors[dt] = abs(n / mwf_reference[4] - 1)
     order = np.log2(errors[0.1] / errors[0.05])
-    print(f"\nmwf N(1512 h): rel. error {errors[0.05]:.2e} at dt = 0.05 h, {errors[0.1]:.2e} at 0.1 h; observed order {order:.2f}")
+    print(f"\nmwf N(1512 h): rel. error {errors[0.05]:.2e} at dt = 0.05 h, {errors[0.1]:.2e} at 0.1 h; "
+          f"observed order {order:.2f}")
     assert errors[0.05] < 1e-6
     assert 3.5 < order < 4.5
 
@@ -265,7 +266,8 @@ def test_auto_takes_c_for_batches_only(monkeypatch):
 
     sizes = []
     run = compiled.run
-    monkeypatch.setattr(compiled, "run", lambda P, a20, Y0, *args, **kw: sizes.append(Y0.shape[1]) or run(P, a20, Y0, *args, **kw))
+    monkeypatch.setattr(compiled, "run",
+                        lambda P, a20, Y0, *args, **kw: sizes.append(Y0.shape[1]) or run(P, a20, Y0, *args, **kw))
     batch = np.repeat(Y0[:, None], S.AUTO_MIN_MEMBERS, axis=1)
     _, auto = S.integrate(P0, named("mwf"), batch, 0.0, 200.0)
     _, single = S.integrate(P0, named("mwf"), Y0, 0.0, 200.0)
@@ -304,7 +306,8 @@ def test_igf1_and_akt_peak_12_to_14_hours_after_a_session_start():
 
 
 def test_final_N_orders_the_protocols():
-    final = {name: S.integrate(P0, named(name), Y0, 0.0, END)[1][-1, 4] for name in ("mwf", "every3days", "weekly", "rest")}
+    final = {name: S.integrate(P0, named(name), Y0, 0.0, END)[1][-1, 4]
+             for name in ("mwf", "every3days", "weekly", "rest")}
     print(f"\nN(1512 h): {final}")
     assert final["mwf"] > final["every3days"] > final["weekly"] > final["rest"]
     assert final["rest"] == 1.0
@@ -332,7 +335,8 @@ def test_failed_members_are_masked_the_others_untouched():
     for backend in ("numpy", "c"):
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # no overflow warnings from the failing member
-            times, y, failed = S.integrate(p, protocol, Y0, 0.0, 48.0, out_times=t_out, backend=backend, failures="mask")
+            times, y, failed = S.integrate(p, protocol, Y0, 0.0, 48.0, out_times=t_out, backend=backend,
+                                           failures="mask")
         assert times.tolist() == t_out.tolist() and y.shape == (4, 5, 4)
         assert failed.dtype == bool and failed.tolist() == [False, True, False, False]
         assert np.all(np.isnan(y[:, :, 1]))

@@ -40,7 +40,8 @@ def test_batch_equals_one_at_a_time(design):
     # stimulus, the AKT bump and its end, and threshold crossings of FOXO and mTOR.
     day = Protocol((Session(0.0, 1.0, 0.8),), 30.0, "day")
     batch = sobol.final_N(design, protocol=day)
-    single = np.array([S.integrate(sobol.sample_params(design[i : i + 1]).member(0), day, S.rest_state(), 0.0, 30.0)[1][-1, 4]
+    single = np.array([S.integrate(sobol.sample_params(design[i : i + 1]).member(0), day, S.rest_state(),
+                                   0.0, 30.0)[1][-1, 4]
                        for i in range(len(design))])
     assert np.max(np.abs(batch - single)) <= 1e-12
     assert np.ptp(single) > 0.01  # the parameters matter over one day already
@@ -129,7 +130,8 @@ def test_killed_run_resumes_without_recomputing(tmp_path):
     assert [r.status for r in results].count("skipped") == 4
     assert np.array_equal(Y, reference)
     a, b = sobol.analyze(ISHIGAMI, Y, seed=2), sobol.analyze(ISHIGAMI, reference, seed=2)
-    assert np.array_equal(a.S1, b.S1) and np.array_equal(a.ST_conf, b.ST_conf) and np.array_equal(a.S2, b.S2, equal_nan=True)
+    assert (np.array_equal(a.S1, b.S1) and np.array_equal(a.ST_conf, b.ST_conf)
+            and np.array_equal(a.S2, b.S2, equal_nan=True))
 
     # a truncated chunk file or one of other settings (another digest inside) is recomputed
     path = next((tmp_path / "run" / "k").glob("rows_000000000_*.npz"))

@@ -10,7 +10,6 @@ import re
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx)
-
 import h5py
 import numpy as np
 import pytest

@@ -33,8 +33,9 @@ import json
 import math
 import os
 import socket
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Iterator, Mapping
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -273,7 +274,6 @@ def restore_model(model: CoupledModel, rows: Callable[[str], np.ndarray | None],
     local cell numbering), or None where the state has no such array.
     """
     import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
-
     from dolfinx import fem
 
     problem, growth = model.problem, model.growth

@@ -18,9 +18,9 @@ import logging
 import re
 import signal
 import sys
+from collections.abc import Callable, Iterator
 from importlib import metadata
 from pathlib import Path
-from typing import Callable, Iterator
 
 from hyper.params import InputError
 

@@ -54,7 +54,6 @@ import traceback
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
-
 import numpy as np
 from mpi4py import MPI
 
@@ -231,14 +230,14 @@ def summarize(output: Path, runs: list[Run], failed: dict[str, str], interrupted
     """One row per run, in the order of ``runs``: read back from its complete file, or
     marked failed (``failed``: run key -> error), interrupted or missing, with blank numbers."""
     rows = []
-    for run in runs:
-        path = series_path(output, run)
-        if run.key not in failed and io.is_complete(path):
+    for entry in runs:
+        path = series_path(output, entry)
+        if entry.key not in failed and io.is_complete(path):
             rows.append(summary_row(path))
             continue
         row = dict.fromkeys(COLUMNS, float("nan"))
-        row.update(geometry=run.geometry, protocol=run.protocol.name, **member(run.geometry),
-                   status="failed" if run.key in failed else "interrupted" if run.key in interrupted else "missing")
+        row.update(geometry=entry.geometry, protocol=entry.protocol.name, **member(entry.geometry),
+                   status="failed" if entry.key in failed else "interrupted" if entry.key in interrupted else "missing")
         rows.append(row)
     return rows
 

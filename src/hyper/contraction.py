@@ -104,8 +104,10 @@ def plot(path: Path, series: dict, title: str) -> None:
     from hyper import plot as figures
 
     fig, (ax, ax2) = figures.pyplot().subplots(1, 2, figsize=(10, 4))
-    ax.plot(series["alpha"], series["reaction_force"], "o-", label=r"$\int_{\Gamma_1} (\sigma N)\cdot N\,dA$ (original)")
-    ax.plot(series["alpha"], series["reaction_force_current"], "s-", label=r"$\int_{\Gamma_1} (PN)\cdot n\,dA$ (current)")
+    ax.plot(series["alpha"], series["reaction_force"], "o-",
+            label=r"$\int_{\Gamma_1} (\sigma N)\cdot N\,dA$ (original)")
+    ax.plot(series["alpha"], series["reaction_force_current"], "s-",
+            label=r"$\int_{\Gamma_1} (PN)\cdot n\,dA$ (current)")
     ax.set_xlabel("activation α")
     ax.set_ylabel("reaction force on Γ1 (N)")
     ax.legend()
@@ -122,9 +124,8 @@ def plot(path: Path, series: dict, title: str) -> None:
 
 def contract(comm, args) -> dict:
     """The activation ramp of the job's ``args`` on ``comm``: the series (and the files)."""
-    from hyper import fibers
+    from hyper import fibers, io
     from hyper import geometry as geo
-    from hyper import io
     from hyper.log import Progress, info
     from hyper.material import MaterialParams
     from hyper.mechanics import MechanicsProblem

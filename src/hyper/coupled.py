@@ -14,11 +14,10 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import Callable, Iterator
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
-
 import numpy as np
 from dolfinx import fem
 from mpi4py import MPI

@@ -11,7 +11,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from hyper import cli, grow, log, signaling
+from hyper import cli, log
 
 
 def parser() -> cli.Parser:
@@ -26,10 +26,10 @@ def run(comm, args) -> int:
     growth = args.output / "grow"
     rc = cli.EXIT_OK
     if comm.rank == 0:
-        rc = signaling.main(["--protocol", "all", "--output", str(sig), "--plot", str(sig / "protocols.png")])
+        rc = cli.main(["signaling", "--protocol", "all", "--output", str(sig), "--plot", str(sig / "protocols.png")])
     rc = comm.bcast(rc, root=0)
     if rc == cli.EXIT_OK:
-        rc = grow.main(["--geometry", "idealized", "--protocol", "all", "--output", str(growth)])
+        rc = cli.main(["grow", "--geometry", "idealized", "--protocol", "all", "--output", str(growth)])
     if rc == cli.EXIT_OK:
         log.info(comm, "\ndemo done:\n"
                        f"  signaling figure (Fig. 3A-E analog): {(sig / 'protocols.png').resolve()}\n"

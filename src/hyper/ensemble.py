@@ -41,7 +41,6 @@ import time
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
-
 import numpy as np
 import ufl
 from dolfinx import fem
@@ -49,7 +48,6 @@ from dolfinx import mesh as dmesh
 from mpi4py import MPI
 
 from hyper import cli, farm, heterogeneity, io, plot, protocols, run, signaling
-from hyper import geometry as geo
 from hyper.coupled import GrowthSettings
 from hyper.log import hms, info
 from hyper.params import InputError, build

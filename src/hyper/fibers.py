@@ -73,9 +73,8 @@ import sys
 import time
 from pathlib import Path
 
-import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
-
 import basix.ufl
+import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
 import ufl
 from dolfinx import fem, la

@@ -95,7 +95,7 @@ class Choice:
     linear_solver: str | None = None  # "lu" or "iterative" once the mesh is known
     linear_solver_reason: str | None = None
 
-    def with_linear_solver(self, unknowns: int, available_mb: float) -> "Choice":
+    def with_linear_solver(self, unknowns: int, available_mb: float) -> Choice:
         """This choice completed with the linear solver for a mesh (`linear_solver`)."""
         solver, why = linear_solver(unknowns, available_mb)
         return dataclasses.replace(self, linear_solver=solver, linear_solver_reason=why)

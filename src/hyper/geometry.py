@@ -29,12 +29,12 @@ import io
 from collections import OrderedDict
 from pathlib import Path
 
-import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
-
 import basix.ufl
+import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
 import ufl
-from dolfinx import fem, la, mesh as dmesh
+from dolfinx import fem, la
+from dolfinx import mesh as dmesh
 from dolfinx.graph import adjacencylist
 from dolfinx.io import XDMFFile
 from dolfinx.io.utils import distribute_entity_data

@@ -195,12 +195,12 @@ def answer_signaling(comm, args) -> int:
 
 
 def grow(comm, args, argv: list[str]) -> int:
-    from hyper.coupled import GrowthFailure
-
     # PETSc installs its own SIGTERM handler (which aborts) when it starts: start it
     # before ours, so that ours is the one in place.
     import dolfinx_solver  # noqa: F401
     from petsc4py import PETSc  # noqa: F401
+
+    from hyper.coupled import GrowthFailure
 
     with run.StopOnTerm() as stop:
         work = plan_from(comm, args)
@@ -227,7 +227,7 @@ def grow(comm, args, argv: list[str]) -> int:
                            f"{done.series['volume_ratio'][-1]:.5f} in {hms(done.meta['wall_s'])}; wrote {out.h5} "
                            f"and {out.fields}")
                 results[spec.protocol.name] = done.series
-                del done
+                done = None  # the model goes before the next run builds its own
             if comm.rank == 0:
                 from hyper.plot import growth_series
 

@@ -17,10 +17,9 @@ The numpy kernels below work on stacks of 3×3 tensors (one per quadrature point
 
 from __future__ import annotations
 
-import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
-
 import basix
 import basix.ufl
+import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
 import ufl
 from dolfinx import fem

@@ -46,13 +46,12 @@ from __future__ import annotations
 
 import dataclasses
 
-import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
-
 import basix.ufl
+import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
 import ufl
-import dolfinx.fem.petsc
-from dolfinx import fem, mesh as dmesh
+from dolfinx import fem
+from dolfinx import mesh as dmesh
 from mpi4py import MPI
 from petsc4py import PETSc
 
@@ -354,7 +353,7 @@ class MechanicsProblem:
         self.w.x.scatter_forward()
         self.multipliers[:] = 0.0
 
-    def start_from(self, other: "MechanicsProblem") -> None:
+    def start_from(self, other: MechanicsProblem) -> None:
         """Take u, p, μ and α of a problem on another mesh of the same body as the
         initial guess (nested iteration on a refined mesh)."""
         cells = np.arange(self.geometry.mesh.topology.index_map(3).size_local, dtype=np.int32)

@@ -25,7 +25,6 @@ import sys
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx)
-
 import numpy as np
 
 from hyper import cli, section
@@ -94,7 +93,8 @@ def figure(rows):
         means = group_means(rows, column)
         for i, muscle in enumerate(muscles):
             for j, (subject, side) in enumerate(members):
-                match = [r for r in rows if (r.get("muscle"), r.get("subject"), r.get("side")) == (muscle, subject, side)]
+                match = [r for r in rows
+                         if (r.get("muscle"), r.get("subject"), r.get("side")) == (muscle, subject, side)]
                 if not match:
                     continue
                 x = i + (j - 1.5) * width

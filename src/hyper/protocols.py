@@ -68,14 +68,16 @@ class Protocol:
                     )
         # plain floats from here on: ints and numpy scalars would leak into attributes and sums
         object.__setattr__(
-            self, "sessions", tuple(Session(float(s.start), float(s.duration), float(s.intensity)) for s in self.sessions)
+            self, "sessions",
+            tuple(Session(float(s.start), float(s.duration), float(s.intensity)) for s in self.sessions)
         )
         end = self.end
         if isinstance(end, bool) or not isinstance(end, numbers.Real) or not math.isfinite(end) or end <= 0:
             raise InputError(f"end must be a finite number > 0 h, got {end!r}")
         if self.sessions and end < self.sessions[-1].end:
             last = len(self.sessions) - 1
-            raise InputError(f"end ({end:g} h) lies before the end of the last session {last} ({self.sessions[-1].end:g} h)")
+            raise InputError(f"end ({end:g} h) lies before the end of the last session {last} "
+                             f"({self.sessions[-1].end:g} h)")
         object.__setattr__(self, "end", float(end))
 
     @cached_property
@@ -118,7 +120,8 @@ class Protocol:
         }
 
 
-def _regular(name: str, first: float, every: float, count: int, duration: float, intensity: float, end: float) -> Protocol:
+def _regular(name: str, first: float, every: float, count: int, duration: float, intensity: float,
+             end: float) -> Protocol:
     return Protocol(
         tuple(Session(first + every * k, duration, intensity) for k in range(count)), end, name
     )

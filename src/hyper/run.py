@@ -26,8 +26,8 @@ import contextlib
 import dataclasses
 import signal
 import time
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Callable, Mapping
 
 import numpy as np
 from mpi4py import MPI

@@ -12,10 +12,9 @@ nothing of DOLFINx; ``CutSection`` ties them to a mesh and a displacement.
 
 from __future__ import annotations
 
-import dolfinx_solver  # noqa: F401  (must precede dolfinx)
-
 import basix
 import dolfinx
+import dolfinx_solver  # noqa: F401  (must precede dolfinx)
 import numpy as np
 from mpi4py import MPI
 

@@ -17,8 +17,9 @@ import argparse
 import re
 import shlex
 import sys
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 from hyper import cli, log, protocols
 from hyper.params import InputError

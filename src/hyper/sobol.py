@@ -37,9 +37,9 @@ import shutil
 import sys
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -425,7 +425,8 @@ def run(comm, args) -> int:
         if stale:
             info(comm, f"removed chunks of other settings: {', '.join(stale)}")
         if args.samples & (args.samples - 1):
-            info(comm, f"note: {args.samples} base samples is not a power of 2; the Sobol sequence is balanced only then")
+            info(comm, f"note: {args.samples} base samples is not a power of 2; "
+                       "the Sobol sequence is balanced only then")
     comm.barrier()
     info(comm, f"sobol: {args.function}, {D} parameters, N = {args.samples}, {X.shape[0]} evaluations in chunks of "
                f"{args.chunk} on {comm.size} rank(s), dt = {args.signaling_dt} h, backend {args.backend}, "
@@ -437,7 +438,8 @@ def run(comm, args) -> int:
     # cores the ranks actually got
     eval_cpu = comm.reduce(time.process_time() - c_eval, root=0)
     info(comm, summary_line(results))
-    code = _finish(args, prob, X, Y, results, protocol, key, (eval_wall, eval_cpu), start, comm.size) if comm.rank == 0 else 0
+    code = (_finish(args, prob, X, Y, results, protocol, key, (eval_wall, eval_cpu), start, comm.size)
+            if comm.rank == 0 else 0)
     _idle_barrier(comm)
     return int(comm.bcast(code, root=0))
 
@@ -469,7 +471,8 @@ def _finish(args, prob, X, Y, results, protocol, key, timing, start, ranks) -> i
                f"{ranks} core(s)), failed members: {failed.size}")
     if failed.size:
         for row in failed[:5]:
-            info(None, "  failed: row " + str(row) + ", " + ", ".join(f"{n}={v:.4g}" for n, v in zip(prob["names"], X[row])))
+            info(None, "  failed: row " + str(row) + ", "
+                       + ", ".join(f"{n}={v:.4g}" for n, v in zip(prob["names"], X[row])))
     try:
         ind = analyze(prob, Y, seed=args.seed, resamples=args.resamples, on_failure=args.on_failure)
     except ValueError as err:

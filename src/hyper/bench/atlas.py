@@ -61,7 +61,8 @@ ITERATIVE_FINDINGS = {
     "cases": [
         {"geometry": "idealized", "unknowns": 11306, "u_block": "GAMG (Chebyshev/Jacobi, rigid near null space)",
          "iterations": 200, "converged": False, "relative_residual": 1.2},
-        {"geometry": "idealized", "unknowns": 11306, "u_block": "GAMG, threshold 0.02/0.05, 4 smoothing steps, inner CG",
+        {"geometry": "idealized", "unknowns": 11306,
+         "u_block": "GAMG, threshold 0.02/0.05, 4 smoothing steps, inner CG",
          "iterations": 400, "converged": False, "relative_residual": 1.4},
         {"geometry": "idealized", "unknowns": 11306, "u_block": "GAMG on 2μ ε:ε (+ fibre term) instead of the tangent",
          "iterations": 400, "converged": False, "relative_residual": 0.9},
@@ -129,13 +130,12 @@ def newton_growth_step(thetas=THETAS, halvings: int = 4) -> list[dict]:
     one step, and with up to ``halvings`` cuts (ϑ approached in 2^k equal increments of
     log ϑ)? Iterations and the state's volume ratio against ϑ² (uniform growth)."""
     import dolfinx_solver  # noqa: F401
-
     import ufl
     from dolfinx import fem
     from mpi4py import MPI
 
-    from hyper import fibers, geometry as geo
-    from hyper import growth
+    from hyper import fibers, growth
+    from hyper import geometry as geo
     from hyper.mechanics import MechanicsProblem, SolverError
 
     comm = MPI.COMM_SELF
@@ -354,7 +354,8 @@ def failure_chart(path: Path, result: dict) -> None:
         fit = ref["lu_memory"]
         grid = np.geomspace(n[0], fit["unknowns_at_limit"] * 1.5, 40)
         ax.loglog(n, m, "o", label="MUMPS LU, measured")
-        ax.loglog(grid, fit["coefficient_mb"] * grid ** fit["exponent"] / 1024, "--", label=f"∝ n^{fit['exponent']:.2f}")
+        ax.loglog(grid, fit["coefficient_mb"] * grid ** fit["exponent"] / 1024, "--",
+                  label=f"∝ n^{fit['exponent']:.2f}")
         ax.axhline(fit["memory_gib"], color="k", lw=1)
         ax.axvline(fit["unknowns_at_limit"], color="r", ls=":")
         if "solvers" in collected:
@@ -383,7 +384,8 @@ def failure_chart(path: Path, result: dict) -> None:
         failed = [r["precision"] for r in prec if "failed" in r]
         ok = [r for r in prec if "failed" not in r]
         ax.set_title("Krylov iterations per Newton step (growth solve at rest)\nBLR precision "
-                     + ", ".join(f"{r['precision']:g}: {r['krylov_iterations'] / r['newton_iterations']:.0f}" for r in ok)
+                     + ", ".join(f"{r['precision']:g}: {r['krylov_iterations'] / r['newton_iterations']:.0f}"
+                                 for r in ok)
                      + (f"; fails at {', '.join(f'{p:g}' for p in failed)}" if failed else ""), fontsize=9)
         ax.set_xlabel("unknowns")
         ax.set_ylabel("iterations per Newton step (red at 0: failed)")
@@ -448,7 +450,8 @@ def run(comm, args) -> int:
         for row in rows:
             err = _error(row)
             print(f"{name:28s} {row['label']:34s} wall {row.get('wall_s', float('nan')):8.1f} s  "
-                  f"error {'-' if err is None else f'{err:.2e}'}" + (f"  FAILED {row['failed']}" if "failed" in row else ""))
+                  f"error {'-' if err is None else f'{err:.2e}'}"
+                  + (f"  FAILED {row['failed']}" if "failed" in row else ""))
     for row in failure["growth_step"]:
         print(f"growth step ϑ = {row['theta']:g}: " + ", ".join(
             f"{k}: {'ok' if v['converged'] else 'failed'} ({v['newton_iterations']} its, {v['halvings']} cuts)"

@@ -49,7 +49,8 @@ def compare(rows: dict[str, dict], accuracy: float) -> dict:
         row = rows[name]
         if "failed" in row or "failed" in ref:
             continue
-        errors = growth_bench.growth_errors(row["csa_ratio"], row["volume_ratio"], ref["csa_ratio"], ref["volume_ratio"])
+        errors = growth_bench.growth_errors(row["csa_ratio"], row["volume_ratio"],
+                                            ref["csa_ratio"], ref["volume_ratio"])
         out[name] = {"errors": errors, "within_accuracy": max(errors.values()) <= accuracy,
                      "wall_s": row["wall_s"], "cpu_s": row["cpu_s"]}
     if "choice" in out and "paper" in out:
@@ -77,7 +78,8 @@ def run(comm, args) -> int:
             raise InputError(f"unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
     plans = {name: cases(name, args.accuracy) for name in args.geometries}
 
-    result = {"benchmark": "fidelity", "machine": common.machine(), "accuracy": args.accuracy, "reference_settings": REFERENCE,
+    result = {"benchmark": "fidelity", "machine": common.machine(), "accuracy": args.accuracy,
+              "reference_settings": REFERENCE,
               "geometries": {}, "versions": io.versions()}
     for name, plan in plans.items():
         rows = {}
@@ -91,7 +93,8 @@ def run(comm, args) -> int:
         for key in ("choice", "paper"):
             if key in comparison:
                 c = comparison[key]
-                print(f"  {key}: error {max(c['errors'].values()):.2e}, wall {c['wall_s']:.1f} s, CPU {c['cpu_s']:.1f} s",
+                print(f"  {key}: error {max(c['errors'].values()):.2e}, wall {c['wall_s']:.1f} s, "
+                      f"CPU {c['cpu_s']:.1f} s",
                       flush=True)
         if "speedup_wall" in comparison:
             print(f"  choice is {comparison['speedup_wall']:.1f}x faster (wall), "

@@ -172,7 +172,6 @@ def run_case(comm, case: dict) -> dict:
     """Run one configuration; its final ratios, counts, timings (rank 0's view, times
     as the slowest rank's wall and the ranks' summed CPU) and the CSA/volume series."""
     import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
-
     from mpi4py import MPI
 
     from hyper import protocols

@@ -23,7 +23,6 @@ import time
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
-
 import numpy as np
 from mpi4py import MPI
 

@@ -5,8 +5,8 @@
 1. One Jacobian assembly of the mechanics problem with the fixed quadrature degree (4)
    against the degree UFL estimates for the same form, on the same mesh (idealized),
    each in a subprocess with a time limit (--estimated-timeout); compile_s is the
-   form compilation (near zero when the JIT cache already holds the form). The estimate (what FFCx uses without a degree: 76 on the cells,
-   132 on the spring facets, 59319 and 4489 points) cannot be compiled here: FFCx asks
+   form compilation (near zero when the JIT cache already holds the form).
+   The estimate (what FFCx uses without a degree: 76 on the cells, 132 on the spring facets, 59319 and 4489 points) cannot be compiled here: FFCx asks
    for a 26 GiB table. Its failure is recorded, and degrees 4, 8, 12, 16 are timed to
    extrapolate the assembly time linearly in the number of quadrature points.
 2. A contraction α = 0 → 1 (6 steps) per geometry and rank count, each in its own
@@ -55,12 +55,12 @@ def quadrature_points(degree: int, cell: str) -> int:
 
 def _worker_jacobian(geometry_name: str, degree: str) -> dict:
     import dolfinx_solver  # noqa: F401
-
     import ufl
     from dolfinx import fem
     from mpi4py import MPI
 
-    from hyper import fibers, geometry as geo
+    from hyper import fibers
+    from hyper import geometry as geo
     from hyper.mechanics import MechanicsProblem
 
     comm = MPI.COMM_WORLD
@@ -96,10 +96,10 @@ def _worker_jacobian(geometry_name: str, degree: str) -> dict:
 
 def _worker_newton(geometry_name: str) -> dict:
     import dolfinx_solver  # noqa: F401
-
     from mpi4py import MPI
 
-    from hyper import fibers, geometry as geo
+    from hyper import fibers
+    from hyper import geometry as geo
     from hyper.contraction import advance
     from hyper.mechanics import MechanicsProblem
 
@@ -146,9 +146,11 @@ def chart(path: Path, result: dict) -> None:
     ax1.set_yscale("log")
     ax1.set_xlabel("quadrature degree (cells)")
     ax1.set_ylabel("one Jacobian assembly (s)")
-    ax1.set_title(f"{q['geometry']}: {q['runs']['4']['cells']} cells, {q['runs']['4']['unknowns']} unknowns", fontsize=9)
+    ax1.set_title(f"{q['geometry']}: {q['runs']['4']['cells']} cells, {q['runs']['4']['unknowns']} unknowns",
+                  fontsize=9)
     for i, v in enumerate(values):
-        note = f"{v:.3g} s" + ("\n(extrapolated;\ndoes not compile)" if i == len(values) - 1 and not q["estimated_compiled"] else "")
+        note = f"{v:.3g} s" + ("\n(extrapolated;\ndoes not compile)"
+                               if i == len(values) - 1 and not q["estimated_compiled"] else "")
         ax1.annotate(note, (i, v), ha="center", va="bottom", fontsize=8)
 
     runs = result["newton"]

@@ -55,10 +55,10 @@ def spring_force(problem) -> float:
 
 def run_levels(comm, levels: int, log=print) -> list[dict]:
     import dolfinx_solver  # noqa: F401
-
     from mpi4py import MPI
 
-    from hyper import fibers, geometry as geo
+    from hyper import fibers
+    from hyper import geometry as geo
     from hyper.mechanics import MechanicsProblem
 
     geometry = geo.load("idealized", comm)
@@ -152,7 +152,8 @@ def chart(path: Path, result: dict) -> None:
     ax2.axhline(fit["memory_gib"], color="k", lw=1)
     ax2.axvline(fit["unknowns_at_limit"], color="k", ls=":", lw=1)
     ax2.annotate(f"{fit['memory_gib']:.0f} GiB at ≈ {fit['unknowns_at_limit'] / 1e3:.0f}k unknowns",
-                 (fit["unknowns_at_limit"], fit["memory_gib"]), textcoords="offset points", xytext=(-150, 10), fontsize=8)
+                 (fit["unknowns_at_limit"], fit["memory_gib"]), textcoords="offset points", xytext=(-150, 10),
+                 fontsize=8)
     ax2.set_xlabel("unknowns")
     ax2.set_ylabel("LU memory (GiB)")
     ax2.set_title(f"direct solver memory ({result['ranks']} rank(s))")
@@ -191,7 +192,8 @@ def run(comm, args) -> int:
         chart(args.output / "refinement.png", result)
         for key, value in result["forces"].items():
             if "order" in value:
-                info(comm, f"{key}: observed order {value['order']:.2f}, Richardson limit {value['richardson_limit']:.6f} N")
+                info(comm, f"{key}: observed order {value['order']:.2f}, "
+                           f"Richardson limit {value['richardson_limit']:.6f} N")
         fit = result["lu_memory"]
         info(comm, f"LU memory ∝ n^{fit['exponent']:.2f}: {fit['memory_gib']:g} GiB at "
                    f"{fit['unknowns_at_limit']:.3g} unknowns; wrote {args.output / 'refinement.json'}")

@@ -26,10 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import cli, io, plot, signaling as S
+from hyper import cli, io, plot
+from hyper import signaling as S
 from hyper.bench import common
-from hyper.signaling import compiled as signaling_c
 from hyper.protocols import named
+from hyper.signaling import compiled as signaling_c
 
 DTS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.55, 0.6, 0.65, 0.7, 0.8, 1.0)
 QUICK_DTS = (0.02, 0.05, 0.1, 0.2, 0.4, 0.6, 0.7, 1.0)
@@ -186,12 +187,14 @@ def _charts(result: dict, folder: Path) -> list[Path]:
             label='integrate, backend="numpy" (chunked, in place)')
     ax.plot(ns, [r["member_steps_per_s"] for r in small], "o:", color="C0", mfc="none")
     if result["c_backend"] is None:
-        ax.plot(n, [r["c_member_steps_per_s"] for r in rows], "^-", color="C2", label='integrate, backend="c" (compiled)')
+        ax.plot(n, [r["c_member_steps_per_s"] for r in rows], "^-", color="C2",
+                label='integrate, backend="c" (compiled)')
         ax.plot(ns, [r["c_member_steps_per_s"] for r in small], "^:", color="C2", mfc="none")
         for r in rows:
             ax.annotate(f"x{r['c_over_numpy']:.1f}", (r["members"], r["c_member_steps_per_s"]), xytext=(0, 6),
                         textcoords="offset points", ha="center", fontsize=8, color="C2")
-    ax.plot(n, [r["plain_numpy_member_steps_per_s"] for r in rows], "s--", color="C1", label="plain numpy RK4 (temporaries)")
+    ax.plot(n, [r["plain_numpy_member_steps_per_s"] for r in rows], "s--", color="C1",
+            label="plain numpy RK4 (temporaries)")
     ax.axhline(1e7, color="k", ls=":", lw=1, label="goal 1e7")
     ax.set_xscale("log")
     ax.set_yscale("log")

@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import cli, io, plot, signaling as S, sobol
+from hyper import cli, io, plot, sobol
+from hyper import signaling as S
 from hyper.bench import common
 from hyper.protocols import named
 
@@ -124,7 +125,8 @@ def run(comm, args) -> int:
     print(f"1 rank: {one['evaluations_per_s']:.0f} evaluations/s ({one['evaluation_wall_s']:.1f} s), "
           f"2 ranks: {two['evaluations_per_s']:.0f} evaluations/s ({two['evaluation_wall_s']:.1f} s): "
           f"speed-up {result['speedup_2_over_1']:.2f}; same indices: {result['same_indices']}")
-    print(f"share of their cores the ranks got: {100 * one['cpu_share']:.0f} % (1 rank), {100 * two['cpu_share']:.0f} % "
+    print(f"share of their cores the ranks got: {100 * one['cpu_share']:.0f} % (1 rank), "
+          f"{100 * two['cpu_share']:.0f} % "
           f"(2 ranks); evaluations per CPU-second, 2 ranks over 1: {result['cpu_efficiency_2_over_1']:.2f}")
     print(f"RK4 per core: compiled {backends['c']['member_steps_per_s']:.3g}, numpy "
           f"{backends['numpy']['member_steps_per_s']:.3g} member-steps/s ({backends['ratio_c_over_numpy']:.1f}x), "

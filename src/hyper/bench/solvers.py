@@ -120,13 +120,12 @@ def _fieldsplit(problem, comm, options: dict) -> None:
 
 def run_case(case: dict, comm, save: Path | None) -> dict:
     import dolfinx_solver  # noqa: F401
-
     import ufl
     from dolfinx import fem
     from mpi4py import MPI
 
-    from hyper import fibers, geometry as geo
-    from hyper import growth
+    from hyper import fibers, growth
+    from hyper import geometry as geo
     from hyper.mechanics import BLR_PRECISION, MechanicsProblem, SolverError
 
     geometry = geo.load(case["geometry"], comm)
@@ -296,7 +295,8 @@ def run(comm, args) -> int:
             lu, it = rows[-2], rows[-1]
             if "failed" not in lu and "failed" not in it:
                 it["difference_from_lu"] = {**compare(saved["lu"], saved["iterative"], args.ranks),
-                                            "volume": abs(it["volume_ratio"] - lu["volume_ratio"]) / (lu["volume_ratio"] - 1)}
+                                            "volume": abs(it["volume_ratio"] - lu["volume_ratio"])
+                                                      / (lu["volume_ratio"] - 1)}
                 it["memory_ratio"] = it["mumps_used_mb"] / lu["mumps_used_mb"]
                 it["rss_ratio"] = it["peak_rss_mb_sum"] / lu["peak_rss_mb_sum"]
                 it["time_ratio"] = it["solve_s"] / lu["solve_s"]

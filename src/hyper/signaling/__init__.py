@@ -17,8 +17,20 @@ The names below are the ones the rest of hyper uses.
 
 from hyper.protocols import PAPER
 from hyper.signaling.cli import main
-from hyper.signaling.integrators import (AUTO_MIN_MEMBERS, BACKENDS, CHUNK, FAILURES, SignalingError, c_backend_error,
-                                         check_hours, first_day, integrate, reference, run, step_count)
+from hyper.signaling.integrators import (
+                                         AUTO_MIN_MEMBERS,
+                                         BACKENDS,
+                                         CHUNK,
+                                         FAILURES,
+                                         SignalingError,
+                                         c_backend_error,
+                                         check_hours,
+                                         first_day,
+                                         integrate,
+                                         reference,
+                                         run,
+                                         step_count,
+)
 from hyper.signaling.model import STATES, a1, a2, bump_duration, g, net_balance, rest_state, rhs, switch_times
 from hyper.signaling.params import SignalingParams, load_params
 

@@ -14,7 +14,8 @@ from pathlib import Path
 
 from hyper import cli, log, protocols
 from hyper.params import InputError, as_attributes
-from hyper.signaling.integrators import SignalingError, check_hours, first_day, run as series
+from hyper.signaling.integrators import SignalingError, check_hours, first_day
+from hyper.signaling.integrators import run as series
 from hyper.signaling.params import load_params
 
 

@@ -7,8 +7,8 @@ tabulate the stimuli, as for their numpy batch, and ``run`` takes each block of 
 through those pieces on the compiled step.
 
 The C code repeats the RK4 of ``hyper.signaling.integrators`` in its (h/2)-scaled form
-expression for expression (``model.scalar_rhs`` and the single-member step): with s = h/2 the rate constants and the stimuli come
-scaled by s, the stages are K_i = s k_i, and y_new = y + ((K1 + K4) + 2 (K2 + K3)) / 3.
+expression for expression (``model.scalar_rhs`` and the single-member step): with
+s = h/2 the rate constants and the stimuli come scaled by s, the stages are K_i = s k_i, and y_new = y + ((K1 + K4) + 2 (K2 + K3)) / 3.
 IEEE +, -, * are exactly rounded, so the same trees in the same order give the same bits;
 ``-ffp-contract=off`` keeps the compiler from fusing them into FMAs. A member that fails
 (a non-finite or negative state) does not stop the others: its failure time is recorded
@@ -144,7 +144,8 @@ def _load(name: str, path: Path):
 
 
 def _build(flags: list[str]):
-    from cffi import FFI, __version__ as cffi_version
+    from cffi import FFI
+    from cffi import __version__ as cffi_version
 
     key = "\0".join([SOURCE, _CDEF, *flags, _cpu_tag(), sys.version, cffi_version])
     name = f"_hyper_rk4_{hashlib.sha256(key.encode()).hexdigest()[:16]}"

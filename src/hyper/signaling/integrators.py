@@ -28,8 +28,17 @@ import numpy as np
 from hyper.params import InputError
 from hyper.protocols import Protocol
 from hyper.signaling import compiled
-from hyper.signaling.model import (STATES, BatchRhs, batch_size, bump_duration, g, rest_state, scalar_rhs,
-                                   switch_times, timing_groups)
+from hyper.signaling.model import (
+    STATES,
+    BatchRhs,
+    batch_size,
+    bump_duration,
+    g,
+    rest_state,
+    scalar_rhs,
+    switch_times,
+    timing_groups,
+)
 from hyper.signaling.params import Array, SignalingParams
 
 # Members per chunk of the batch integrator: the chunk's state and work arrays (about 25
@@ -249,7 +258,8 @@ def _rk4_compiled(Y0: np.ndarray, p: SignalingParams, kM: Array, pieces: list[_P
         q = p.member(i) if p.size is not None else p
         _rk4_single(y, q, float(kM[i] if np.ndim(kM) else kM), [dataclasses.replace(pieces[k], out=-1)], dt,
                     np.empty((0, 5)), int(members[i]))
-        raise AssertionError(f"the C kernel failed member {members[i]} on [{pieces[k].t0}, {pieces[k].t1}] h, numpy did not")
+        raise AssertionError(f"the C kernel failed member {members[i]} on [{pieces[k].t0}, {pieces[k].t1}] h, "
+                             "numpy did not")
     if failed is not None:
         failed[members[fail_t >= 0.0]] = True
 
@@ -389,7 +399,8 @@ def reference(params: SignalingParams, protocol: Protocol, y0, t0: float, t1: fl
 # Series of one protocol
 
 
-def run(params: SignalingParams, protocol: Protocol, dt: float = 0.05, sample_every: float = 0.5) -> dict[str, np.ndarray]:
+def run(params: SignalingParams, protocol: Protocol, dt: float = 0.05,
+        sample_every: float = 0.5) -> dict[str, np.ndarray]:
     """The series of one protocol from the baseline rest state, sampled every ``sample_every`` h."""
     check_hours(sample_every, "sample_every")
     times = np.arange(0.0, protocol.end, sample_every)
@@ -398,7 +409,8 @@ def run(params: SignalingParams, protocol: Protocol, dt: float = 0.05, sample_ev
     return {"t": t, **{name: y[:, k] for k, name in enumerate(STATES)}}
 
 
-def first_day(params: SignalingParams, protocol: Protocol, dt: float = 0.05, every: float = 0.05) -> dict[str, np.ndarray] | None:
+def first_day(params: SignalingParams, protocol: Protocol, dt: float = 0.05,
+              every: float = 0.05) -> dict[str, np.ndarray] | None:
     """The 24 h after the first session start, finely sampled (the figure's insets); None without sessions."""
     if not protocol.sessions:
         return None

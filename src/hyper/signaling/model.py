@@ -86,7 +86,8 @@ def a2(t: Array, protocol: Protocol, params: SignalingParams) -> Array:
 def net_balance(x3: Array, x4: Array, N: Array, params: SignalingParams, kM: Array | None = None) -> Array:
     """dN/dt = kM max(x4 - thetaM, 0) - kF max(x3 - thetaF, 0) inside [Nmin, Nmax], else 0."""
     kM = params.kM if kM is None else kM
-    f = kM * np.maximum(np.asarray(x4) - params.thetaM, 0.0) - params.kF * np.maximum(np.asarray(x3) - params.thetaF, 0.0)
+    f = (kM * np.maximum(np.asarray(x4) - params.thetaM, 0.0)
+         - params.kF * np.maximum(np.asarray(x3) - params.thetaF, 0.0))
     inside = (np.asarray(N) >= params.Nmin) & (np.asarray(N) <= params.Nmax)
     return np.where(inside, f, 0.0)[()]
 

@@ -59,7 +59,8 @@ class SignalingParams:
             else:
                 value = np.array(value, dtype=float)
                 if value.ndim != 1 or value.size == 0:
-                    raise InputError(f"{f.name}: per-member values must be a non-empty 1-D array, got shape {value.shape}")
+                    raise InputError(f"{f.name}: per-member values must be a non-empty 1-D array, "
+                                     f"got shape {value.shape}")
                 if not np.all(np.isfinite(value)):
                     raise InputError(f"{f.name}: every per-member value must be finite")
                 value.setflags(write=False)

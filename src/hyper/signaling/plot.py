@@ -83,7 +83,8 @@ def figure_protocols(runs: dict, protocols: dict[str, Protocol], params, insets:
             for k, (name, protocol) in enumerate(protocols.items()):
                 if protocol.sessions:
                     tau_d = float(np.mean(params.tau_d))
-                    inset.axvspan(tau_d, tau_d + protocol.sessions[0].duration, ymax=0.06, color=_color(name, k), alpha=0.5, lw=0)
+                    inset.axvspan(tau_d, tau_d + protocol.sessions[0].duration, ymax=0.06, color=_color(name, k),
+                                  alpha=0.5, lw=0)
     sax = panels[5]
     for k, (name, protocol) in enumerate(protocols.items()):
         bars = [(s.start / WEEK, s.duration / WEEK) for s in protocol.sessions]
