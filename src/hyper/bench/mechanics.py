@@ -6,7 +6,8 @@
    against the degree UFL estimates for the same form, on the same mesh (idealized),
    each in a subprocess with a time limit (--estimated-timeout); compile_s is the
    form compilation (near zero when the JIT cache already holds the form).
-   The estimate (what FFCx uses without a degree: 76 on the cells, 132 on the spring facets, 59319 and 4489 points) cannot be compiled here: FFCx asks
+   The estimate (what FFCx uses without a degree: 76 on the cells, 132 on the spring
+   facets, 59319 and 4489 points) cannot be compiled here: FFCx asks
    for a 26 GiB table. Its failure is recorded, and degrees 4, 8, 12, 16 are timed to
    extrapolate the assembly time linearly in the number of quadrature points.
 2. A contraction α = 0 → 1 (6 steps) per geometry and rank count, each in its own

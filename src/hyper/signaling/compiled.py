@@ -8,7 +8,8 @@ through those pieces on the compiled step.
 
 The C code repeats the RK4 of ``hyper.signaling.integrators`` in its (h/2)-scaled form
 expression for expression (``model.scalar_rhs`` and the single-member step): with
-s = h/2 the rate constants and the stimuli come scaled by s, the stages are K_i = s k_i, and y_new = y + ((K1 + K4) + 2 (K2 + K3)) / 3.
+s = h/2 the rate constants and the stimuli come scaled by s, the stages are K_i = s k_i,
+and y_new = y + ((K1 + K4) + 2 (K2 + K3)) / 3.
 IEEE +, -, * are exactly rounded, so the same trees in the same order give the same bits;
 ``-ffp-contract=off`` keeps the compiler from fusing them into FMAs. A member that fails
 (a non-finite or negative state) does not stop the others: its failure time is recorded
