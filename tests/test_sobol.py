@@ -215,7 +215,7 @@ def test_cli_failures_are_reported(tmp_path, capsys):
 
 @pytest.mark.parametrize("args, message", [
     (["--samples", "1"], "--samples must be >= 2"),
-    (["--signaling-dt", "0"], "--signaling-dt must be a finite number > 0"),
+    (["--signaling-dt", "0"], "--signaling-dt: expected a finite number of hours > 0"),
     (["--chunk", "0"], "--chunk must be >= 1"),
     (["--protocol", "nope"], "unknown protocol 'nope'"),
 ])

@@ -46,7 +46,7 @@ import numpy as np
 from hyper import cli, protocols
 from hyper import signaling as S
 from hyper.log import info
-from hyper.params import InputError
+from hyper.params import InputError, positive_hours
 from hyper.plot import pyplot
 from hyper.protocols import Protocol, named
 
@@ -382,7 +382,7 @@ def _check(args) -> Protocol | None:
         raise InputError(f"--resamples must be >= 2, got {args.resamples}")
     if args.seed < 0:
         raise InputError(f"--seed must be >= 0, got {args.seed}")
-    S.check_hours(args.signaling_dt, "--signaling-dt")
+    positive_hours(args.signaling_dt, "--signaling-dt")
     if args.function == "ishigami":
         return None
     found = protocols.from_option(args.protocol)

@@ -18,24 +18,23 @@ The names below are the ones the rest of hyper uses.
 from hyper.protocols import PAPER
 from hyper.signaling.cli import main
 from hyper.signaling.integrators import (
-                                         AUTO_MIN_MEMBERS,
-                                         BACKENDS,
-                                         CHUNK,
-                                         FAILURES,
-                                         SignalingError,
-                                         c_backend_error,
-                                         check_hours,
-                                         first_day,
-                                         integrate,
-                                         reference,
-                                         run,
-                                         step_count,
+    AUTO_MIN_MEMBERS,
+    BACKENDS,
+    CHUNK,
+    FAILURES,
+    SignalingError,
+    c_backend_error,
+    first_day,
+    integrate,
+    reference,
+    run,
+    step_count,
 )
 from hyper.signaling.model import STATES, a1, a2, bump_duration, g, net_balance, rest_state, rhs, switch_times
 from hyper.signaling.params import SignalingParams, load_params
 
 __all__ = [
     "AUTO_MIN_MEMBERS", "BACKENDS", "CHUNK", "FAILURES", "PAPER", "STATES", "SignalingError", "SignalingParams",
-    "a1", "a2", "bump_duration", "c_backend_error", "check_hours", "first_day", "g", "integrate", "load_params",
+    "a1", "a2", "bump_duration", "c_backend_error", "first_day", "g", "integrate", "load_params",
     "main", "net_balance", "reference", "rest_state", "rhs", "run", "step_count", "switch_times",
 ]

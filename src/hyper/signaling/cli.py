@@ -13,8 +13,8 @@ import sys
 from pathlib import Path
 
 from hyper import cli, log, protocols
-from hyper.params import InputError, as_attributes
-from hyper.signaling.integrators import SignalingError, check_hours, first_day
+from hyper.params import InputError, as_attributes, positive_hours
+from hyper.signaling.integrators import SignalingError, first_day
 from hyper.signaling.integrators import run as series
 from hyper.signaling.params import load_params
 
@@ -60,8 +60,8 @@ def answer(comm, runs: list, paths: list[Path], params, dt: float, sample_every:
 def run(comm, args) -> int:
     from hyper import io
 
-    dt = check_hours(args.signaling_dt, "--signaling-dt")
-    sample_every = check_hours(args.sample_every, "--sample-every")
+    dt = positive_hours(args.signaling_dt, "--signaling-dt")
+    sample_every = positive_hours(args.sample_every, "--sample-every")
     if args.plot is not None and args.plot.suffix != ".png":
         raise InputError(f"--plot must name a .png file, got {args.plot}")
     params = load_params(args.params)

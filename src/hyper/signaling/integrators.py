@@ -20,12 +20,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
 from dataclasses import dataclass
 
 import numpy as np
 
-from hyper.params import InputError
+from hyper.params import InputError, positive_hours
 from hyper.protocols import Protocol
 from hyper.signaling import compiled
 from hyper.signaling.model import (
@@ -49,17 +48,6 @@ CHUNK = 8192
 
 class SignalingError(RuntimeError):
     """The integration produced a non-finite or negative state."""
-
-
-def check_hours(value, name: str = "dt") -> float:
-    """``value`` as a float if it is a finite number of hours > 0, else an InputError.
-
-    ``name`` is what the caller's user typed (an argument, an option such as
-    ``--signaling-dt``), so that the message points at it.
-    """
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (math.isfinite(value) and value > 0):
-        raise InputError(f"{name} must be a finite number > 0 h, got {value!r}")
-    return float(value)
 
 
 # --------------------------------------------------------------------------------------
@@ -284,7 +272,7 @@ def integrate(params: SignalingParams, protocol: Protocol, y0, t0: float, t1: fl
     for one member), and their states are NaN at every output time; the other members
     are the same bits as in their own runs.
     """
-    check_hours(dt)
+    positive_hours(dt, "dt")
     if backend not in BACKENDS:
         raise InputError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     if failures not in FAILURES:
@@ -402,7 +390,7 @@ def reference(params: SignalingParams, protocol: Protocol, y0, t0: float, t1: fl
 def run(params: SignalingParams, protocol: Protocol, dt: float = 0.05,
         sample_every: float = 0.5) -> dict[str, np.ndarray]:
     """The series of one protocol from the baseline rest state, sampled every ``sample_every`` h."""
-    check_hours(sample_every, "sample_every")
+    positive_hours(sample_every, "sample_every")
     times = np.arange(0.0, protocol.end, sample_every)
     times = np.append(times[times < protocol.end - 1e-9 * sample_every], protocol.end)
     t, y = integrate(params, protocol, rest_state(), 0.0, protocol.end, dt, out_times=times)
