@@ -214,9 +214,9 @@ def test_cli_failures_are_reported(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--samples", "1"], "--samples must be >= 2"),
+    (["--samples", "1"], "--samples: expected an integer in [2, "),
     (["--signaling-dt", "0"], "--signaling-dt: expected a finite number of hours > 0"),
-    (["--chunk", "0"], "--chunk must be >= 1"),
+    (["--chunk", "0"], "--chunk: expected an integer in [1, "),
     (["--protocol", "nope"], "unknown protocol 'nope'"),
 ])
 def test_cli_bad_input(tmp_path, capsys, args, message):

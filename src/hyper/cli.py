@@ -65,6 +65,24 @@ class Parser(argparse.ArgumentParser):
         raise InputError(message)
 
 
+def integer(least: int, most: int | None = None) -> Callable[[str], int]:
+    """An argparse type: an integer in [least, most], checked where the option is defined
+    (argparse names the option in the message)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < least or (most is not None and value > most):
+            bounds = f">= {least}" if most is None else f"in [{least}, {most}]"
+            raise argparse.ArgumentTypeError(f"expected an integer {bounds}, got {value}")
+        return value
+
+    parse.__name__ = "integer"  # what argparse calls the type in its messages
+    return parse
+
+
 # ------------------------------------------------------------------------------ logging
 
 

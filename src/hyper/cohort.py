@@ -467,12 +467,14 @@ def parser() -> cli.Parser:
     p.add_argument("--protocols", nargs="+", metavar="NAME|FILE", default=list(PAPER_PROTOCOLS),
                    help=f"named protocols ({', '.join(protocols.NAMES)}) or TOML protocol files")
     p.add_argument("--output", type=Path, default=Path("results/cohort"), help="output folder")
-    p.add_argument("--ranks-per-job", type=int, default=1, help="MPI ranks per run; must divide the number of ranks")
+    p.add_argument("--ranks-per-job", type=cli.integer(1), default=1,
+                   help="MPI ranks per run; must divide the number of ranks")
     p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step Δtg (h)")
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run fails; a failed run "
                         "resumes from its checkpoint with a larger value")
-    p.add_argument("--snapshot-every", type=int, default=run.SNAPSHOT_EVERY, help="XDMF snapshot every K growth steps")
+    p.add_argument("--snapshot-every", type=cli.integer(1), default=run.SNAPSHOT_EVERY,
+                   help="XDMF snapshot every K growth steps")
     p.add_argument("--plot-geometry", default="BFLH_VHF_Left", metavar="ID",
                    help="geometry of the shape plot (the paper's Fig. 6A)")
     return p
@@ -488,8 +490,6 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings]:
     for name in args.geometries:
         run.check_geometry(comm, name, "--geometries")
     run.check_geometry(comm, args.plot_geometry, "--plot-geometry")
-    if args.snapshot_every < 1:
-        raise InputError(f"--snapshot-every must be a positive integer, got {args.snapshot_every}")
     settings = build(GrowthSettings, {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings"},
                      growth_dt=args.growth_dt, max_halvings=args.max_halvings)
     runs = plan(args.geometries, [p for text in args.protocols for p in protocols.from_option(text, "--protocols")])

@@ -269,8 +269,9 @@ def parser() -> cli.Parser:
     p.add_argument("--geometry", default="BFLH_VHF_Left", help="geometry id (idealized, BFLH_VHF_Left, …)")
     p.add_argument("--protocol", default="mwf", metavar="NAME|FILE",
                    help=f"a named protocol ({', '.join(protocols.NAMES)}) or a TOML protocol file")
-    p.add_argument("--samples", type=int, default=5, help="heterogeneous samples besides the uniform case")
-    p.add_argument("--first-seed", type=int, default=1, help="seed of the first sample (then +1 each)")
+    p.add_argument("--samples", type=cli.integer(1), default=5, help="heterogeneous samples besides the uniform case")
+    p.add_argument("--first-seed", type=cli.integer(0, 2**32 - 1), default=1,
+                   help="seed of the first sample (then +1 each)")
     p.add_argument("--epsilon", type=float, default=0.01, help="relative half-width ε of the perturbation")
     p.add_argument("--model", choices=heterogeneity.MODELS, default="uniform-noise", help="heterogeneity model")
     p.add_argument("--length", type=float, default=heterogeneity.Heterogeneity.length,
@@ -278,8 +279,9 @@ def parser() -> cli.Parser:
     p.add_argument("--nu", type=float, default=heterogeneity.Heterogeneity.nu, help="Matérn smoothness ν (matern only)")
     p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step Δtg (h)")
     p.add_argument("--signaling-dt", type=float, default=GrowthSettings.signaling_dt, help="RK4 step (h)")
-    p.add_argument("--ranks-per-job", type=int, default=1, help="MPI ranks per coupled run")
-    p.add_argument("--snapshot-every", type=int, default=run.SNAPSHOT_EVERY, help="XDMF snapshot every K growth steps")
+    p.add_argument("--ranks-per-job", type=cli.integer(1), default=1, help="MPI ranks per coupled run")
+    p.add_argument("--snapshot-every", type=cli.integer(1), default=run.SNAPSHOT_EVERY,
+                   help="XDMF snapshot every K growth steps")
     p.add_argument("--output", type=Path, default=Path("results/ensemble"), help="results folder")
     return p
 
@@ -290,12 +292,6 @@ def plan(comm, args) -> tuple[list[farm.Job], heterogeneity.Heterogeneity, Path]
     (protocol,) = protocols.from_option(args.protocol) if args.protocol != "all" else (None,)
     if protocol is None:
         raise InputError("--protocol: an ensemble runs one protocol, not 'all'")
-    if args.samples < 1:
-        raise InputError(f"--samples must be a positive integer, got {args.samples}")
-    if args.first_seed < 0:
-        raise InputError(f"--first-seed must be a non-negative integer, got {args.first_seed}")
-    if args.snapshot_every < 1:
-        raise InputError(f"--snapshot-every must be a positive integer, got {args.snapshot_every}")
     het = heterogeneity.Heterogeneity(model=args.model, epsilon=args.epsilon, length=args.length, nu=args.nu)
     settings = build(GrowthSettings, {"growth_dt": "--growth-dt", "signaling_dt": "--signaling-dt"},
                      growth_dt=args.growth_dt, signaling_dt=args.signaling_dt)

@@ -65,6 +65,8 @@ SOURCE = {"c21": "IGF1", "c32": "AKT", "c42": "AKT", "c43": "FOXO"}
 
 LOW, HIGH = 0.5, 2.0  # bounds as multiples of the baseline value
 ISHIGAMI_AB = (7.0, 0.1)
+# base samples: N (2D + 2) rows of D parameters are drawn at once; 1e7 is about 25 GB
+MAX_SAMPLES = 10**7
 
 
 # --------------------------------------------------------------------------------------
@@ -347,12 +349,14 @@ def parser() -> cli.Parser:
     p = cli.Parser("sobol", description="Sobol sensitivity analysis of N(480 h) under daily15 (MODEL.md §7),\n"
                    "farmed over MPI ranks (run under mpirun -n K). Writes sobol.h5, indices.csv and two\n"
                    "figures to --output.")
-    p.add_argument("--samples", type=int, default=10000, help="base samples N; N (2D + 2) evaluations")
+    p.add_argument("--samples", type=cli.integer(2, MAX_SAMPLES), default=10000,
+                   help="base samples N; N (2D + 2) evaluations")
     p.add_argument("--output", type=Path, default=Path("results/sobol"), help="output folder")
     p.add_argument("--signaling-dt", type=float, default=0.05, metavar="H", help="largest RK4 step (h)")
-    p.add_argument("--chunk", type=int, default=10000, help="rows per job and per chunk file")
-    p.add_argument("--seed", type=int, default=1, help="seed of the design; the bootstrap uses seed + 1")
-    p.add_argument("--resamples", type=int, default=100, help="bootstrap resamples")
+    p.add_argument("--chunk", type=cli.integer(1, MAX_SAMPLES), default=10000, help="rows per job and per chunk file")
+    p.add_argument("--seed", type=cli.integer(0, 2**32 - 2), default=1,
+                   help="seed of the design; the bootstrap uses seed + 1")
+    p.add_argument("--resamples", type=cli.integer(2, 10**5), default=100, help="bootstrap resamples")
     p.add_argument("--protocol", default="daily15", metavar="NAME|FILE",
                    help=f"a named protocol ({', '.join(protocols.NAMES)}) or a TOML protocol file; the output "
                    "is N at its end")
@@ -374,14 +378,6 @@ def _settings(args, protocol: Protocol | None) -> dict:
 
 
 def _check(args) -> Protocol | None:
-    if args.samples < 2:
-        raise InputError(f"--samples must be >= 2, got {args.samples}")
-    if args.chunk < 1:
-        raise InputError(f"--chunk must be >= 1, got {args.chunk}")
-    if args.resamples < 2:
-        raise InputError(f"--resamples must be >= 2, got {args.resamples}")
-    if args.seed < 0:
-        raise InputError(f"--seed must be >= 0, got {args.seed}")
     positive_hours(args.signaling_dt, "--signaling-dt")
     if args.function == "ishigami":
         return None

@@ -349,22 +349,14 @@ def failure_chart(path: Path, result: dict) -> None:
     ax = axes[2]
     if "refinement" in collected:
         ref = collected["refinement"]
-        n = [r["unknowns"] for r in ref["levels"]]
-        m = [r["mumps_used_mb"] / 1024 for r in ref["levels"]]
         fit = ref["lu_memory"]
-        grid = np.geomspace(n[0], fit["unknowns_at_limit"] * 1.5, 40)
-        ax.loglog(n, m, "o", label="MUMPS LU, measured")
-        ax.loglog(grid, fit["coefficient_mb"] * grid ** fit["exponent"] / 1024, "--",
-                  label=f"∝ n^{fit['exponent']:.2f}")
-        ax.axhline(fit["memory_gib"], color="k", lw=1)
-        ax.axvline(fit["unknowns_at_limit"], color="r", ls=":")
+        common.plot_lu_memory(ax, ref["levels"], fit)
         if "solvers" in collected:
             blr = [r for r in collected["solvers"]["levels"] if r["solver"] == "iterative" and "failed" not in r]
             ax.loglog([r["unknowns"] for r in blr], [r["mumps_used_mb"] / 1024 for r in blr], "s",
                       label="GMRES + BLR LU (2 ranks), measured")
         ax.set_title(f"LU out of memory beyond ≈ {fit['unknowns_at_limit'] / 1e3:.0f}k unknowns "
                      f"({fit['memory_gib']:g} GiB)", fontsize=9)
-        ax.set_xlabel("unknowns")
         ax.set_ylabel("GiB")
         ax.legend(fontsize=8)
     ax = axes[3]

@@ -88,3 +88,19 @@ class Timings:
         finally:
             self.seconds[name] += time.perf_counter() - start
             self.calls[name] += 1
+
+
+def plot_lu_memory(ax, levels: list[dict], fit: dict) -> None:
+    """MUMPS LU's memory against the unknowns on log axes: the measured levels, the power
+    law fitted to them (bench refinement's ``lu_memory``) and where it meets the memory."""
+    import numpy as np
+
+    n = np.array([r["unknowns"] for r in levels], dtype=float)
+    m = np.array([r["mumps_used_mb"] for r in levels], dtype=float) / 1024.0
+    grid = np.geomspace(n[0], fit["unknowns_at_limit"] * 1.5, 50)
+    ax.loglog(n, m, "o", label="MUMPS LU, measured")
+    ax.loglog(grid, fit["coefficient_mb"] * grid ** fit["exponent"] / 1024.0, "--",
+              label=f"fit ∝ n^{fit['exponent']:.2f}")
+    ax.axhline(fit["memory_gib"], color="k", lw=1)
+    ax.axvline(fit["unknowns_at_limit"], color="k", ls=":", lw=1)
+    ax.set_xlabel("unknowns")

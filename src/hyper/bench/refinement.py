@@ -142,19 +142,11 @@ def chart(path: Path, result: dict) -> None:
     ax1.set_ylabel("force at α = 1 (N)")
     ax1.set_title("idealized shape, uniform refinement (dotted: Richardson limits)")
     ax1.legend(fontsize=8)
-    n = np.array([r["unknowns"] for r in rows], dtype=float)
-    m = np.array([r["mumps_used_mb"] for r in rows], dtype=float) / 1024.0
     fit = result["lu_memory"]
-    grid = np.geomspace(n[0], fit["unknowns_at_limit"] * 1.5, 50)
-    ax2.loglog(n, m, "o", label="MUMPS factorisation, measured")
-    ax2.loglog(grid, fit["coefficient_mb"] * grid ** fit["exponent"] / 1024.0, "--",
-               label=f"fit ∝ n^{fit['exponent']:.2f}")
-    ax2.axhline(fit["memory_gib"], color="k", lw=1)
-    ax2.axvline(fit["unknowns_at_limit"], color="k", ls=":", lw=1)
+    common.plot_lu_memory(ax2, rows, fit)
     ax2.annotate(f"{fit['memory_gib']:.0f} GiB at ≈ {fit['unknowns_at_limit'] / 1e3:.0f}k unknowns",
                  (fit["unknowns_at_limit"], fit["memory_gib"]), textcoords="offset points", xytext=(-150, 10),
                  fontsize=8)
-    ax2.set_xlabel("unknowns")
     ax2.set_ylabel("LU memory (GiB)")
     ax2.set_title(f"direct solver memory ({result['ranks']} rank(s))")
     ax2.legend(fontsize=8)

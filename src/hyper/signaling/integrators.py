@@ -252,6 +252,17 @@ def _rk4_compiled(Y0: np.ndarray, p: SignalingParams, kM: Array, pieces: list[_P
         failed[members[fail_t >= 0.0]] = True
 
 
+def _batch(params, kM, y0, t0, t1, out_times):
+    """What an integrator of a batch starts from: kM, the output times, whether one member
+    was asked for, the (5, n) initial states and room for the states at the output times."""
+    kM = params.kM if kM is None else kM
+    y0 = np.asarray(y0, dtype=float)
+    n = batch_size(params, kM, y0)
+    times = _output_times(t0, t1, out_times)
+    Y0 = np.broadcast_to(y0.reshape(5, -1), (5, n or 1))
+    return kM, times, n is None, Y0, np.empty((len(times), 5, n or 1))
+
+
 def integrate(params: SignalingParams, protocol: Protocol, y0, t0: float, t1: float, dt: float = 0.05, *,
               out_times=None, kM: Array | None = None, backend: str = "auto", failures: str = "raise"):
     """Classical RK4 from y0 at t0 to t1 with steps of at most dt (h) landing on every switch and output time.
@@ -277,15 +288,9 @@ def integrate(params: SignalingParams, protocol: Protocol, y0, t0: float, t1: fl
         raise InputError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     if failures not in FAILURES:
         raise InputError(f"failures must be one of {', '.join(FAILURES)}, got {failures!r}")
-    kM = params.kM if kM is None else kM
-    y0 = np.asarray(y0, dtype=float)
-    n = batch_size(params, kM, y0)
-    times = _output_times(t0, t1, out_times)
-    single = n is None
-    n = n or 1
+    kM, times, single, Y0, states = _batch(params, kM, y0, t0, t1, out_times)
+    n = Y0.shape[1]
     use_c = backend == "c" or (backend == "auto" and n >= AUTO_MIN_MEMBERS and c_backend_error() is None)
-    Y0 = np.broadcast_to(y0.reshape(5, -1), (5, n))
-    states = np.empty((len(times), 5, n))
     if times[0] == t0:
         states[0] = Y0
     valid = slice(1, None) if times[0] == t0 else slice(None)
@@ -350,15 +355,8 @@ def reference(params: SignalingParams, protocol: Protocol, y0, t0: float, t1: fl
     """
     from scipy.integrate import solve_ivp
 
-    kM = params.kM if kM is None else kM
-    y0 = np.asarray(y0, dtype=float)
-    n = batch_size(params, kM, y0)
-    times = _output_times(t0, t1, out_times)
-    single = n is None
-    n = n or 1
-    Y0 = np.broadcast_to(y0.reshape(5, -1), (5, n))
-    states = np.empty((len(times), 5, n))
-    for m in range(n):
+    kM, times, single, Y0, states = _batch(params, kM, y0, t0, t1, out_times)
+    for m in range(Y0.shape[1]):
         p = params.member(m) if params.size is not None else params
         f = scalar_rhs(p, float(np.ravel(kM)[m] if np.ndim(kM) else kM))
         a20, t1_, tau_h = float(p.a20), float(p.t1), float(p.tau_h)
