@@ -38,8 +38,8 @@ def test_cli_writes_series_fields_and_plot(tmp_path, capsys):
     ("argv", "message"),
     [
         (["--geometry", "BFLH"], "error: unknown geometry 'BFLH'"),
-        (["--steps", "0"], "error: --steps: expected a positive integer"),
-        (["--output", "x.txt"], "error: --output: expected a path ending in .h5"),
+        (["--steps", "0"], "error: argument --steps: expected an integer in [1, 10000], got 0"),
+        (["--output", "x.txt"], "error: argument --output: x.txt: expected a .h5 file"),
         (["--fibers", "helical"], "error: unknown fibre kind 'helical'"),
         (["--stepz", "3"], "error: unknown option(s) --stepz"),
     ],

@@ -74,7 +74,7 @@ def test_cli_group_means_match_the_paper(tmp_path):
 
 def test_cli_rejects_bad_output(tmp_path, capsys):
     assert meshstats.main(["--output", str(tmp_path / "stats.txt")]) == 2
-    assert "--output must name a .csv" in capsys.readouterr().err
+    assert "stats.txt: expected a .csv file" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
 
 

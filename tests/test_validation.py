@@ -94,7 +94,7 @@ BAD_OPTIONS = {
     "output_not_h5": (["--output", "{out}/run.xdmf"], r"--output .*run.xdmf: expected an .h5 file or a folder"),
     "output_h5_for_all": (["--protocol", "all"], r"--output .*run.h5: several protocols need a folder"),
     "output_under_a_file": (["--output", "{d}/a_file/run.h5"], r"a_file is a file, not a folder"),
-    "plot_not_png": (["--plot", "{out}/figure.pdf"], r"--plot .*figure.pdf: expected a .png file"),
+    "plot_not_png": (["--plot", "{out}/figure.pdf"], r"--plot: .*figure.pdf: expected a .png file"),
     "unknown_option": (["--bogus"], r"unrecognized arguments: --bogus"),
     "mesh_and_geometry": (["--mesh", "{d}/muscle_m.xdmf", "--geometry", "idealized"],
                           r"--geometry and --mesh exclude each other"),

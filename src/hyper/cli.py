@@ -15,9 +15,11 @@ import argparse
 import contextlib
 import importlib
 import logging
+import os
 import re
 import signal
 import sys
+import traceback
 from collections.abc import Callable, Iterator
 from importlib import metadata
 from pathlib import Path
@@ -80,6 +82,54 @@ def integer(least: int, most: int | None = None) -> Callable[[str], int]:
         return value
 
     parse.__name__ = "integer"  # what argparse calls the type in its messages
+    return parse
+
+
+# Where results never go: the kernel's and the devices' pseudo file systems.
+SYSTEM_TREES = (Path("/proc"), Path("/sys"), Path("/dev"))
+
+
+def unwritable(path: Path, *, folder: bool | None) -> str | None:
+    """Why ``path`` cannot be written as a file (``folder`` False), a folder (True) or
+    either (None); None where it can. Looks only, creates nothing."""
+    absolute = Path(os.path.abspath(path))
+    for tree in SYSTEM_TREES:
+        if absolute == tree or tree in absolute.parents:
+            return f"{path}: under {tree}, not a place for results"
+    if absolute.exists():
+        if folder is True and not absolute.is_dir():
+            return f"{path}: exists and is not a folder"
+        if folder is False and absolute.is_dir():
+            return f"{path}: is a folder, not a file"
+        if folder is False and not absolute.is_file():
+            return f"{path}: exists and is not a regular file"
+    ancestor = absolute.parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        return f"{path}: {ancestor} is a file, not a folder"
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        return f"{path}: {ancestor} is not writable"
+    return None
+
+
+def output(*, folder: bool | None = None, suffixes: tuple[str, ...] = ()) -> Callable[[str], Path]:
+    """An argparse type for a path the job will write: a file (``folder`` False, with one
+    of ``suffixes`` if given), a folder (True) or either (None). Every rank checks the same
+    path alike, so a bad one stops every rank before any work."""
+
+    def parse(text: str) -> Path:
+        if not text or "\0" in text:
+            raise argparse.ArgumentTypeError(f"expected a path, got {text!r}")
+        path = Path(text)
+        if suffixes and path.suffix.lower() not in suffixes:
+            raise argparse.ArgumentTypeError(f"{path}: expected a {' or '.join(suffixes)} file")
+        problem = unwritable(path, folder=folder)
+        if problem is not None:
+            raise argparse.ArgumentTypeError(problem)
+        return path
+
+    parse.__name__ = "path"
     return parse
 
 
@@ -155,12 +205,17 @@ def hold(comm, outputs: list[Path]) -> Iterator[None]:
 
     with contextlib.ExitStack() as held:
         busy = unlocked = None
+        broken = None
         if comm.rank == 0:
             try:
                 unlocked = held.enter_context(ckpt.locked(list(outputs)))
             except ckpt.Busy as err:
                 busy = str(err)
-        busy = comm.bcast(busy, root=0)
+            except OSError as err:  # e.g. the lock's name is a folder, or its folder unwritable
+                broken = f"cannot take the output lock: {err}"
+        busy, broken = comm.bcast((busy, broken), root=0)
+        if broken is not None:
+            raise InputError(broken)
         if busy is not None:
             raise ckpt.Busy(busy)
         for path in unlocked or ():
@@ -202,6 +257,14 @@ def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool 
         except ckpt.Busy as err:
             error(comm, str(err))
             return EXIT_BUSY
+        except Exception:
+            # A failure on some ranks only would leave the others waiting in a collective
+            # for ever: end the whole job instead, after saying why.
+            if comm is not None and comm.size > 1:
+                traceback.print_exc()
+                sys.stderr.flush()
+                comm.Abort(EXIT_SOME_FAILED)
+            raise
 
     return main
 

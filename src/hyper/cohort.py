@@ -466,7 +466,7 @@ def parser() -> cli.Parser:
                    help="geometry ids (the 12 anatomical meshes by default; idealized and cylinder work too)")
     p.add_argument("--protocols", nargs="+", metavar="NAME|FILE", default=list(PAPER_PROTOCOLS),
                    help=f"named protocols ({', '.join(protocols.NAMES)}) or TOML protocol files")
-    p.add_argument("--output", type=Path, default=Path("results/cohort"), help="output folder")
+    p.add_argument("--output", type=cli.output(folder=True), default="results/cohort", help="output folder")
     p.add_argument("--ranks-per-job", type=cli.integer(1), default=1,
                    help="MPI ranks per run; must divide the number of ranks")
     p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step Δtg (h)")

@@ -41,12 +41,13 @@ def parser() -> cli.Parser:
 
     p = _Parser("contraction", description=__doc__)
     p.add_argument("--geometry", default="idealized", help="geometry identifier")
-    p.add_argument("--steps", type=int, default=10, help="equal activation steps from 0 to 1")
-    p.add_argument("--output", type=Path, default=Path("results/contraction/idealized.h5"), help="HDF5 series file")
+    p.add_argument("--steps", type=cli.integer(1, 10**4), default=10, help="equal activation steps from 0 to 1")
+    p.add_argument("--output", type=cli.output(folder=False, suffixes=(".h5",)),
+                   default="results/contraction/idealized.h5", help="HDF5 series file")
     p.add_argument("--fibers", default="auto", metavar="KIND",
                    help=f"fibre field kind: {', '.join(fibers.FIBER_KINDS)} (see hyper.fibers.fiber_field)")
-    p.add_argument("--quadrature-degree", type=int, default=4, help="quadrature degree of the forms")
-    p.add_argument("--max-halvings", type=int, default=6, help="step cuts allowed per step")
+    p.add_argument("--quadrature-degree", type=cli.integer(1, 12), default=4, help="quadrature degree of the forms")
+    p.add_argument("--max-halvings", type=cli.integer(0, 12), default=6, help="step cuts allowed per step")
     return p
 
 
@@ -185,12 +186,6 @@ def run(comm, args) -> int:
     from hyper.log import info
     from hyper.mechanics import SolverError
 
-    if args.steps < 1:
-        raise InputError(f"--steps: expected a positive integer, got {args.steps}")
-    if args.quadrature_degree < 1:
-        raise InputError(f"--quadrature-degree: expected a positive integer, got {args.quadrature_degree}")
-    if args.output.suffix != ".h5":
-        raise InputError(f"--output: expected a path ending in .h5, got {str(args.output)!r}")
     if args.petsc:
         PETSc.Options().insertString(" ".join(args.petsc))
     try:

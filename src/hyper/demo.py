@@ -9,14 +9,13 @@ Run it under MPI as well: ``mpirun -n 2 python -m hyper.demo``.
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 from hyper import cli, log
 
 
 def parser() -> cli.Parser:
     p = cli.Parser("demo", description=__doc__)
-    p.add_argument("--output", type=Path, default=Path("results"),
+    p.add_argument("--output", type=cli.output(folder=True), default="results",
                    help="folder that gets signaling/ and grow/ with the results")
     return p
 

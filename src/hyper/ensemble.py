@@ -282,7 +282,7 @@ def parser() -> cli.Parser:
     p.add_argument("--ranks-per-job", type=cli.integer(1), default=1, help="MPI ranks per coupled run")
     p.add_argument("--snapshot-every", type=cli.integer(1), default=run.SNAPSHOT_EVERY,
                    help="XDMF snapshot every K growth steps")
-    p.add_argument("--output", type=Path, default=Path("results/ensemble"), help="results folder")
+    p.add_argument("--output", type=cli.output(folder=True), default="results/ensemble", help="results folder")
     return p
 
 

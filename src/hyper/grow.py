@@ -64,7 +64,7 @@ def parser(ask: str = "growth") -> cli.Parser:
     if ask == "signaling":
         p = cli.Parser("grow --ask signaling", "A signaling question: the ODEs alone for each protocol, no mesh.")
         scene_options(p)
-        p.add_argument("--output", type=Path, default=Path("results/signaling"), help="an .h5 file or a folder")
+        p.add_argument("--output", type=cli.output(), default="results/signaling", help="an .h5 file or a folder")
         return p
     from hyper.coupled import GrowthSettings
     from hyper.growth import FEEDBACK_LAWS
@@ -75,7 +75,7 @@ def parser(ask: str = "growth") -> cli.Parser:
                    "'ft_small': 1, 2 the ends, 3 the side; fibres along its principal axis)")
     p.add_argument("--mesh-unit", help=f"length unit of --mesh ({' or '.join(run.MESH_UNITS)}); m by default")
     scene_options(p)
-    p.add_argument("--output", type=Path, default=Path("results/grow"), help="an .h5 file (one protocol) or a folder")
+    p.add_argument("--output", type=cli.output(), default="results/grow", help="an .h5 file (one protocol) or a folder")
     p.add_argument("--growth-dt", type=float,
                    help=f"growth step Δtg (h); {GrowthSettings.growth_dt:g} unless --accuracy chooses one")
     p.add_argument("--feedback", choices=FEEDBACK_LAWS, default="hill", help="feedback of CSA on protein synthesis")
@@ -93,7 +93,7 @@ def parser(ask: str = "growth") -> cli.Parser:
     p.add_argument("--checkpoint-every", type=cli.integer(0), default=run.CHECKPOINT_EVERY,
                    help="checkpoint every K growth steps (0: only on SIGTERM and failures)")
     p.add_argument("--restart", action="store_true", help="ignore and delete an existing checkpoint")
-    p.add_argument("--plot", type=Path, help="figure (.png); next to the output by default")
+    p.add_argument("--plot", type=cli.output(folder=False, suffixes=(".png",)), help="figure; beside the output")
     return p
 
 
@@ -159,8 +159,8 @@ def plan_from(comm, args) -> Plan:
     results = io.result_paths(args.output, [f"{name}_{p.name}" for p in runs])
     plot = args.plot or (args.output.with_suffix(".png") if args.output.suffix == ".h5"
                          else args.output / f"{name}_growth.png")
-    if plot.suffix != ".png":
-        raise InputError(f"--plot {plot}: expected a .png file")
+    if cli.unwritable(plot, folder=False):
+        raise InputError(f"--plot: {cli.unwritable(plot, folder=False)}")
     if mesh is not None:
         mesh.load(comm)  # units and tags, before anything is written
     solver = args.linear_solver or ("auto" if args.accuracy is not None else "lu")

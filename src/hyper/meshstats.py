@@ -118,7 +118,7 @@ def figure(rows):
 def parser() -> cli.Parser:
     p = cli.Parser("meshstats", description="Cells, vertices, volume, reference cross-section (exact cut) and "
                    "length of the anatomical\nmeshes, with a bar chart like the paper's Fig. 5B.")
-    p.add_argument("--output", type=Path, default=Path("results/meshes/stats.csv"),
+    p.add_argument("--output", type=cli.output(folder=False, suffixes=(".csv",)), default="results/meshes/stats.csv",
                    help="CSV file to write; the figure goes next to it as .png")
     p.add_argument("--geometries", nargs="+", metavar="ID", default=list(geo.ANATOMICAL),
                    help="geometries (the 12 anatomical meshes)")
@@ -130,8 +130,6 @@ def run(comm, args) -> int:
     from hyper import plot
     from hyper.io import atomic_path
 
-    if args.output.suffix != ".csv":
-        raise InputError(f"--output must name a .csv file, got {args.output}")
     unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
     if unknown:
         raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")

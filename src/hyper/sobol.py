@@ -351,7 +351,7 @@ def parser() -> cli.Parser:
                    "figures to --output.")
     p.add_argument("--samples", type=cli.integer(2, MAX_SAMPLES), default=10000,
                    help="base samples N; N (2D + 2) evaluations")
-    p.add_argument("--output", type=Path, default=Path("results/sobol"), help="output folder")
+    p.add_argument("--output", type=cli.output(folder=True), default="results/sobol", help="output folder")
     p.add_argument("--signaling-dt", type=float, default=0.05, metavar="H", help="largest RK4 step (h)")
     p.add_argument("--chunk", type=cli.integer(1, MAX_SAMPLES), default=10000, help="rows per job and per chunk file")
     p.add_argument("--seed", type=cli.integer(0, 2**32 - 2), default=1,

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from hyper import cli, log, protocols
-from hyper.params import InputError, as_attributes, positive_hours
+from hyper.params import as_attributes, positive_hours
 from hyper.signaling.integrators import SignalingError, first_day
 from hyper.signaling.integrators import run as series
 from hyper.signaling.params import load_params
@@ -27,9 +27,10 @@ def parser() -> cli.Parser:
     p.add_argument("--params", type=Path, metavar="F.toml", help="parameter overrides, keys as in MODEL.md's table")
     p.add_argument("--signaling-dt", type=float, default=0.05, metavar="H", help="largest RK4 step (h)")
     p.add_argument("--sample-every", type=float, default=0.5, metavar="H", help="output sampling (h)")
-    p.add_argument("--output", type=Path, default=Path("results/signaling"),
+    p.add_argument("--output", type=cli.output(), default="results/signaling",
                    help="an .h5 file (one protocol) or a folder that gets <protocol>.h5 per protocol")
-    p.add_argument("--plot", type=Path, metavar="F.png", help="write the figure here")
+    p.add_argument("--plot", type=cli.output(folder=False, suffixes=(".png",)), metavar="F.png",
+                   help="write the figure here")
     return p
 
 
@@ -62,8 +63,6 @@ def run(comm, args) -> int:
 
     dt = positive_hours(args.signaling_dt, "--signaling-dt")
     sample_every = positive_hours(args.sample_every, "--sample-every")
-    if args.plot is not None and args.plot.suffix != ".png":
-        raise InputError(f"--plot must name a .png file, got {args.plot}")
     params = load_params(args.params)
     runs = protocols.from_option(args.protocol)
     paths = io.result_paths(args.output, [p.name for p in runs])
