@@ -45,8 +45,8 @@ class GrowthSettings:
     MAX_HALVINGS = 12
 
     def __post_init__(self):
-        positive_hours(self.growth_dt, "growth_dt")
-        positive_hours(self.signaling_dt, "signaling_dt")
+        positive_hours(self.growth_dt, "growth_dt", signaling.SMALLEST_DT)
+        positive_hours(self.signaling_dt, "signaling_dt", signaling.SMALLEST_DT)
         if self.signaling_dt > self.growth_dt:
             raise InputError(f"{self.signaling_dt:g} h must not exceed the growth step ({self.growth_dt:g} h)",
                              field="signaling_dt")

@@ -23,10 +23,7 @@ def parser() -> cli.Parser:
 def run(comm, args) -> int:
     sig = args.output / "signaling"
     growth = args.output / "grow"
-    rc = cli.EXIT_OK
-    if comm.rank == 0:
-        rc = cli.main(["signaling", "--protocol", "all", "--output", str(sig), "--plot", str(sig / "protocols.png")])
-    rc = comm.bcast(rc, root=0)
+    rc = cli.main(["signaling", "--protocol", "all", "--output", str(sig), "--plot", str(sig / "protocols.png")])
     if rc == cli.EXIT_OK:
         rc = cli.main(["grow", "--geometry", "idealized", "--protocol", "all", "--output", str(growth)])
     if rc == cli.EXIT_OK:

@@ -137,7 +137,7 @@ def plan_from(comm, args) -> Plan:
     if args.mesh_unit is not None and args.mesh is None:
         raise InputError("--mesh-unit declares the length unit of a --mesh file; there is none")
     mesh = run.MeshFile(args.mesh, args.mesh_unit or "m") if args.mesh is not None else None
-    name = args.mesh.stem if mesh is not None else (args.geometry or "idealized")
+    name = args.mesh.stem if mesh is not None else (args.geometry if args.geometry is not None else "idealized")
     if mesh is None:
         run.check_geometry(comm, name)
     runs = protocols.from_option(args.protocol)

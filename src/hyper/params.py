@@ -38,16 +38,21 @@ def build(cls, options: Mapping[str, str], **values):
         raise
 
 
-def positive_hours(value: Any, field: str) -> float:
-    """A time step or duration: a finite number of hours > 0 (InputError naming ``field``)."""
+def positive_hours(value: Any, field: str, least: float = 0.0) -> float:
+    """A time step or duration: a finite number of hours > 0, and at least ``least`` where
+    a smaller one would only take for ever (InputError naming ``field``)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
         shown = f"{value:g}" if isinstance(value, (int, float)) and not isinstance(value, bool) else repr(value)
         raise InputError(f"expected a finite number of hours > 0, got {shown}", field=field)
+    if value < least:
+        raise InputError(f"expected at least {least:g} h, got {value:g}", field=field)
     return float(value)
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not a TOML file")
     if not path.is_file():
         raise InputError(f"{path}: no such file")
     try:
@@ -63,7 +68,10 @@ def as_float(value: Any, where: str) -> float:
     """A finite real number from TOML (ints are accepted, booleans and strings are not)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise InputError(f"{where}: expected a number, got {value!r}")
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:  # an integer of hundreds of digits
+        raise InputError(f"{where}: expected a finite number, got an integer of {len(str(value))} digits") from None
     if not math.isfinite(value):
         raise InputError(f"{where}: expected a finite number, got {value!r}")
     return value

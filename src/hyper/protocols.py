@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import re
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -34,6 +35,15 @@ class Session:
         return self.start + self.duration
 
 
+# A protocol's name names its result files: letters, digits and . _ + -, not starting
+# with a dot, so that it can neither climb out of a folder nor hide in one.
+NAME = re.compile(r"[A-Za-z0-9_+-][A-Za-z0-9._+-]{0,63}")
+# Ten years of training: beyond it a protocol is a typing mistake, and its step count
+# (end / RK4 step) would not fit in memory.
+MAX_END = 10 * 52 * WEEK  # h
+MAX_SESSIONS = 100_000
+
+
 @dataclass(frozen=True)
 class Protocol:
     sessions: tuple[Session, ...]
@@ -41,7 +51,12 @@ class Protocol:
     name: str = "custom"
 
     def __post_init__(self):
+        if not isinstance(self.name, str) or not NAME.fullmatch(self.name):
+            raise InputError(f"name must be 1-64 letters, digits or . _ + - (not starting with a dot), "
+                             f"got {self.name!r}")
         object.__setattr__(self, "sessions", tuple(self.sessions))
+        if len(self.sessions) > MAX_SESSIONS:
+            raise InputError(f"at most {MAX_SESSIONS} sessions, got {len(self.sessions)}")
         for i, s in enumerate(self.sessions):
             where = f"session {i}"
             for field in ("start", "duration", "intensity"):
@@ -74,6 +89,8 @@ class Protocol:
         end = self.end
         if isinstance(end, bool) or not isinstance(end, numbers.Real) or not math.isfinite(end) or end <= 0:
             raise InputError(f"end must be a finite number > 0 h, got {end!r}")
+        if end > MAX_END:
+            raise InputError(f"end must be at most {MAX_END:g} h (ten years), got {end:g}")
         if self.sessions and end < self.sessions[-1].end:
             last = len(self.sessions) - 1
             raise InputError(f"end ({end:g} h) lies before the end of the last session {last} "

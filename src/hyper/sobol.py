@@ -378,7 +378,7 @@ def _settings(args, protocol: Protocol | None) -> dict:
 
 
 def _check(args) -> Protocol | None:
-    positive_hours(args.signaling_dt, "--signaling-dt")
+    positive_hours(args.signaling_dt, "--signaling-dt", S.SMALLEST_DT)
     if args.function == "ishigami":
         return None
     found = protocols.from_option(args.protocol)
@@ -388,11 +388,17 @@ def _check(args) -> Protocol | None:
 
 
 def run(comm, args) -> int:
+    protocol = _check(args)
+    # a second analysis writing the same folder would take the first one's chunks for stale
+    with cli.hold(comm, [args.output]):
+        return analyse(comm, args, protocol)
+
+
+def analyse(comm, args, protocol) -> int:
     from hyper import io
     from hyper.farm import summary_line
 
     start = time.perf_counter()
-    protocol = _check(args)
     # io.versions() imports dolfinx, whose PETSc initialization is collective over COMM_WORLD:
     # done by rank 0 alone (when it writes the results) it would meet the other ranks' next
     # collective call and hang. All ranks import it here, together.

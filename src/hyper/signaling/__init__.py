@@ -22,6 +22,8 @@ from hyper.signaling.integrators import (
     BACKENDS,
     CHUNK,
     FAILURES,
+    SMALLEST_DT,
+    SMALLEST_SAMPLE,
     SignalingError,
     c_backend_error,
     first_day,
@@ -34,7 +36,8 @@ from hyper.signaling.model import STATES, a1, a2, bump_duration, g, net_balance,
 from hyper.signaling.params import SignalingParams, load_params
 
 __all__ = [
-    "AUTO_MIN_MEMBERS", "BACKENDS", "CHUNK", "FAILURES", "PAPER", "STATES", "SignalingError", "SignalingParams",
+    "AUTO_MIN_MEMBERS", "BACKENDS", "CHUNK", "FAILURES",
+    "SMALLEST_DT", "SMALLEST_SAMPLE", "PAPER", "STATES", "SignalingError", "SignalingParams",
     "a1", "a2", "bump_duration", "c_backend_error", "first_day", "g", "integrate", "load_params",
     "main", "net_balance", "reference", "rest_state", "rhs", "run", "step_count", "switch_times",
 ]

@@ -13,8 +13,9 @@ import sys
 from pathlib import Path
 
 from hyper import cli, log, protocols
+from hyper.checkpoint import on_rank0
 from hyper.params import as_attributes, positive_hours
-from hyper.signaling.integrators import SignalingError, first_day
+from hyper.signaling.integrators import SMALLEST_DT, SMALLEST_SAMPLE, SignalingError, first_day
 from hyper.signaling.integrators import run as series
 from hyper.signaling.params import load_params
 
@@ -61,28 +62,32 @@ def answer(comm, runs: list, paths: list[Path], params, dt: float, sample_every:
 def run(comm, args) -> int:
     from hyper import io
 
-    dt = positive_hours(args.signaling_dt, "--signaling-dt")
-    sample_every = positive_hours(args.sample_every, "--sample-every")
+    dt = positive_hours(args.signaling_dt, "--signaling-dt", SMALLEST_DT)
+    sample_every = positive_hours(args.sample_every, "--sample-every", SMALLEST_SAMPLE)
     params = load_params(args.params)
     runs = protocols.from_option(args.protocol)
     paths = io.result_paths(args.output, [p.name for p in runs])
-    try:
+
+    def work():
         insets = {p.name: first_day(params, p, dt) for p in runs}
         results = answer(comm, runs, paths, params, dt, sample_every)
+        if args.plot is not None:
+            from hyper import plot
+            from hyper.signaling.plot import figure_protocols
+
+            fig = figure_protocols(results, {p.name: p for p in runs}, params, insets)
+            log.info(comm, f"wrote {plot.save(fig, args.plot, dpi=130)}")
+
+    # The ODEs of a few protocols take seconds: rank 0 alone integrates and writes them.
+    try:
+        on_rank0(comm, work)
     except SignalingError as err:
         cli.error(comm, str(err))
-        return cli.EXIT_SOME_FAILED
-    if args.plot is not None:
-        from hyper import plot
-        from hyper.signaling.plot import figure_protocols
-
-        fig = figure_protocols(results, {p.name: p for p in runs}, params, insets)
-        log.info(comm, f"wrote {plot.save(fig, args.plot, dpi=130)}")
+        return cli.EXIT_FAILED
     return cli.EXIT_OK
 
 
-# The signaling ODEs need no MPI; demo runs this on rank 0 alone.
-main = cli.entry(parser, run, world=False)
+main = cli.entry(parser, run)
 
 if __name__ == "__main__":
     sys.exit(main())
