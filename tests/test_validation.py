@@ -111,6 +111,28 @@ BAD_OPTIONS = {
                              r"missing_end.xdmf: facet tag 2 \(end\) is missing; the file has tags \[1, 3\]"),
     "mesh_not_xdmf": (["--mesh", "{d}/muscle.msh"], r"muscle.msh: expected an XDMF mesh file"),
     "mesh_garbage": (["--mesh", "{d}/garbage.xdmf"], r"garbage.xdmf: cannot read a mesh 'Grid' with facet tags"),
+    "mesh_tangled": (["--mesh", "{d}/tangled.xdmf"],
+                     r"tangled.xdmf: the mesh is tangled: \d+ of its 96 cells are inverted"),
+    "mesh_flat": (["--mesh", "{d}/flat.xdmf"], r"flat.xdmf: degenerate cells: the smallest has 0 of the mean"),
+    "mesh_collapsed_cells": (["--mesh", "{d}/collapsed.xdmf"], r"collapsed.xdmf: degenerate cells"),
+    "mesh_truncated": (["--mesh", "{d}/truncated.xdmf"],
+                       r"truncated.xdmf: cannot read its data file truncated.h5 \(truncated or damaged\?\)"),
+    "mesh_data_missing": (["--mesh", "{d}/no_data.xdmf"], r"no_data.xdmf: its data file no_data.h5 is missing"),
+    "petsc_option_misspelt": (["--petsc-option", "snes_maxit=50"],
+                              r"--petsc-option: PETSc does not read snes_maxit for the mechanics solver"),
+    "petsc_option_bad_type": (["--petsc-option", "snes_type=bogus"],
+                              r"--petsc-option: PETSc refused snes_type: Unable to find requested SNES type bogus"),
+    "petsc_option_bad_value": (["--petsc-option", "snes_max_it=many"],
+                               r"--petsc-option: PETSc refused snes_max_it: Input string many has no integer value"),
+    "geometry_empty": (["--geometry", ""], r"--geometry: unknown geometry ''"),
+    "signaling_dt_tiny": (["--signaling-dt", "1e-300"], r"--signaling-dt: expected at least 0.0001 h, got 1e-300"),
+    "output_under_proc": (["--output", "/proc/hyper/run.h5"], r"--output: /proc/hyper/run.h5: under /proc"),
+    "output_a_file_as_folder": (["--protocol", "all", "--output", "{d}/a_file"],
+                                r"--output: .*a_file: exists and is not a folder|--output .*a_file: exists"),
+    "plot_under_a_file": (["--plot", "{d}/a_file/figure.png"], r"--plot: .*a_file is a file, not a folder"),
+    "plot_under_proc": (["--plot", "/proc/figure.png"], r"--plot: /proc/figure.png: under /proc"),
+    "lock_is_a_folder": (["--output", "{d}/locked/run.h5"], r"cannot take the output lock: .*run.h5.lock"),
+    "params_folder": (["--params", "{d}/a_folder"], r"a_folder: is a folder, not a TOML file"),
 }
 
 
@@ -155,6 +177,24 @@ def write_inputs(d: Path) -> None:
     write_box(d / "missing_end.xdmf", (0.02, 0.02, 0.2), tags=(1, 3, 3))
     (d / "garbage.xdmf").write_text("this is not XDMF\n")
     (d / "muscle.msh").write_text("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n")
+    for name in ("tangled", "flat", "collapsed", "truncated", "no_data"):
+        write_box(d / f"{name}.xdmf", (0.02, 0.02, 0.2))
+    with h5py.File(d / "tangled.h5", "r+") as f:
+        x = f["Mesh/Grid/geometry"]
+        x[0] = x[0] + np.array([0.03, 0.03, 0.1])  # a corner pulled through the box
+    with h5py.File(d / "flat.h5", "r+") as f:
+        x = f["Mesh/Grid/geometry"]
+        x[:, 2] = 0.0
+    with h5py.File(d / "collapsed.h5", "r+") as f:
+        x = f["Mesh/Grid/geometry"]
+        cell = f["Mesh/Grid/topology"][0]
+        x[cell[1]] = x[cell[0]]  # two vertices of a cell on one point
+    data = (d / "truncated.h5").read_bytes()
+    (d / "truncated.h5").write_bytes(data[: len(data) // 2])
+    (d / "no_data.h5").unlink()
+    (d / "a_folder").mkdir()
+    (d / "locked").mkdir()
+    (d / "locked" / "run.h5.lock").mkdir()
 
 
 def base(files, out, protocol_file=True, geometry=True):
@@ -251,7 +291,8 @@ def test_good_inputs_pass_the_checks_and_write_nothing(files, tmp_path, extra):
 
 @pytest.mark.mpi
 @pytest.mark.parametrize("name", ["protocol_overlap", "params_nan", "mesh_in_mm_read_as_m", "mesh_missing_end_tag",
-                                  "petsc_option_no_value"])
+                                  "petsc_option_no_value", "mesh_tangled", "mesh_truncated", "petsc_option_misspelt",
+                                  "petsc_option_bad_type", "lock_is_a_folder", "plot_under_proc"])
 def test_every_rank_refuses_alike(files, tmp_path_factory, capsys, name):
     """On 2 ranks every rank returns 2 and only rank 0 speaks (no rank is left waiting)."""
     comm = MPI.COMM_WORLD

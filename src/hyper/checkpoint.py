@@ -344,9 +344,14 @@ class OutputLock:
     def __init__(self, output: Path):
         self.path = Path(str(output) + ".lock")
         self._fd: int | None = None
+        self._made: list[Path] = []  # the folders made for the lock, innermost first
 
     def acquire(self) -> bool:
         """Take the lock; False where the file system has no locks (then none is held)."""
+        missing = self.path.parent
+        while not missing.exists():
+            self._made.append(missing)
+            missing = missing.parent
         self.path.parent.mkdir(parents=True, exist_ok=True)
         while True:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
@@ -378,11 +383,18 @@ class OutputLock:
         return True
 
     def release(self) -> None:
-        if self._fd is None:
-            return
-        self.path.unlink(missing_ok=True)
-        os.close(self._fd)
-        self._fd = None
+        """Let go, and remove the folders made for the lock that nothing else filled: a run
+        that stopped on bad input leaves no trace."""
+        if self._fd is not None:
+            self.path.unlink(missing_ok=True)
+            os.close(self._fd)
+            self._fd = None
+        for folder in self._made:
+            try:
+                folder.rmdir()
+            except OSError:  # not empty: the run wrote there
+                break
+        self._made = []
 
 
 @contextlib.contextmanager

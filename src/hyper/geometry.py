@@ -150,6 +150,7 @@ def load(name: str, comm, *, meshes_dir: str | Path | None = None, quadrature_de
         geometry = Geometry(name, mesh, tags, ends=(1, 2), lateral=LATERAL_TAG, midsection=3,
                             quadrature_degree=quadrature_degree)
         _check_tags(geometry, path)
+        _check_cells(geometry, path)
         return geometry
     return load_file(path, comm, name=name, tags="ft_small", ends=(1, 2), lateral=3, scale=MM,
                      quadrature_degree=quadrature_degree)
@@ -175,6 +176,9 @@ def load_file(
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: no such mesh file")
+    problem = comm.bcast(_unreadable(path) if comm.rank == 0 else None, root=0)
+    if problem is not None:
+        raise InputError(f"{path}: {problem}")
     try:
         with XDMFFile(comm, str(path), "r") as xdmf:
             mesh = xdmf.read_mesh(name=mesh_name)
@@ -193,7 +197,58 @@ def load_file(
     geometry = Geometry(name or path.stem, mesh, facet_tags, ends=tuple(ends), lateral=lateral,
                         midsection=midsection, quadrature_degree=quadrature_degree)
     _check_tags(geometry, path)
+    _check_cells(geometry, path)
     return geometry
+
+
+# A cell this much thinner than the mean is degenerate: the shipped meshes' thinnest is
+# 3.5e-3 of their mean, a cell flattened onto a plane or a line 1e-16.
+DEGENERATE_VOLUME = 1e-6
+
+
+def _check_cells(geometry: Geometry, path) -> None:
+    """Refuse a tangled mesh (cells of both orientations: a vertex moved through a face)
+    and degenerate cells, which would give a wrong CSA0 and volume or a singular solve."""
+    mesh = geometry.mesh
+    p = mesh.geometry.x[mesh.geometry.dofmaps[0][: mesh.topology.index_map(3).size_local]]
+    volume = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6.0
+    comm = geometry.comm
+    positive = _sum(comm, int(np.count_nonzero(volume > 0)))
+    negative = _sum(comm, int(np.count_nonzero(volume < 0)))
+    cells = _sum(comm, len(volume))
+    mean = _sum(comm, float(np.abs(volume).sum())) / max(cells, 1)
+    thinnest = comm.allreduce(float(np.abs(volume).min()) if len(volume) else np.inf, op=MPI.MIN)
+    if positive and negative:
+        raise InputError(f"{path}: the mesh is tangled: {min(positive, negative)} of its {cells} cells are "
+                         "inverted against the others")
+    if not mean > 0 or thinnest < DEGENERATE_VOLUME * mean:
+        raise InputError(f"{path}: degenerate cells: the smallest has {thinnest / max(mean, 1e-300):.3g} of the "
+                         "mean cell volume (flat or collapsed cells)")
+
+
+def _unreadable(xdmf: Path) -> str | None:
+    """Why the HDF5 data an XDMF mesh file points to cannot be read (None where it can, or
+    where the file is no XDMF: XDMFFile says so), found by h5py, which reports it in one
+    line where the HDF5 library under XDMFFile prints pages."""
+    import xml.etree.ElementTree as ET
+
+    import h5py
+
+    try:
+        items = [item.text.strip() for item in ET.parse(xdmf).iter("DataItem") if item.text and ":" in item.text]
+    except ET.ParseError:
+        return None
+    for text in items:
+        name, _, dataset = text.partition(":")
+        data = xdmf.parent / name
+        if not data.is_file():
+            return f"its data file {name} is missing"
+        try:
+            with h5py.File(data, "r") as f:
+                f[dataset][()]
+        except (OSError, KeyError, RuntimeError) as err:
+            return f"cannot read its data file {name} (truncated or damaged?): {err}"
+    return None
 
 
 def _check_tags(geometry: Geometry, path) -> None:

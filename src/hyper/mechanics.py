@@ -57,6 +57,7 @@ from petsc4py import PETSc
 
 from hyper import material as mat
 from hyper.geometry import Geometry
+from hyper.params import InputError
 
 DEFAULT_PETSC_OPTIONS = {
     "snes_type": "newtonls",
@@ -191,7 +192,8 @@ class MechanicsProblem:
         self.snes.setJacobian(self._snes_jacobian, self._K, self._K)
         self.snes.setOptionsPrefix(options_prefix)
         preset = ITERATIVE_PETSC_OPTIONS if linear_solver == "iterative" else {}
-        _set_options(self.snes, options_prefix, {**DEFAULT_PETSC_OPTIONS, **preset, **(petsc_options or {})})
+        _set_options(self.snes, options_prefix, {**DEFAULT_PETSC_OPTIONS, **preset, **(petsc_options or {})},
+                     checked=tuple(petsc_options or ()))
         if linear_solver == "iterative":
             self._set_blr(blr_precision)
 
@@ -431,8 +433,17 @@ def taylor_hood_unknowns(mesh) -> int:
     return 3 * (vertices + edges) + vertices
 
 
-def _set_options(snes, prefix: str, options: dict) -> None:
-    """Apply ``options`` under ``prefix`` except those already in the database, then clean up."""
+# Read by MUMPS when it factorises, after setFromOptions: whether they are used cannot be
+# known when the solver is set up.
+READ_LATER = ("mat_mumps_",)
+
+
+def _set_options(snes, prefix: str, options: dict, checked: tuple[str, ...] = ()) -> None:
+    """Apply ``options`` under ``prefix`` except those already in the database, then clean up.
+
+    The ``checked`` keys (the user's) must be ones PETSc reads: a misspelt option would be
+    ignored silently, and a bad value would fail deep inside the run. InputError otherwise.
+    """
     db = PETSc.Options()
     added = []
     for key, value in options.items():
@@ -440,9 +451,19 @@ def _set_options(snes, prefix: str, options: dict) -> None:
         if not db.hasName(name):
             db.setValue(name, value)
             added.append(name)
-    snes.setFromOptions()
-    for name in added:
-        db.delValue(name)
+    try:
+        snes.setFromOptions()
+        unused = [key for key in checked if not key.startswith(READ_LATER) and not db.used(prefix + key)]
+    except PETSc.Error as err:
+        # PETSc's message is its call stack; the last line says what was wrong
+        lines = [line.removeprefix("[0]").strip() for line in str(err).splitlines() if line.strip()]
+        raise InputError(f"--petsc-option: PETSc refused {', '.join(checked)}: {lines[-1]}") from None
+    finally:
+        for name in added:
+            db.delValue(name)
+    if unused:
+        raise InputError(f"--petsc-option: PETSc does not read {', '.join(unused)} for the mechanics solver "
+                         "(misspelt, or an option of another object)")
 
 
 # ------------------------------------------------------------------- rigid motions
