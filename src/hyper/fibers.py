@@ -518,7 +518,7 @@ def parser() -> cli.Parser:
     p.add_argument("--geometries", nargs="+", metavar="ID", default=list(geo.ANATOMICAL),
                    help="geometries to do (the 12 anatomical meshes)")
     p.add_argument("--force", action="store_true", help="recompute fibre files that exist")
-    p.add_argument("--ranks-per-job", type=int, default=1, help="MPI ranks per mesh")
+    p.add_argument("--ranks-per-job", type=cli.integer(1), default=1, help="MPI ranks per mesh")
     p.add_argument("--output", type=cli.output(folder=True), default="results/fibers",
                    help="folder for summary.csv and the pictures")
     p.add_argument("--meshes-dir", type=Path, default=geo.MESHES_DIR,

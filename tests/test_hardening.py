@@ -1,0 +1,221 @@
+"""Every job refuses bad input alike: exit status 2, one `error:` line on stderr, nothing
+on stdout, and nothing written (the output folder absent, the input folder unchanged).
+
+The table runs each job in-process through `hyper.cli.main`, as `hyper JOB …` does; the
+MPI cases run `mpirun -n 2 python -m hyper.JOB …` with a time limit, so that a job that
+leaves a rank waiting fails the test instead of hanging it.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hyper import cli
+
+ROOT = Path(__file__).resolve().parents[1]
+
+PROTOCOL_FILES = {
+    "climbs_out.toml": 'name = "../../escaped"\nend = 48.0\n',
+    "hidden.toml": 'name = ".hidden"\nend = 48.0\n',
+    "slashed.toml": 'name = "a/b"\nend = 48.0\n',
+    "empty_name.toml": 'name = ""\nend = 48.0\n',
+    "nul.toml": 'name = "a\\u0000b"\nend = 48.0\n',
+    "huge_end.toml": "end = " + "9" * 401 + "\n",
+    "long_end.toml": "end = 1e15\n",
+    "huge_duration.toml": "end = 48.0\n[[session]]\nstart = 0.0\nduration = " + "9" * 401 + "\nintensity = 0.5\n",
+}
+PROTOCOL_CASES = {
+    "unknown": (["{p}", "daily"], r"unknown protocol 'daily'"),
+    "absent_file": (["{p}", "{d}/absent.toml"], r"absent.toml: no such file"),
+    "folder": (["{p}", "{d}/a_folder.toml"], r"a_folder.toml: is a folder, not a TOML file"),
+    "climbs_out": (["{p}", "{d}/climbs_out.toml"], r"name must be 1-64 letters, .* got '../../escaped'"),
+    "hidden": (["{p}", "{d}/hidden.toml"], r"name must be .* got '.hidden'"),
+    "slashed": (["{p}", "{d}/slashed.toml"], r"name must be .* got 'a/b'"),
+    "empty_name": (["{p}", "{d}/empty_name.toml"], r"name must be .* got ''"),
+    "nul": (["{p}", "{d}/nul.toml"], r"name must be .* got 'a\\x00b'"),
+    "huge_end": (["{p}", "{d}/huge_end.toml"], r"end: expected a finite number, got an integer of 401 digits"),
+    "long_end": (["{p}", "{d}/long_end.toml"], r"end must be at most 87360 h \(ten years\), got 1e\+15"),
+    "huge_duration": (["{p}", "{d}/huge_duration.toml"], r"duration: expected a finite number, got an integer"),
+}
+OUTPUT_CASES = {
+    "under_a_file": (["--output", "{d}/a_file/{o}"], r"a_file is a file, not a folder"),
+    "under_proc": (["--output", "/proc/hyper/{o}"], r"under /proc, not a place for results"),
+    "under_sys": (["--output", "/sys/hyper/{o}"], r"under /sys, not a place for results"),
+    "empty": (["--output", ""], r"--output: expected a path, got ''"),
+}
+FOLDER_OUTPUT = {"a_file_as_folder": (["--output", "{d}/a_file"], r"a_file: exists and is not a folder")}
+STEP_CASES = {
+    "zero": (["--signaling-dt", "0"], r"--signaling-dt: expected a finite number of hours > 0, got 0"),
+    "nan": (["--signaling-dt", "nan"], r"--signaling-dt: expected a finite number of hours > 0, got nan"),
+    "tiny": (["--signaling-dt", "1e-300"], r"--signaling-dt: expected at least 0.0001 h, got 1e-300"),
+    "text": (["--signaling-dt", "fast"], r"argument --signaling-dt: invalid float value: 'fast'"),
+}
+
+
+def integer_cases(option, least, most=None):
+    bounds = rf">= {least}" if most is None else rf"in \[{least}, {most}\]"
+    out = {
+        f"{option}_below": ([option, str(least - 1)], rf"argument {option}: expected an integer {bounds}, got {least - 1}"),
+        f"{option}_fraction": ([option, "2.5"], rf"argument {option}: expected an integer, got '2.5'"),
+    }
+    if most is not None:
+        out[f"{option}_huge"] = ([option, "1" + "0" * 30], rf"argument {option}: expected an integer {bounds}, got 1")
+    return out
+
+
+# job -> (the base command, with {out} its output; the output's name for OUTPUT_CASES;
+#         the job's cases besides the shared ones)
+JOBS = {
+    "signaling": (["--protocol", "mwf", "--output", "{out}"], "x.h5", {
+        **{f"protocol_{k}": (v[0], v[1]) for k, v in PROTOCOL_CASES.items()},
+        **{f"step_{k}": v for k, v in STEP_CASES.items()},
+        "sample_every_zero": (["--sample-every", "0"], r"--sample-every: expected a finite number of hours > 0"),
+        "sample_every_tiny": (["--sample-every", "1e-9"], r"--sample-every: expected at least 0.001 h, got 1e-09"),
+        "plot_not_png": (["--plot", "{out}/figure.pdf"], r"figure.pdf: expected a .png file"),
+        "plot_under_proc": (["--plot", "/proc/figure.png"], r"under /proc"),
+        "params_absent": (["--params", "{d}/absent_params.toml"], r"absent_params.toml: no such file"),
+        "params_folder": (["--params", "{d}/a_folder.toml"], r"is a folder, not a TOML file"),
+        "params_huge": (["--params", "{d}/huge_params.toml"], r"kM: expected a finite number, got an integer"),
+        "unknown_option": (["--bogus"], r"unrecognized arguments: --bogus"),
+    }),
+    "sobol": (["--samples", "4", "--output", "{out}"], "sobol", {
+        **{f"protocol_{k}": v for k, v in PROTOCOL_CASES.items() if k != "unknown"},
+        **{f"step_{k}": v for k, v in STEP_CASES.items()},
+        **FOLDER_OUTPUT,
+        **integer_cases("--samples", 2, 10**7),
+        **integer_cases("--chunk", 1, 10**7),
+        **integer_cases("--seed", 0, 2**32 - 2),
+        **integer_cases("--resamples", 2, 10**5),
+        "backend": (["--backend", "fortran"], r"argument --backend: invalid choice: 'fortran'"),
+        "unknown_option": (["--bogus"], r"unrecognized arguments: --bogus"),
+    }),
+    "cohort": (["--geometries", "cylinder", "--protocols", "mwf", "--output", "{out}"], "cohort", {
+        **{f"protocol_{k}": (["--protocols", v[0][1]], v[1]) for k, v in PROTOCOL_CASES.items()},
+        **FOLDER_OUTPUT,
+        **integer_cases("--ranks-per-job", 1),
+        **integer_cases("--snapshot-every", 1),
+        "growth_dt": (["--growth-dt", "-1"], r"--growth-dt: expected a finite number of hours > 0, got -1"),
+        "max_halvings": (["--max-halvings", "40"], r"--max-halvings: must be an integer in \[0, 12\], got 40"),
+        "geometry": (["--geometries", "biceps"], r"--geometries: unknown biceps"),
+        "geometry_empty": (["--geometries", ""], r"--geometries: unknown"),
+        "plot_geometry": (["--plot-geometry", "nowhere"], r"--plot-geometry: unknown geometry 'nowhere'"),
+        "unknown_option": (["--bogus"], r"unrecognized arguments: --bogus"),
+    }),
+    "ensemble": (["--geometry", "cylinder", "--protocol", "mwf", "--output", "{out}"], "ensemble", {
+        **{f"protocol_{k}": v for k, v in PROTOCOL_CASES.items()},
+        **FOLDER_OUTPUT,
+        **integer_cases("--samples", 1),
+        **integer_cases("--first-seed", 0, 2**32 - 1),
+        **integer_cases("--ranks-per-job", 1),
+        "epsilon": (["--epsilon", "1.5"], r"epsilon"),
+        "growth_dt": (["--growth-dt", "0"], r"--growth-dt: expected a finite number of hours > 0, got 0"),
+        "signaling_dt": (["--signaling-dt", "1e-300"], r"--signaling-dt: expected at least 0.0001 h"),
+        "geometry": (["--geometry", "nowhere"], r"--geometry: unknown geometry 'nowhere'"),
+        "geometry_empty": (["--geometry", ""], r"--geometry: unknown geometry ''"),
+        "protocol_all": (["--protocol", "all"], r"an ensemble runs one protocol"),
+        "model": (["--model", "brownian"], r"argument --model: invalid choice: 'brownian'"),
+        "unknown_option": (["--bogus"], r"unrecognized arguments: --bogus"),
+    }),
+    "contraction": (["--geometry", "cylinder", "--output", "{out}/c.h5"], "c.h5", {
+        **integer_cases("--steps", 1, 10**4),
+        **integer_cases("--quadrature-degree", 1, 12),
+        **integer_cases("--max-halvings", 0, 12),
+        "output_suffix": (["--output", "{out}/c.txt"], r"c.txt: expected a .h5 file"),
+        "geometry": (["--geometry", "nowhere"], r"unknown geometry 'nowhere'"),
+        "fibers": (["--fibers", "helical"], r"unknown fibre kind 'helical'"),
+    }),
+    "meshstats": (["--geometries", "TA_VHF_Left", "--output", "{out}/s.csv"], "s.csv", {
+        "output_suffix": (["--output", "{out}/s.txt"], r"s.txt: expected a .csv file"),
+        "geometry": (["--geometries", "nowhere"], r"nowhere"),
+        "unknown_option": (["--bogus"], r"unrecognized arguments: --bogus"),
+    }),
+    "fibers": (["--geometries", "TA_VHF_Left", "--output", "{out}"], "fibers", {
+        **FOLDER_OUTPUT,
+        **integer_cases("--ranks-per-job", 1),
+        "geometry": (["--geometries", "nowhere"], r"nowhere"),
+        "unknown_option": (["--bogus"], r"unrecognized arguments: --bogus"),
+    }),
+    "demo": (["--output", "{out}"], "demo", {**FOLDER_OUTPUT, "unknown_option": (["--bogus"], r"--bogus")}),
+}
+
+
+def cases():
+    for job, (_, name, own) in JOBS.items():
+        for key, (options, message) in {**OUTPUT_CASES, **own}.items():
+            yield pytest.param(job, options, message, id=f"{job}-{key}")
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("inputs")
+    for name, text in PROTOCOL_FILES.items():
+        (d / name).write_text(text)
+    (d / "huge_params.toml").write_text("kM = " + "1" * 401 + "\n")
+    (d / "a_file").write_text("not a folder\n")
+    (d / "a_folder.toml").mkdir()
+    return d
+
+
+def command(job, options, inputs, out):
+    base, name, _ = JOBS[job]
+    fill = {"d": inputs, "out": out, "o": name, "p": "--protocol"}
+    return [job, *(o.format(**fill) for o in base), *(o.format(**fill) for o in options)]
+
+
+def listing(folder: Path):
+    return sorted((p.name, p.stat().st_size) for p in folder.rglob("*"))
+
+
+@pytest.mark.parametrize("job, options, message", list(cases()))
+def test_every_job_refuses_bad_input_in_one_line_and_writes_nothing(inputs, tmp_path, capsys, job, options,
+                                                                     message):
+    import re
+
+    out = tmp_path / "out"
+    before = listing(inputs)
+    assert cli.main(command(job, options, inputs, out)) == cli.EXIT_INPUT
+    captured = capsys.readouterr()
+    lines = [line for line in captured.err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), captured.err
+    assert re.search(message, lines[0]), lines[0]
+    assert captured.out == ""
+    assert not out.exists() and listing(inputs) == before
+    assert not (ROOT / "escaped").exists()
+
+
+def test_the_table_is_long_enough():
+    assert len(list(cases())) >= 150
+
+
+# ------------------------------------------------------------------------- 2 ranks
+
+MPI_CASES = [
+    ("grow", ["--geometry", "cylinder", "--protocol", "mwf", "--output", "{d}/a_file/run.h5"], "a_file is a file"),
+    ("grow", ["--geometry", "cylinder", "--protocol", "mwf", "--output", "{out}/run.h5", "--petsc-option",
+              "snes_maxit=3"], "PETSc does not read snes_maxit"),
+    ("cohort", ["--geometries", "cylinder", "--output", "{d}/a_file"], "exists and is not a folder"),
+    ("ensemble", ["--geometry", "cylinder", "--output", "/proc/ensemble"], "under /proc"),
+    ("sobol", ["--samples", "4", "--output", "{d}/a_file/sobol"], "a_file is a file"),
+    ("signaling", ["--protocol", "{d}/climbs_out.toml", "--output", "{out}"], "name must be"),
+    ("fibers", ["--geometries", "TA_VHF_Left", "--output", "{d}/a_file"], "exists and is not a folder"),
+]
+
+
+@pytest.mark.parametrize("job, options, message", MPI_CASES, ids=[f"{c[0]}-{i}" for i, c in enumerate(MPI_CASES)])
+def test_no_job_leaves_a_rank_waiting_on_bad_input(inputs, tmp_path, job, options, message):
+    """Under mpirun -n 2 every rank stops at once: exit 2, one error line (rank 0's)."""
+    out = tmp_path / "out"
+    argv = [o.format(d=inputs, out=out) for o in options]
+    mpirun = str(Path(sys.executable).parent / "mpirun")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    result = subprocess.run([mpirun, "-n", "2", sys.executable, "-m", f"hyper.{job}", *argv], cwd=ROOT, env=env,
+                            capture_output=True, text=True, timeout=120)
+    lines = [line for line in result.stderr.splitlines() if line.startswith("error: ")]
+    assert result.returncode == cli.EXIT_INPUT, result.stderr
+    assert len(lines) == 1 and message in lines[0], result.stderr
+    assert not out.exists()
