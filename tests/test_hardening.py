@@ -60,7 +60,8 @@ STEP_CASES = {
 def integer_cases(option, least, most=None):
     bounds = rf">= {least}" if most is None else rf"in \[{least}, {most}\]"
     out = {
-        f"{option}_below": ([option, str(least - 1)], rf"argument {option}: expected an integer {bounds}, got {least - 1}"),
+        f"{option}_below": ([option, str(least - 1)],
+                            rf"argument {option}: expected an integer {bounds}, got {least - 1}"),
         f"{option}_fraction": ([option, "2.5"], rf"argument {option}: expected an integer, got '2.5'"),
     }
     if most is not None:
@@ -145,7 +146,7 @@ JOBS = {
 
 
 def cases():
-    for job, (_, name, own) in JOBS.items():
+    for job, (_, _, own) in JOBS.items():
         for key, (options, message) in {**OUTPUT_CASES, **own}.items():
             yield pytest.param(job, options, message, id=f"{job}-{key}")
 
