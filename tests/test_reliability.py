@@ -219,6 +219,31 @@ def test_unrecoverable_failure_saves_the_last_step_and_the_reason(inputs, tmp_pa
     assert not run.Outputs(out).status.exists() and not run.Outputs(out).checkpoint.exists()
 
 
+def test_a_full_disk_stops_the_run_in_one_line_and_keeps_the_previous_checkpoint(inputs, tmp_path, capsys,
+                                                                                   monkeypatch):
+    out = tmp_path / "run.h5"
+    real, calls = ckpt.write, []
+
+    def fills_the_disk(comm, path, *args):
+        calls.append(path)
+        if len(calls) > 1:  # raised on every rank, as checkpoint.write raises its errors
+            raise OSError(f"{path}: cannot write the checkpoint: [Errno 28] No space left on device")
+        real(comm, path, *args)
+
+    monkeypatch.setattr(ckpt, "write", fills_the_disk)
+    assert grow.main(command(inputs, out, "--checkpoint-every", "3")) == cli.EXIT_FAILED
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "No space left on device; the previous checkpoint is kept" in lines[0], lines
+    status = ckpt.read_status(run.Outputs(out).status)
+    assert status["state"] == "failed" and status["step"] == 6 and "No space left" in status["reason"]
+    assert attrs(run.Outputs(out).checkpoint)["step"] == 3  # the one written before the disk filled
+    assert not out.exists() and not run.Outputs(out).fields.exists()
+
+    monkeypatch.setattr(ckpt, "write", real)  # room again: the same command finishes from step 3
+    assert grow.main(command(inputs, out, "--checkpoint-every", "3")) == 0
+    assert "resuming" in capsys.readouterr().out and io.is_complete(out)
+
+
 def test_a_second_run_on_the_same_output_stops_at_once(inputs, tmp_path, capsys):
     out = tmp_path / "results" / "run.h5"
     lock = ckpt.OutputLock(out)

@@ -215,9 +215,8 @@ def grow(comm, args, argv: list[str]) -> int:
                 except run.Interrupted as err:
                     info(comm, f"{spec.protocol.name}: {err}; exit status {cli.EXIT_TERMINATED}")
                     return cli.EXIT_TERMINATED
-                except GrowthFailure as err:
-                    cli.error(comm, f"{spec.label}: {err}; state after step {err.step - 1} saved in "
-                                    f"{err.checkpoint}, details in {out.status}")
+                except (run.Unsaved, GrowthFailure) as err:
+                    cli.error(comm, f"{spec.label}: {err}")
                     return cli.EXIT_FAILED
                 on_rank0(comm, lambda: out.store(done.series, done.meta, run.result_groups(spec, done.choice)))
                 info(comm, f"{spec.protocol.name}: CSA/CSA0 {done.series['csa_ratio'][-1]:.5f}, V/V0 "

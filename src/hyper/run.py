@@ -16,7 +16,8 @@ derives the files of a run from its result path:
 `execute` runs the model (`hyper.coupled.CoupledModel.run`, which writes no files)
 and records it: `Series` keeps the time series, `Snapshots` the XDMF fields, both
 carried by the checkpoint so that a resumed run writes what an uninterrupted one
-would (the same bits on the same number of ranks). grow, cohort, ensemble and the
+would (the same bits on one rank; on several, within the round-off by which two
+parallel runs already differ). grow, cohort, ensemble and the
 benches all run through here.
 """
 
@@ -47,6 +48,11 @@ MESH_UNITS = {"m": 1.0, "mm": 1.0e-3}
 # A muscle's longest side: the paper's are 0.1-0.45 m. Outside this, the declared unit
 # is wrong (a file in millimetres read as metres is ~1000x too long).
 MUSCLE_LENGTH_M = (0.01, 1.0)
+
+
+class Unsaved(RuntimeError):
+    """A checkpoint could not be written (a full disk, a quota): the run stops, the previous
+    checkpoint stays as it was."""
 
 
 class Interrupted(RuntimeError):
@@ -494,9 +500,16 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAP
     def save(status: str) -> None:
         original, per_cell, glob = ckpt.model_state(model)
         snap_cells, snap_glob = snaps.state()
-        ckpt.write(comm, path, original, {**per_cell, **snap_cells}, {**glob, **snap_glob}, series.arrays(),
-                   {"run_digest": run_digest, "step": model.step, "t": model.t, "segments": segments,
-                    "status": status, "geometry": spec.geometry, "protocol": spec.protocol.name})
+        try:
+            ckpt.write(comm, path, original, {**per_cell, **snap_cells}, {**glob, **snap_glob}, series.arrays(),
+                       {"run_digest": run_digest, "step": model.step, "t": model.t, "segments": segments,
+                        "status": status, "geometry": spec.geometry, "protocol": spec.protocol.name})
+        except OSError as err:  # raised on every rank alike
+            kept = "the previous checkpoint is kept" if ckpt.on_rank0(comm, path.is_file) else "no checkpoint yet"
+            with contextlib.suppress(OSError):  # a disk too full for the checkpoint may take no status either
+                stopped("failed", reason=str(err), step=model.step, t_h=model.t, checkpoint=kept,
+                        resume="make room, then run the same command again")
+            raise Unsaved(f"{err}; {kept}") from None
 
     def stopped(state: str, **status) -> None:
         ckpt.on_rank0(comm, lambda: ckpt.write_status(outputs.status, {"state": state, **status}))
@@ -541,6 +554,7 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAP
                         params=as_attributes(spec.params), settings=dataclasses.asdict(spec.settings),
                         petsc_options=dict(spec.petsc_options), ranks=comm.size, command=list(command or ()),
                         resume="run the command again, e.g. with a larger --max-halvings")
+                err.args = (f"{err}; state after step {err.step - 1} saved in {path}, details in {outputs.status}",)
             raise
     meta = {
         "geometry": spec.geometry,
