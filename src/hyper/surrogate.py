@@ -35,10 +35,12 @@ from hyper.protocols import Protocol, Session
 # surrogate_check): 0.99710 (mwf), 0.99715 (every3days), 0.99711 (weekly) on the idealized
 # muscle. 1 on the cylinder by construction (compatible growth).
 SECTION_FACTOR = {"cylinder": 1.0, "idealized": 0.99712}
-# The surrogate's error against the coupled idealized runs with the same steps,
-# |CSA - CSA_coupled| / (CSA_coupled - 1) over those three protocols at 9 weeks (same
-# bench), rounded up: what --accuracy weighs before choosing it.
-SURROGATE_ERROR = 5e-5
+# The surrogate's error against coupled idealized runs with the same steps: the largest
+# |CSA - CSA_coupled| over a run, as a fraction of the run's 9-week growth CSA_coupled - 1.
+# Measured 6.5e-5 at the table's kM on every3days (tests/test_calibrate.py, bench calibrate:
+# surrogate_check) and 1.3e-4 at the DeFreitas optimum kM = 0.0145 1/h (hyper calibrate's
+# check): ρ drifts a little with the amount of growth. Rounded up; --accuracy weighs it.
+SURROGATE_ERROR = 2e-4
 
 
 def section_factor(geometry: str) -> float:
