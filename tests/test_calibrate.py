@@ -126,3 +126,14 @@ def test_the_shipped_data_and_protocols_read():
     for name, protocol in (("defreitas", "mwf"), ("damas", "data/damas.toml"), ("seynnes", "data/seynnes.toml")):
         d = calibrate.dataset(f"data/{name}.csv", protocols.resolve(protocol))
         assert d.t[-1] <= d.protocol.end and np.all(d.csa_ratio > 1.0)
+
+
+def test_a_parameter_the_data_do_not_see_gets_its_bounds_as_interval():
+    """kF acts only while FOXO is above its threshold, which training keeps it below."""
+    data = synthetic(0.016, 1.0, 0.003)
+    bounds = np.array([calibrate.BOUNDS["kM"], calibrate.BOUNDS["kF"]])
+    evaluate = calibrate.surrogate_model([data], ["kM", "kF"], signaling.SignalingParams(), signaling_dt=0.125,
+                                         factor=FACTOR, feedback="hill")
+    f = calibrate.fit(evaluate, [data], ["kM", "kF"], bounds, np.array([0.01, 0.019]))
+    assert f.unseen == ["kF"] and (f.low[1], f.high[1]) == tuple(bounds[1])
+    assert f.low[0] < 0.016 < f.high[0]

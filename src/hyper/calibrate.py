@@ -214,6 +214,7 @@ class Fit:
     rmse: float
     residuals: np.ndarray
     at_bound: list[str]
+    unseen: list[str]  # parameters the data do not constrain: their interval is their bounds
     evaluations: int
     wall_s: float
 
@@ -242,13 +243,19 @@ def fit(evaluate: Callable, datasets: list[Dataset], names: list[str], bounds: n
                                     bounds=(bounds[:, 0], bounds[:, 1]), method="trf", x_scale="jac")
     r, J = model(result.x)[0] - y, model(result.x)[1]
     rss = float(r @ r)
-    covariance = rss / (n - p) * np.linalg.pinv(J.T @ J)
+    # A parameter the data do not see (a zero Jacobian column, e.g. kF while FOXO stays below
+    # its threshold) has no finite interval: infinite variance, not pinv's zero.
+    seen = np.linalg.norm(J, axis=0) > 1e-12 * max(np.linalg.norm(J), 1e-300)
+    covariance = np.full((p, p), np.nan)
+    covariance[np.ix_(seen, seen)] = rss / (n - p) * np.linalg.pinv(J[:, seen].T @ J[:, seen])
+    covariance[~seen, ~seen] = np.inf
     half = stats.t.ppf(0.5 + level / 2, n - p) * np.sqrt(np.diag(covariance))
+    unseen = [name for name, ok in zip(names, seen) if not ok]
     low = np.maximum(result.x - half, bounds[:, 0])
     high = np.minimum(result.x + half, bounds[:, 1])
     at_bound = [name for name, v, b in zip(names, result.x, bounds)
                 if np.isclose(v, b[0], rtol=1e-6) or np.isclose(v, b[1], rtol=1e-6)]
-    return Fit(list(names), bounds, result.x, low, high, covariance, math.sqrt(rss / n), r, at_bound,
+    return Fit(list(names), bounds, result.x, low, high, covariance, math.sqrt(rss / n), r, at_bound, unseen,
                int(result.nfev + result.njev), time.perf_counter() - start)
 
 
@@ -259,7 +266,9 @@ def band(evaluate: Callable, f: Fit, bounds: np.ndarray, times: list[np.ndarray]
 
     curve, J = jacobian(evaluate, f.x, bounds, times)
     n = len(f.residuals)
-    half = stats.t.ppf(0.5 + level / 2, n - len(f.x)) * np.sqrt(np.einsum("ij,jk,ik->i", J, f.covariance, J))
+    # the curve does not move with an unconstrained parameter (its column is zero): it adds nothing
+    C = np.where(np.isfinite(f.covariance), f.covariance, 0.0)
+    half = stats.t.ppf(0.5 + level / 2, n - len(f.x)) * np.sqrt(np.einsum("ij,jk,ik->i", J, C, J))
     return curve, half
 
 
@@ -377,6 +386,7 @@ def write(args, datasets: list[Dataset], f: Fit, kind: str, reasons: list[str], 
     result = {
         "parameters": {name: {"value": float(f.x[j]), "low": float(f.low[j]), "high": float(f.high[j]),
                               "level": LEVEL, "at_bound": name in f.at_bound,
+                              "constrained_by_data": name not in f.unseen,
                               "method": "Jacobian covariance s^2 (J^T J)^-1, s^2 = RSS/(n-p), Student t",
                               "bounds": f.bounds[j].tolist()}
                        for j, name in enumerate(f.names)},
