@@ -34,7 +34,7 @@ EXIT_BUSY = 4
 EXIT_TERMINATED = 128 + signal.SIGTERM  # 143, what a shell reports for a TERM-killed job
 
 # `hyper JOB` runs hyper.JOB.main; the benches keep their own dispatcher (hyper bench NAME).
-JOBS = ("grow", "cohort", "ensemble", "signaling", "sobol", "contraction", "fibers", "meshstats", "slurm",
+JOBS = ("grow", "cohort", "ensemble", "signaling", "sobol", "contraction", "fibers", "meshstats", "mesh", "slurm",
         "calibrate", "dose", "demo", "bench")
 
 LOGGER = "hyper"

@@ -95,8 +95,8 @@ def plan(geometries, protocol_list) -> list[Run]:
 
 
 def member(geometry: str) -> dict[str, str]:
-    """muscle, subject and side of an anatomical geometry; blank for the others."""
-    if geometry in geo.ANATOMICAL:
+    """muscle, subject and side of an anatomical geometry (or a meshed one named M_S_side); blank for the others."""
+    if geometry in geo.ANATOMICAL or (geometry in geo.MESHED and geometry.count("_") == 2):
         return dict(zip(("muscle", "subject", "side"), geo.split_id(geometry)))
     return {"muscle": "", "subject": "", "side": ""}
 

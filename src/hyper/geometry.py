@@ -13,6 +13,8 @@ internal mid cross-section. `load` knows the project's meshes by clean identifie
     <M>_<S>_<side>  the 12 anatomical meshes, M in BFLH, ST, TA, S in VHF, VHM,
                 side in Left, Right (XDMF in millimetres, tags `ft_small`: 1, 2 ends,
                 3 lateral surface)
+    NAME        a folder meshes/NAME/ that `hyper mesh` wrote (`MESHED`), loaded as
+                the anatomical ones are
 
 The two Gmsh meshes carry no lateral tag; the exterior facets that are neither end get
 `LATERAL_TAG` (4) on load. The idealized shape is read from its .msh, not from the XDMF
@@ -75,9 +77,24 @@ GEOMETRIES: OrderedDict[str, str] = OrderedDict(
 ANATOMICAL: tuple[str, ...] = tuple(name for name in GEOMETRIES if name not in ("idealized", "cylinder"))
 
 
+def meshed_folders(root: Path) -> list[str]:
+    """Folders ``root/NAME/`` holding ``NAME.xdmf``: meshes made by `hyper mesh`, whose
+    folder name is their identifier (millimetres, tags `ft_small`, as the shipped ones)."""
+    if not root.is_dir():
+        return []
+    shipped = {Path(file).parent.name for file in GEOMETRIES.values()}
+    return sorted(d.name for d in root.iterdir()
+                  if d.name not in shipped and d.name not in GEOMETRIES and (d / f"{d.name}.xdmf").is_file())
+
+
+# Found when the module loads: `hyper mesh … --output meshes/NAME/` makes `--geometry NAME` known.
+MESHED: tuple[str, ...] = tuple(meshed_folders(MESHES_DIR))
+GEOMETRIES.update((name, f"{name}/{name}.xdmf") for name in MESHED)
+
+
 def split_id(name: str) -> tuple[str, str, str]:
     """'BFLH_VHF_Left' -> ('BFLH', 'VHF', 'Left'): muscle, subject, side."""
-    if name not in ANATOMICAL:
+    if name not in ANATOMICAL and not (name in MESHED and name.count("_") == 2):
         raise InputError(f"{name!r} is not an anatomical geometry; known: {', '.join(ANATOMICAL)}")
     muscle, subject, side = name.split("_")
     return muscle, subject, side
@@ -435,9 +452,11 @@ __all__ = [
     "ANATOMICAL",
     "GEOMETRIES",
     "Geometry",
+    "MESHED",
     "MUSCLES",
     "load",
     "load_file",
+    "meshed_folders",
     "principal_axes",
     "refine",
     "split_id",

@@ -121,7 +121,7 @@ def check_geometry(comm, name: str, option: str = "--geometry") -> None:
     path = geo.MESHES_DIR / geo.GEOMETRIES[name]
     if not ckpt.on_rank0(comm, path.is_file):
         raise InputError(f"{option} {name}: {path}: no such mesh file")
-    fibres = fibers.fiber_path(name) if name in geo.ANATOMICAL else None
+    fibres = fibers.fiber_path(name) if name in geo.ANATOMICAL + geo.MESHED else None
     if fibres is not None and not ckpt.on_rank0(comm, lambda: io.is_complete(fibres)):
         raise InputError(f"{option} {name}: {fibres}: no complete fibre file; compute it with "
                          f"`hyper fibers --geometries {name}`")

@@ -1,0 +1,568 @@
+"""From a muscle's surface (STL) to a tagged tetrahedral mesh with its fibres:
+
+    hyper mesh SURFACE.stl --output meshes/NAME/ [--unit mm|m] [--cells N]
+
+writes the layout of a shipped mesh folder (geometry.py), so that ``--geometry NAME``
+runs it once the folder is in the project's meshes/:
+
+    NAME.xdmf, NAME.h5   the tetrahedra (millimetres, mesh "Grid") and the facet tags
+                         "ft_small": 1 the origin, 2 the insertion, 3 the lateral surface
+    fibers.h5            the Stokes-flow fibres (hyper.fibers), as `hyper fibers` writes them
+    mesh.json            source, unit, end rule, quality and the mesh statistics (hyper.meshstats)
+    NAME.png             the surface with its ends coloured, and fibre glyphs on a mid-slice
+
+Steps, each of which stops the job with one ``error:`` line (exit 2) and nothing written:
+
+1. Reading: binary or ASCII STL; the vertex order of each triangle is its orientation
+   (the stored normals are ignored); equal coordinates are one vertex. ``--unit``
+   must give the surface a muscle's length (run.MUSCLE_LENGTH_M), as --mesh-unit must.
+2. Surface checks: every edge shared by exactly two triangles (a hole otherwise, or a
+   non-manifold edge), one connected body, every shared edge traversed in opposite
+   directions by its two triangles (consistent orientation), the enclosed volume
+   positive (normals outward), and no two triangles without a common vertex crossing
+   (an edge of one through the other; pairs that share a vertex are not tested).
+3. Tetrahedra by gmsh (Delaunay, then Netgen's optimizer, which lifts the minimum
+   dihedral angle of the TA from 4-5° to 10-12°, as in the shipped meshes). Why gmsh:
+   a PyPI wheel that builds everywhere; it remeshes the surface to the target size with
+   its nodes on the STL's own triangles (sharp rims such as a cylinder's survive: feature
+   angle FEATURE_DEG); and it is fast (an 8000-cell muscle in about 3 s). fTetWild
+   (pytetwild), which made the shipped meshes, is more robust to broken surfaces, but
+   step 2 refuses those, and it is slower. The size is
+   chosen for ``--cells`` (up to two corrections while the count is off by more than 10 %).
+   Quality: every cell positive with volume above 1e-9 of the bounding box's; the
+   minimum dihedral angle is reported.
+4. Ends, the rule: project the vertices on the first principal axis (``--axis``
+   replaces it); an end is the boundary facets whose three vertices lie within
+   ``--end-band`` (a share of the length, 3.75 %) of an extreme of the projection,
+   except facets parallel to the axis (normal within PARALLEL_DEG of perpendicular to
+   it: lateral surface, as a cylinder's side is). The origin, tag 1, is the end further
+   along ``--origin-toward`` (+z: proximal in the Visible Human frame); tag 2 the other.
+   The band reproduces the shipped tags: in all 12 shipped meshes the tagged facets are
+   those whose vertices are within 3.6-3.75 % of an extreme, whatever their normals (up
+   to 40 % of an end's area has normals that point inward along the axis, so a rule on
+   normals would not reproduce them). Refused: an end without facets, no lateral surface
+   left, a band of half the length or more (the ends would touch; below it they cannot).
+5. Fibres: the Stokes flow of hyper.fibers (inflow at tag 1); statistics of hyper.meshstats.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import shutil
+import struct
+import sys
+import time
+from pathlib import Path
+
+import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
+import numpy as np
+
+from hyper import cli
+from hyper.params import InputError
+
+UNITS_MM = {"mm": 1.0, "m": 1.0e3}  # millimetres per unit: the folder stores millimetres, as the shipped ones
+MUSCLE_LENGTH_MM = (10.0, 1000.0)  # run.MUSCLE_LENGTH_M: a muscle's longest side
+DEFAULT_CELLS = 8000  # the shipped meshes have 6707-9668
+END_BAND = 0.0375  # share of the length; the shipped tags' band (module docstring, step 4)
+PARALLEL_DEG = 1.0
+# Surface edges sharper than this stay edges when gmsh remeshes (a cylinder's rim is 90°);
+# at 30-40° gmsh could not parametrize the patches of TA_VHM_Right.
+FEATURE_DEG = 60.0
+ORIGIN_TOWARD = (0.0, 0.0, 1.0)
+MIN_VOLUME = 1e-9  # of the bounding box's volume: a cell below it is degenerate
+ARRAYS = ("x", "tets", "facets", "tags")  # what `build` returns besides numbers
+CELLS_PER_H3 = 9.0  # cells per volume/h³ after optimization, measured on the TA: the first guess of h
+
+
+# ---------------------------------------------------------------------------- reading
+
+
+def read_stl(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(points (n, 3) float64, triangles (m, 3) int64) of a binary or ASCII STL, equal
+    coordinates merged into one vertex."""
+    data = path.read_bytes()
+    corners = None
+    if len(data) >= 84:
+        count = struct.unpack("<I", data[80:84])[0]
+        if len(data) == 84 + 50 * count and count > 0:
+            record = np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
+            corners = np.frombuffer(data, dtype=record, count=count, offset=84)["corners"].astype(np.float64)
+    if corners is None:
+        corners = read_ascii(path, data)
+    points, inverse = np.unique(corners.reshape(-1, 3), axis=0, return_inverse=True)
+    return points, inverse.reshape(-1, 3).astype(np.int64)
+
+
+def read_ascii(path: Path, data: bytes) -> np.ndarray:
+    """The corners (m, 3, 3) of an ASCII STL; InputError if the file is not one."""
+    try:
+        text = data.decode("ascii")
+    except UnicodeDecodeError:
+        text = ""
+    words = text.split()
+    if not words or words[0] != "solid" or "endsolid" not in words:
+        raise InputError(f"{path}: not an STL file (neither binary: 84-byte header and 50 bytes a triangle, "
+                         "nor ASCII: 'solid … endsolid')")
+    vertices = [i for i, word in enumerate(words) if word == "vertex"]
+    try:
+        corners = np.array([[float(w) for w in words[i + 1:i + 4]] for i in vertices])
+    except ValueError:
+        raise InputError(f"{path}: ASCII STL with a vertex that is not three numbers") from None
+    if len(corners) == 0 or len(corners) % 3:
+        raise InputError(f"{path}: ASCII STL with {len(corners)} vertices, not three a facet")
+    return corners.reshape(-1, 3, 3)
+
+
+def check_size(path: Path, points: np.ndarray, unit: str) -> None:
+    """The surface's longest bounding-box side, in ``unit``, must be a muscle's length."""
+    side = float(np.ptp(points, axis=0).max()) * UNITS_MM[unit]
+    low, high = MUSCLE_LENGTH_MM
+    if not low <= side <= high:
+        raise InputError(f"{path}: the surface is {side / UNITS_MM[unit]:g} {unit} long (longest side of its "
+                         f"bounding box), i.e. {side:g} mm, outside the {low:g}-{high:g} mm of a muscle: its "
+                         f"length unit is not {unit!r}; declare it with --unit ({' or '.join(UNITS_MM)})")
+
+
+# ---------------------------------------------------------------------- surface checks
+
+
+def where(points: np.ndarray) -> str:
+    """The mean of some points (any shape ending in 3), for a message."""
+    return "(" + ", ".join(f"{c:.4g}" for c in np.reshape(points, (-1, 3)).mean(axis=0)) + ")"
+
+
+def check_surface(path: Path, points: np.ndarray, triangles: np.ndarray) -> None:
+    """InputError naming the first problem of the surface (module docstring, step 2)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    degenerate = (triangles[:, 0] == triangles[:, 1]) | (triangles[:, 1] == triangles[:, 2]) | (
+        triangles[:, 2] == triangles[:, 0])
+    if degenerate.any():
+        raise InputError(f"{path}: {degenerate.sum()} triangles with a repeated vertex, e.g. at "
+                         f"{where(points[triangles[degenerate][0]])}")
+    directed = np.stack([triangles, np.roll(triangles, -1, axis=1)], axis=2).reshape(-1, 2)
+    edges, edge_of, count = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True, return_counts=True)
+    if (count == 1).any():
+        open_edges = edges[count == 1]
+        raise InputError(f"{path}: the surface is not closed: a hole bounded by {len(open_edges)} edges that "
+                         f"belong to one triangle only, e.g. at {where(points[open_edges[0]])}")
+    if (count > 2).any():
+        raise InputError(f"{path}: {np.sum(count > 2)} edges shared by more than two triangles (not a manifold), "
+                         f"e.g. at {where(points[edges[count > 2][0]])}")
+    # Triangles are connected through their shared edges: one component is one body.
+    owner = np.repeat(np.arange(len(triangles)), 3)
+    order = np.argsort(edge_of.ravel(), kind="stable")
+    pairs = owner[order].reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(triangles),) * 2)
+    bodies, label = connected_components(graph, directed=False)
+    if bodies > 1:
+        sizes = np.bincount(label)
+        raise InputError(f"{path}: {bodies} separate bodies ({', '.join(map(str, sorted(sizes, reverse=True)))} "
+                         f"triangles), the second at {where(points[triangles[label == np.argsort(sizes)[-2]]])}; "
+                         "mesh one muscle at a time")
+    # On a consistently oriented surface each directed edge occurs once (its neighbour runs it backwards).
+    runs, same_way = np.unique(directed, axis=0, return_counts=True)
+    if (same_way > 1).any():
+        bad = runs[same_way > 1]
+        raise InputError(f"{path}: inconsistently oriented: {len(bad)} edges are traversed in the same direction "
+                         f"by both their triangles (a flipped triangle or patch), e.g. at {where(points[bad[0]])}")
+    volume = enclosed_volume(points, triangles)
+    if volume <= 0:
+        raise InputError(f"{path}: the triangles are oriented inward (enclosed volume {volume:.4g} < 0); "
+                         "reverse the vertex order of every triangle")
+    crossing = self_intersections(points, triangles)
+    if len(crossing):
+        raise InputError(f"{path}: the surface intersects itself: {len(crossing)} pairs of triangles cross, "
+                         f"e.g. at {where(points[triangles[crossing[0]].reshape(-1)])}")
+
+
+def enclosed_volume(points: np.ndarray, triangles: np.ndarray) -> float:
+    """The signed volume inside a closed surface (divergence theorem): > 0 for outward normals."""
+    a, b, c = (points[triangles[:, i]] for i in range(3))
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def self_intersections(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Pairs (k, 2) of triangles without a common vertex where an edge of one crosses the other.
+
+    Candidates: pairs whose bounding spheres (about the centroids) overlap, from a k-d tree.
+    """
+    from scipy.spatial import cKDTree
+
+    corners = points[triangles]
+    centroid = corners.mean(axis=1)
+    radius = np.linalg.norm(corners - centroid[:, None], axis=2).max()
+    pairs = cKDTree(centroid).query_pairs(2.0 * radius, output_type="ndarray")
+    shared = (triangles[pairs[:, 0], :, None] == triangles[pairs[:, 1], None, :]).any(axis=(1, 2))
+    pairs = pairs[~shared]
+    hit = np.zeros(len(pairs), dtype=bool)
+    for first, second in ((0, 1), (1, 0)):
+        tri = corners[pairs[:, second]]
+        for i in range(3):
+            start = corners[pairs[:, first], i]
+            end = corners[pairs[:, first], (i + 1) % 3]
+            hit |= segment_hits_triangle(start, end, tri)
+    return pairs[hit]
+
+
+def segment_hits_triangle(start, end, tri) -> np.ndarray:
+    """Möller–Trumbore for many segments and triangles at once: does start→end meet the triangle?"""
+    direction = end - start
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    p = np.cross(direction, e2)
+    det = np.einsum("ij,ij->i", e1, p)
+    scale = np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1) * np.linalg.norm(direction, axis=1)
+    ok = np.abs(det) > 1e-12 * scale  # a segment parallel to the plane does not cross it
+    det = np.where(ok, det, 1.0)
+    s = start - tri[:, 0]
+    u = np.einsum("ij,ij->i", s, p) / det
+    q = np.cross(s, e1)
+    v = np.einsum("ij,ij->i", direction, q) / det
+    t = np.einsum("ij,ij->i", e2, q) / det
+    return ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
+
+
+# ------------------------------------------------------------------------ tetrahedra
+
+
+def tetrahedralize(points_mm: np.ndarray, triangles: np.ndarray, cells: int) -> tuple[np.ndarray, np.ndarray]:
+    """(x (n, 3) mm, tetrahedra (m, 4)) near ``cells`` cells inside the surface (gmsh)."""
+    volume = enclosed_volume(points_mm, triangles)
+    size = (CELLS_PER_H3 * volume / cells) ** (1.0 / 3.0)
+    x, tets = gmsh_volume(points_mm, triangles, size)
+    for _ in range(2):  # the count is not quite cubic in 1/h (the surface mesh counts too)
+        if abs(len(tets) / cells - 1.0) <= 0.1:
+            break
+        size *= (len(tets) / cells) ** (1.0 / 3.0)
+        x, tets = gmsh_volume(points_mm, triangles, size)
+    return x, tets
+
+
+def gmsh_volume(points: np.ndarray, triangles: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
+    import gmsh
+
+    gmsh.initialize(interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        gmsh.model.add("surface")
+        surface = gmsh.model.addDiscreteEntity(2)
+        gmsh.model.mesh.addNodes(2, surface, np.arange(1, len(points) + 1), points.ravel())
+        gmsh.model.mesh.addElementsByType(surface, 2, [], (triangles + 1).ravel())
+        gmsh.model.mesh.classifySurfaces(math.radians(FEATURE_DEG), True, True, math.pi)
+        gmsh.model.mesh.createGeometry()
+        loop = gmsh.model.geo.addSurfaceLoop([tag for _, tag in gmsh.model.getEntities(2)])
+        gmsh.model.geo.addVolume([loop])
+        gmsh.model.geo.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMin", size)
+        gmsh.option.setNumber("Mesh.MeshSizeMax", size)
+        gmsh.model.mesh.generate(3)
+        gmsh.model.mesh.optimize("Netgen")
+        node_tags, coords, _ = gmsh.model.mesh.getNodes()
+        _, tet_nodes = gmsh.model.mesh.getElementsByType(4)
+    except Exception as err:  # gmsh raises a bare Exception with its last error
+        raise InputError(f"gmsh could not mesh the surface: {err}") from None
+    finally:
+        gmsh.finalize()
+    position = np.full(int(node_tags.max()) + 1, -1, dtype=np.int64)
+    position[node_tags] = np.arange(len(node_tags))
+    tets = position[np.asarray(tet_nodes, dtype=np.int64).reshape(-1, 4)]
+    used, compact = np.unique(tets, return_inverse=True)
+    return coords.reshape(-1, 3)[used], compact.reshape(-1, 4)
+
+
+def signed_volumes(x: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    a = x[tets]
+    return np.linalg.det(a[:, 1:] - a[:, :1]) / 6.0
+
+
+def min_dihedral_deg(x: np.ndarray, tets: np.ndarray) -> float:
+    """The smallest angle between two faces of a tetrahedron, over all cells."""
+    a = x[tets]
+    faces = ((1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1))  # face i is opposite vertex i
+    normals = []
+    for i, j, k in faces:
+        n = np.cross(a[:, j] - a[:, i], a[:, k] - a[:, i])
+        normals.append(n / np.linalg.norm(n, axis=1)[:, None])
+    smallest = np.pi
+    for f in range(4):
+        for g in range(f + 1, 4):
+            cosine = np.einsum("ij,ij->i", normals[f], normals[g])
+            # the dihedral angle is π minus the angle between the two outward face normals
+            smallest = min(smallest, float(np.min(np.pi - np.arccos(np.clip(cosine, -1.0, 1.0)))))
+    return math.degrees(smallest)
+
+
+def check_quality(x: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Tetrahedra with positive orientation, and the quality numbers; InputError for degenerate cells."""
+    volume = signed_volumes(x, tets)
+    if np.median(volume) < 0:
+        tets, volume = tets[:, [0, 2, 1, 3]], -volume
+    box = float(np.prod(np.ptp(x, axis=0)))
+    bad = volume <= MIN_VOLUME * box
+    if bad.any():
+        raise InputError(f"the mesher made {bad.sum()} inverted or near-zero-volume cells, e.g. at "
+                         f"{where(x[tets[bad][0]])}; try another --cells")
+    return tets, {"min_dihedral_deg": min_dihedral_deg(x, tets), "min_cell_volume_mm3": float(volume.min()),
+                  "max_cell_volume_mm3": float(volume.max())}
+
+
+# ------------------------------------------------------------------------------- ends
+
+
+def boundary_facets(tets: np.ndarray) -> np.ndarray:
+    """The exterior triangles of a tetrahedral mesh, oriented outward (positive cells)."""
+    faces = np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 3, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 1]]])
+    _, first, count = np.unique(np.sort(faces, axis=1), axis=0, return_index=True, return_counts=True)
+    return faces[first[count == 1]]
+
+
+def find_ends(x: np.ndarray, facets: np.ndarray, *, band: float = END_BAND, axis=None,
+              origin_toward=ORIGIN_TOWARD) -> tuple[np.ndarray, dict]:
+    """The tag of each outward boundary facet (1 origin, 2 insertion, 3 lateral) by the
+    rule of the module docstring, and what the rule used; InputError where it fails."""
+    # Below half the length no vertex can be in both bands, so the ends never touch.
+    if not 0.0 < band < 0.5:
+        raise InputError(f"--end-band: expected a share of the length in (0, 0.5), got {band:g}: the two ends "
+                         "would touch")
+    centre = x.mean(axis=0)
+    if axis is None:
+        _, vectors = np.linalg.eigh(np.cov((x - centre).T))
+        axis = vectors[:, -1]
+    axis = np.asarray(axis, dtype=float)
+    if not np.linalg.norm(axis) > 0:
+        raise InputError("--axis: expected a nonzero direction")
+    axis = axis / np.linalg.norm(axis)
+    toward = np.asarray(origin_toward, dtype=float)
+    if abs(float(axis @ toward)) < 1e-9 * np.linalg.norm(toward):
+        raise InputError(f"--origin-toward {tuple(toward)} is perpendicular to the axis {tuple(axis.round(4))}: "
+                         "it cannot tell the origin from the insertion")
+    if axis @ toward < 0:
+        axis = -axis  # the origin is now at the high end of the projection
+    along = (x - centre) @ axis
+    low, high = along.min(), along.max()
+    width = band * (high - low)
+    corners = x[facets]
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normal /= np.linalg.norm(normal, axis=1)[:, None]
+    side = np.abs(normal @ axis) < math.sin(math.radians(PARALLEL_DEG))
+    tags = np.full(len(facets), 3, dtype=np.int32)
+    tags[(along[facets] >= high - width).all(axis=1) & ~side] = 1
+    tags[(along[facets] <= low + width).all(axis=1) & ~side] = 2
+    for tag, name in ((1, "origin"), (2, "insertion")):
+        if not (tags == tag).any():
+            raise InputError(f"no {name} (tag {tag}): no boundary facet lies within --end-band {band:g} of the "
+                             f"length from that end of the axis {tuple(axis.round(4))}; widen the band or give --axis")
+    if not (tags == 3).any():
+        raise InputError("the two ends cover the whole surface: no lateral surface is left; narrow --end-band")
+    return tags, {"axis": axis.tolist(), "length_mm": float(high - low), "band": band,
+                  "origin_toward": toward.tolist(), "parallel_deg": PARALLEL_DEG}
+
+
+def facet_areas(x: np.ndarray, facets: np.ndarray) -> np.ndarray:
+    corners = x[facets]
+    return 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+
+
+# ------------------------------------------------------------------------------ output
+
+
+def write_xdmf(comm, path: Path, x_mm: np.ndarray, tets: np.ndarray, facets: np.ndarray, tags: np.ndarray) -> None:
+    """The mesh ("Grid", millimetres) and its facet tags ("ft_small") as a shipped folder has them."""
+    import basix.ufl
+    import ufl
+    from dolfinx import mesh as dmesh
+    from dolfinx.graph import adjacencylist
+    from dolfinx.io import XDMFFile
+    from dolfinx.io.utils import distribute_entity_data
+
+    if comm.rank != 0:
+        x_mm, tets = np.empty((0, 3)), np.empty((0, 4), dtype=np.int64)
+        facets, tags = np.empty((0, 3), dtype=np.int64), np.empty(0, dtype=np.int32)
+    domain = ufl.Mesh(basix.ufl.element("Lagrange", "tetrahedron", 1, shape=(3,)))
+    mesh = dmesh.create_mesh(comm, tets, domain, x_mm)
+    mesh.name = "Grid"
+    local_facets, local_tags = distribute_entity_data(mesh, 2, facets, tags.astype(np.int32))
+    mesh.topology.create_connectivity(2, 3)
+    facet_tags = dmesh.meshtags_from_entities(mesh, 2, adjacencylist(local_facets), local_tags.astype(np.int32))
+    facet_tags.name = "ft_small"
+    with XDMFFile(comm, str(path), "w") as xdmf:
+        xdmf.write_mesh(mesh)
+        xdmf.write_meshtags(facet_tags, mesh.geometry)
+
+
+def figure(name: str, x_mm, facets, tags, centroid_m, fiber, axis):
+    """Left: the surface seen across its axis, ends coloured; right: fibre glyphs on the mid-slab."""
+    from matplotlib.collections import LineCollection, PolyCollection
+
+    from hyper.plot import pyplot
+
+    plt = pyplot()
+    centre = x_mm.mean(axis=0)
+    across = np.linalg.svd((x_mm - centre) - np.outer((x_mm - centre) @ axis, axis), full_matrices=False)[2][0]
+    depth = np.cross(axis, across)
+    basis = np.vstack([axis, across, depth])
+    p = (x_mm - centre) @ basis.T
+    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.5), layout="constrained")
+    corners = p[facets]
+    order = np.argsort(corners[:, :, 2].mean(axis=1))  # far facets first: the near ones cover them
+    colours = np.array(["#c0392b", "#1f5f99", "#cccccc"])[tags[order] - 1]
+    left.add_collection(PolyCollection(corners[order][:, :, :2], facecolors=colours, edgecolors="0.5",
+                                       linewidths=0.1))
+    left.autoscale()
+    left.set_aspect("equal")
+    left.set_title("surface: red origin (1), blue insertion (2), grey lateral (3)", fontsize=10)
+    q = (centroid_m * 1e3 - centre) @ basis.T
+    d = fiber @ basis.T
+    slab = np.abs(q[:, 2]) < 0.08 * np.ptp(q[:, 2])
+    glyph = 0.012 * np.ptp(q[:, 0])
+    uv = d[slab][:, :2] / np.maximum(np.linalg.norm(d[slab][:, :2], axis=1), 1e-12)[:, None] * glyph
+    angle = np.degrees(np.arccos(np.clip(np.abs(d[slab][:, 0]), 0.0, 1.0)))
+    cmap, norm = plt.get_cmap("viridis"), plt.Normalize(0.0, 45.0)
+    right.add_collection(LineCollection(np.stack([q[slab][:, :2] - uv, q[slab][:, :2] + uv], axis=1),
+                                        colors=cmap(norm(angle)), linewidths=1.0))
+    right.set_xlim(left.get_xlim())
+    right.set_ylim(left.get_ylim())
+    right.set_aspect("equal")
+    right.set_title(f"Stokes fibres on the mid-slab ({slab.sum()} cells), colour: angle to the axis (0-45°)",
+                    fontsize=10)
+    for ax in (left, right):
+        ax.set_xlabel("along the axis, toward the origin (mm)")
+    left.set_ylabel("across (mm)")
+    fig.suptitle(name)
+    return fig
+
+
+# -------------------------------------------------------------------------------- job
+
+
+def parser() -> cli.Parser:
+    p = cli.Parser("mesh", __doc__)
+    p.add_argument("surface", type=Path, help="the muscle's closed surface (STL, binary or ASCII)")
+    p.add_argument("--output", type=Path, required=True, help="the folder to write, meshes/NAME/; NAME is the "
+                   "geometry's identifier")
+    p.add_argument("--unit", choices=tuple(UNITS_MM), default="mm", help="length unit of the STL")
+    p.add_argument("--cells", type=cli.integer(200, 2_000_000), default=DEFAULT_CELLS, help="target cell count")
+    p.add_argument("--end-band", type=float, default=END_BAND, help="an end: the facets within this share of "
+                   "the length from an extreme along the axis")
+    p.add_argument("--axis", type=float, nargs=3, metavar=("X", "Y", "Z"), help="the muscle's long axis "
+                   "(the first principal axis of the mesh vertices by default)")
+    p.add_argument("--origin-toward", type=float, nargs=3, metavar=("X", "Y", "Z"), default=ORIGIN_TOWARD,
+                   help="the origin (tag 1) is the end further along this direction")
+    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    return p
+
+
+def build(args) -> dict:
+    """Read, check, mesh and tag on rank 0 (module docstring, steps 1-4); the arrays in mm."""
+    path = args.surface
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    start = time.perf_counter()
+    points, triangles = read_stl(path)
+    check_size(path, points, args.unit)
+    check_surface(path, points, triangles)
+    checked = time.perf_counter()
+    x, tets = tetrahedralize(points * UNITS_MM[args.unit], triangles, args.cells)
+    tets, quality = check_quality(x, tets)
+    facets = boundary_facets(tets)
+    tags, rule = find_ends(x, facets, band=args.end_band, axis=args.axis, origin_toward=args.origin_toward)
+    areas = facet_areas(x, facets)
+    return {"x": x, "tets": tets, "facets": facets, "tags": tags, "rule": rule, "quality": quality,
+            "surface_triangles": len(triangles), "check_s": checked - start,
+            "mesh_s": time.perf_counter() - checked,
+            "end_area_mm2": [float(areas[tags == 1].sum()), float(areas[tags == 2].sum())],
+            "sha256": hashlib.sha256(path.read_bytes()).hexdigest()}
+
+
+def run(comm, args) -> int:
+    from hyper import fibers, meshstats, plot
+    from hyper import geometry as geo
+    from hyper.io import atomic_path, write_series
+    from hyper.log import info
+    from hyper.params import as_attributes
+
+    out = args.output
+    name = out.name
+    if out.suffix or not name:
+        raise InputError(f"--output {out}: expected a folder, meshes/NAME/")
+    if out.exists() and not args.force:
+        raise InputError(f"--output {out}: exists; give --force to replace it")
+    built = error = None
+    if comm.rank == 0:
+        try:
+            built = build(args)
+        except InputError as err:
+            error = str(err)
+    error = comm.bcast(error, root=0)
+    if error is not None:
+        raise InputError(error)
+    # The arrays stay on rank 0, which hands the cells to DOLFINx; every rank gets the rest.
+    arrays = {k: built.pop(k) for k in ARRAYS} if comm.rank == 0 else dict.fromkeys(ARRAYS)
+    built = comm.bcast(built, root=0)
+    stage = out.with_name(name + ".partial")
+    if comm.rank == 0:
+        shutil.rmtree(stage, ignore_errors=True)
+        stage.mkdir(parents=True)
+    comm.barrier()
+    try:
+        start = time.perf_counter()
+        write_xdmf(comm, stage / f"{name}.xdmf", *(arrays[k] for k in ARRAYS))
+        geometry = geo.load_file(stage / f"{name}.xdmf", comm, name=name, scale=geo.MM)
+        params = fibers.StokesParams()
+        a0, speed = fibers.compute(geometry, params)
+        stats = {**fibers.statistics(geometry, a0, speed), "solve_s": time.perf_counter() - start}
+        data = fibers.gather_nodal(a0, speed)
+        row = meshstats.statistics(geometry)
+        cells = fibers.cell_fibers(geometry, a0)
+        if comm.rank == 0:
+            write_series(stage / fibers.FILE_NAME, data,
+                         attrs={"geometry": name, "mesh": f"{name}/{name}.xdmf", "method": fibers.METHOD,
+                                "element": fibers.ELEMENT, "reference": "Varvik et al. 2021; MODEL.md §5",
+                                "inflow_tag": 1, "outflow_tag": 2, "lateral_tag": 3, "coordinates": "m",
+                                "ranks": comm.size, **stats},
+                         groups={"parameters": as_attributes(params)})
+            record = {"source": str(args.surface), "source_sha256": built["sha256"], "unit": args.unit,
+                      "mesher": f"gmsh {gmsh_version()}", "cells_target": args.cells,
+                      "surface_triangles": built["surface_triangles"], "ends": built["rule"],
+                      "end_area_mm2": built["end_area_mm2"], "quality": built["quality"],
+                      "statistics": {k: v for k, v in row.items() if k != "geometry"},
+                      "fibers": {k: float(v) for k, v in stats.items()},
+                      "check_s": built["check_s"], "mesh_s": built["mesh_s"]}
+            with atomic_path(stage / "mesh.json") as tmp:
+                tmp.write_text(json.dumps(record, indent=2) + "\n")
+            axis = np.asarray(built["rule"]["axis"])
+            plot.save(figure(name, arrays["x"], arrays["facets"], arrays["tags"], cells[0], cells[1], axis),
+                      stage / f"{name}.png", dpi=110)
+            if out.exists():
+                shutil.rmtree(out)
+            os.replace(stage, out)
+    finally:
+        if comm.rank == 0:
+            shutil.rmtree(stage, ignore_errors=True)
+        comm.barrier()
+    q = built["quality"]
+    info(comm, f"{name}: {row['cells']} cells, {row['vertices']} vertices, min dihedral angle "
+               f"{q['min_dihedral_deg']:.1f}°; volume {row['volume_cm3']:.2f} cm³, CSA0 {row['csa0_cm2']:.2f} cm², "
+               f"length {row['length_cm']:.2f} cm; ends {built['end_area_mm2'][0]:.0f} and "
+               f"{built['end_area_mm2'][1]:.0f} mm²; fibres within 30° of the axis "
+               f"{100 * stats['share_within_30deg']:.1f} %; checks {built['check_s']:.1f} s, mesh "
+               f"{built['mesh_s']:.1f} s, fibres {stats['solve_s']:.1f} s")
+    info(comm, f"wrote {out}/")
+    return cli.EXIT_OK
+
+
+def gmsh_version() -> str:
+    import gmsh
+
+    return gmsh.__version__
+
+
+main = cli.entry(parser, run)
+
+if __name__ == "__main__":
+    sys.exit(main())

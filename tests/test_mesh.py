@@ -1,0 +1,174 @@
+"""hyper mesh: surfaces refused before anything is written, the end rule on a cylinder,
+and a meshed cylinder's volume and cross-section against the analytic ones."""
+
+import math
+import struct
+
+import numpy as np
+import pytest
+
+from hyper import cli
+from hyper import mesh as hm
+from hyper.params import InputError
+
+RADIUS, LENGTH = 20.0, 100.0  # mm
+AROUND, ALONG = 48, 10
+
+
+def cylinder() -> tuple[np.ndarray, np.ndarray]:
+    """A closed cylinder along z, outward triangles: caps as fans around their centres."""
+    phi = 2 * np.pi * np.arange(AROUND) / AROUND
+    rings = [np.column_stack([RADIUS * np.cos(phi), RADIUS * np.sin(phi), np.full(AROUND, z)])
+             for z in np.linspace(0.0, LENGTH, ALONG + 1)]
+    points = np.vstack(rings + [[[0, 0, 0]], [[0, 0, LENGTH]]])
+    bottom, top = len(points) - 2, len(points) - 1
+    tris = []
+    for k in range(ALONG):
+        for i in range(AROUND):
+            a, b = k * AROUND + i, k * AROUND + (i + 1) % AROUND
+            tris += [[a, b, b + AROUND], [a, b + AROUND, a + AROUND]]
+    for i in range(AROUND):
+        tris.append([bottom, (i + 1) % AROUND, i])
+        tris.append([top, ALONG * AROUND + i, ALONG * AROUND + (i + 1) % AROUND])
+    return points, np.array(tris)
+
+
+def write_stl(path, points, tris, ascii=False):
+    corners = points[tris]
+    if ascii:
+        lines = ["solid s"] + ["facet normal 0 0 0\nouter loop\n" + "".join(f"vertex {p[0]} {p[1]} {p[2]}\n"
+                                                                              for p in c) + "endloop\nendfacet"
+                               for c in corners] + ["endsolid s"]
+        path.write_text("\n".join(lines))
+    else:
+        data = bytearray(80) + struct.pack("<I", len(tris))
+        for c in corners.astype(np.float32):
+            data += struct.pack("<12fH", 0, 0, 0, *c.ravel(), 0)
+        path.write_bytes(bytes(data))
+    return path
+
+
+def refused(tmp_path, capsys, stl, *extra) -> str:
+    out = tmp_path / "meshes" / "M_X_Left"
+    status = hm.main([str(stl), "--output", str(out), *extra])
+    assert status == cli.EXIT_INPUT
+    assert not (tmp_path / "meshes").exists()  # nothing written
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ")
+    return lines[0]
+
+
+def test_a_surface_with_a_hole_is_refused(tmp_path, capsys):
+    points, tris = cylinder()
+    assert "not closed" in refused(tmp_path, capsys, write_stl(tmp_path / "s.stl", points, tris[1:]))
+
+
+def test_two_bodies_are_refused(tmp_path, capsys):
+    points, tris = cylinder()
+    both = np.vstack([points, points + [3 * RADIUS, 0, 0]])
+    stl = write_stl(tmp_path / "s.stl", both, np.vstack([tris, tris + len(points)]))
+    assert "2 separate bodies" in refused(tmp_path, capsys, stl)
+
+
+def test_an_inward_surface_is_refused(tmp_path, capsys):
+    points, tris = cylinder()
+    assert "oriented inward" in refused(tmp_path, capsys, write_stl(tmp_path / "s.stl", points, tris[:, ::-1]))
+
+
+def test_a_flipped_triangle_is_refused(tmp_path, capsys):
+    points, tris = cylinder()
+    tris[5] = tris[5, ::-1]
+    assert "inconsistently oriented" in refused(tmp_path, capsys, write_stl(tmp_path / "s.stl", points, tris))
+
+
+def test_a_self_intersection_is_refused(tmp_path, capsys):
+    points, tris = cylinder()
+    dented = points.copy()
+    dented[5 * AROUND] = [-1.5 * RADIUS, 0, LENGTH / 2]  # one side vertex pushed through the far wall
+    assert "intersects itself" in refused(tmp_path, capsys, write_stl(tmp_path / "s.stl", dented, tris))
+
+
+def test_a_metre_surface_declared_as_mm_is_refused(tmp_path, capsys):
+    points, tris = cylinder()
+    message = refused(tmp_path, capsys, write_stl(tmp_path / "s.stl", points * 1e-3, tris), "--unit", "mm")
+    assert "its length unit is not 'mm'" in message
+
+
+def test_a_file_that_is_not_stl_is_refused(tmp_path, capsys):
+    text = tmp_path / "s.stl"
+    text.write_text("ply\nformat ascii 1.0\n")
+    assert "not an STL file" in refused(tmp_path, capsys, text)
+
+
+def test_ascii_and_binary_read_the_same(tmp_path):
+    points, tris = cylinder()
+    binary = hm.read_stl(write_stl(tmp_path / "b.stl", points, tris))
+    text = hm.read_stl(write_stl(tmp_path / "a.stl", points, tris, ascii=True))
+    assert len(binary[1]) == len(text[1]) == len(tris)
+    np.testing.assert_allclose(binary[0], text[0], atol=1e-5)
+
+
+def test_the_end_rule_finds_the_two_caps_of_a_cylinder_exactly():
+    points, tris = cylinder()
+    tags, rule = hm.find_ends(points, tris)
+    top = np.isclose(points[tris][:, :, 2], LENGTH).all(axis=1)
+    bottom = np.isclose(points[tris][:, :, 2], 0.0).all(axis=1)
+    assert np.array_equal(tags == 1, top) and np.array_equal(tags == 2, bottom)  # origin toward +z
+    assert abs(abs(rule["axis"][2]) - 1) < 1e-12
+
+
+def test_the_end_rule_refuses_bands_that_would_touch():
+    points, tris = cylinder()
+    with pytest.raises(InputError, match="touch"):
+        hm.find_ends(points, tris, band=0.5)
+
+
+@pytest.fixture(scope="module")
+def meshed(tmp_path_factory):
+    root = tmp_path_factory.mktemp("meshed")
+    points, tris = cylinder()
+    out = root / "CYL_X_Left"
+    status = hm.main([str(write_stl(root / "c.stl", points, tris)), "--output", str(out), "--cells", "3000",
+                      "--quiet"])
+    assert status == cli.EXIT_OK
+    return out
+
+
+def test_a_meshed_cylinder_has_the_analytic_volume_and_cut_area(meshed):
+    import json
+
+    import h5py
+    from mpi4py import MPI
+
+    from hyper import fibers
+    from hyper import geometry as geo
+
+    record = json.loads((meshed / "mesh.json").read_text())
+    stats = record["statistics"]
+    # gmsh's surface nodes lie on the STL, and its edges (about 7 mm here) are chords of
+    # the 20 mm circle: the sections are polygons inscribed in the STL's 48-gon, 1 % short.
+    polygon = 0.5 * AROUND * RADIUS**2 * math.sin(2 * math.pi / AROUND)  # mm²
+    assert -0.015 < stats["volume_cm3"] / (polygon * LENGTH * 1e-3) - 1 < 0
+    assert -0.02 < stats["csa0_cm2"] / (polygon * 1e-2) - 1 < 0
+    assert abs(stats["length_cm"] / (LENGTH / 10) - 1) < 5e-3  # the principal axis of the vertices tilts a little
+    assert 2500 < stats["cells"] < 3500 and record["quality"]["min_dihedral_deg"] > 5
+    # The ends hold every cap facet; gmsh's side facets are chords across the 48-gon, whose
+    # normals tilt off the horizontal, so the band also takes a few of them next to the rim.
+    with h5py.File(meshed / "CYL_X_Left.h5", "r") as f:
+        x = f["Mesh/Grid/geometry"][()]
+        corners = x[f["MeshTags/ft_small/topology"][()]]
+        tags = f["MeshTags/ft_small/Values"][()].ravel()
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    for tag, z in ((1, LENGTH), (2, 0.0)):
+        cap = np.isclose(corners[:, :, 2], z).all(axis=1)
+        assert (tags[cap] == tag).all()
+        assert area[(tags == tag) & ~cap].sum() < 0.05 * area[cap].sum()
+    geometry = geo.load_file(meshed / "CYL_X_Left.xdmf", MPI.COMM_WORLD, name="CYL_X_Left", scale=geo.MM)
+    a0 = fibers.load(geometry, meshed / fibers.FILE_NAME)
+    assert fibers.aligned_share(geometry, a0, (0, 0, 1), angle_deg=10.0) > 0.99
+    assert (meshed / "CYL_X_Left.png").is_file()
+
+
+def test_an_existing_output_is_kept_without_force(meshed, capsys):
+    status = hm.main([str(meshed / "missing.stl"), "--output", str(meshed)])
+    assert status == cli.EXIT_INPUT and "exists" in capsys.readouterr().err
