@@ -189,7 +189,8 @@ def run(comm, args) -> int:
     if args.petsc:
         PETSc.Options().insertString(" ".join(args.petsc))
     try:
-        series = contract(comm, args)
+        with cli.hold(comm, [args.output]):
+            series = contract(comm, args)
     except SolverError as err:
         cli.error(comm, f"{err} (after {args.max_halvings} step halvings)")
         return cli.EXIT_SOME_FAILED

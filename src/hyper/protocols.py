@@ -35,9 +35,9 @@ class Session:
         return self.start + self.duration
 
 
-# A protocol's name names its result files: letters, digits and . _ + -, not starting
+# A protocol's name names its result files: letters, digits and . _ + - @, not starting
 # with a dot, so that it can neither climb out of a folder nor hide in one.
-NAME = re.compile(r"[A-Za-z0-9_+-][A-Za-z0-9._+-]{0,63}")
+NAME = re.compile(r"[A-Za-z0-9_+@-][A-Za-z0-9._+@-]{0,63}")
 # Ten years of training: beyond it a protocol is a typing mistake, and its step count
 # (end / RK4 step) would not fit in memory.
 MAX_END = 10 * 52 * WEEK  # h
@@ -52,7 +52,7 @@ class Protocol:
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not NAME.fullmatch(self.name):
-            raise InputError(f"name must be 1-64 letters, digits or . _ + - (not starting with a dot), "
+            raise InputError(f"name must be 1-64 letters, digits or . _ + - @ (not starting with a dot), "
                              f"got {self.name!r}")
         object.__setattr__(self, "sessions", tuple(self.sessions))
         if len(self.sessions) > MAX_SESSIONS:

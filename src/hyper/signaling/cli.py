@@ -80,7 +80,8 @@ def run(comm, args) -> int:
 
     # The ODEs of a few protocols take seconds: rank 0 alone integrates and writes them.
     try:
-        on_rank0(comm, work)
+        with cli.hold(comm, paths):
+            on_rank0(comm, work)
     except SignalingError as err:
         cli.error(comm, str(err))
         return cli.EXIT_FAILED
