@@ -35,7 +35,7 @@ EXIT_TERMINATED = 128 + signal.SIGTERM  # 143, what a shell reports for a TERM-k
 
 # `hyper JOB` runs hyper.JOB.main; the benches keep their own dispatcher (hyper bench NAME).
 JOBS = ("grow", "cohort", "ensemble", "signaling", "sobol", "contraction", "fibers", "meshstats", "mesh", "slurm",
-        "calibrate", "dose", "demo", "bench")
+        "calibrate", "dose", "inspect", "demo", "bench")
 
 LOGGER = "hyper"
 
@@ -244,11 +244,15 @@ def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool 
             comm = MPI.COMM_WORLD
         rank = comm.rank if comm is not None else 0
         try:
-            args = parser().parse_args(argv)
+            made = parser()
+            args = made.parse_args(argv)
         except InputError as err:
             error(comm, str(err))
             return EXIT_INPUT
         setup_logging(rank, quiet=args.quiet, verbose=args.verbose)
+        from hyper import io
+
+        io.record_command([*made.prog.split(), *argv])
         try:
             return int(run(comm, args))
         except InputError as err:

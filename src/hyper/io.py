@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import functools
 import os
 import platform
 import shutil
@@ -25,7 +26,36 @@ from hyper.params import InputError
 PARTIAL = ".partial"
 
 
+# The command this process runs, as the user typed it (`hyper.cli.entry` records it).
+_command: list[str] = []
+
+
+def record_command(words: list[str]) -> None:
+    _command[:] = [str(w) for w in words]
+
+
+@functools.cache
+def git_commit() -> str:
+    """The checkout's commit (+ "-dirty" with uncommitted changes); "" outside a checkout."""
+    import subprocess
+
+    root = Path(__file__).resolve().parents[2]
+    if not (root / ".git").exists():
+        return ""
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                              timeout=10, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    return head + ("-dirty" if dirty else "")
+
+
 def versions() -> dict[str, str]:
+    """The versions of everything a result depends on."""
+    from importlib import metadata
+
     import h5py
     import scipy
 
@@ -33,16 +63,42 @@ def versions() -> dict[str, str]:
 
     out = {
         "hyper": hyper.__version__,
+        "git_commit": git_commit(),
         "python": platform.python_version(),
         "numpy": np.__version__,
         "scipy": scipy.__version__,
         "h5py": h5py.__version__,
     }
-    # Importing dolfinx starts PETSc, which is collective: never do it here, on one rank.
+    for package in ("SALib", "mpi4py"):
+        try:
+            out[package] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            pass
+    mpi = sys.modules.get("mpi4py.MPI")
+    if mpi is not None:
+        out["mpi_library"] = mpi.Get_library_version().splitlines()[0].strip()
+    # Importing dolfinx or petsc4py starts PETSc, which is collective: never here, on one rank.
     dolfinx = sys.modules.get("dolfinx")
     if dolfinx is not None:
         out["dolfinx"] = dolfinx.__version__
+    petsc = sys.modules.get("petsc4py.PETSc")
+    if petsc is not None:
+        out["petsc4py"] = sys.modules["petsc4py"].__version__
+        out["petsc"] = ".".join(str(v) for v in petsc.Sys.getVersion())
     return out
+
+
+# The unit of each series a run writes; a state's spread has the state's unit.
+UNITS = {
+    "t": "h", "csa_ratio": "1", "volume_ratio": "1", "kM": "1/h", "newton_iterations": "count",
+    "halvings": "count", "wall_s": "s", "igf1": "1", "akt": "1", "foxo": "1", "mtor": "1", "N": "1",
+    "final_x": "m", "final_u": "m", "final_N": "1", "final_detGbar": "1",
+}
+
+
+def unit(name: str) -> str:
+    """The unit of a series by its name (the signaling states are normalized: 1)."""
+    return UNITS.get(name.removesuffix("_std"), "unspecified")
 
 
 def _attr(value: Any):
@@ -85,11 +141,13 @@ def write_series(
     series: Mapping[str, Any],
     attrs: Mapping[str, Any] | None = None,
     groups: Mapping[str, Mapping[str, Any]] | None = None,
+    units: Mapping[str, str] | None = None,
 ) -> Path:
     """Write 1-D datasets (and optional attribute groups) to an HDF5 file, atomically.
 
     Call on one rank only. ``groups`` maps a group name to its attributes (e.g. the
-    parameters, the protocol); versions and a timestamp are added to the root.
+    parameters, the protocol); versions, the command and a timestamp are added to the
+    root, and each dataset gets a ``units`` attribute (``units``, else `UNITS`).
     """
     import h5py
 
@@ -97,11 +155,13 @@ def write_series(
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             for name, data in series.items():
-                f.create_dataset(name, data=np.asarray(data))
+                f.create_dataset(name, data=np.asarray(data)).attrs["units"] = (units or {}).get(name, unit(name))
             for gname, gattrs in (groups or {}).items():
                 set_attrs(f.require_group(gname), gattrs)
             set_attrs(f, attrs or {})
             set_attrs(f, {f"version_{k}": v for k, v in versions().items()})
+            if _command:
+                f.attrs["command"] = " ".join(_command)
             f.attrs["created"] = datetime.datetime.now(datetime.UTC).isoformat()
             f.attrs["complete"] = True
     return path

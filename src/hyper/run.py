@@ -193,6 +193,16 @@ class RunSpec:
     def digest(self) -> str:
         return ckpt.digest(self.describe())
 
+    def mesh_files(self) -> list[Path]:
+        """The mesh file and its HDF5 data: what `mesh_sha256` hashes."""
+        if self.mesh is not None:
+            path = Path(self.mesh.path)
+        else:
+            from hyper import geometry as geo
+
+            path = geo.MESHES_DIR / geo.GEOMETRIES[self.geometry]
+        return [p for p in (path, path.with_suffix(".h5")) if p.is_file() and (p == path or path.suffix == ".xdmf")]
+
     def load_geometry(self, comm):
         from hyper import geometry as geo
 
@@ -558,6 +568,8 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAP
             raise
     meta = {
         "geometry": spec.geometry,
+        "mesh_sha256": ckpt.on_rank0(comm, lambda: ckpt.file_digest(*spec.mesh_files())),
+        "quadrature_degree": model.geometry.quadrature_degree,
         "csa0_m2": model.csa0,
         "volume0_m3": model.volume0,
         "ranks": comm.size,
