@@ -43,7 +43,7 @@ def parser() -> cli.Parser:
     p.add_argument("--geometry", default="idealized", help="geometry identifier")
     p.add_argument("--steps", type=cli.integer(1, 10**4), default=10, help="equal activation steps from 0 to 1")
     p.add_argument("--output", type=cli.output(folder=False, suffixes=(".h5",)),
-                   default="results/contraction/idealized.h5", help="HDF5 series file")
+                   help="HDF5 series file; results/contraction/GEOMETRY.h5 by default")
     p.add_argument("--fibers", default="auto", metavar="KIND",
                    help=f"fibre field kind: {', '.join(fibers.FIBER_KINDS)} (see hyper.fibers.fiber_field)")
     p.add_argument("--quadrature-degree", type=cli.integer(1, 12), default=4, help="quadrature degree of the forms")
@@ -186,6 +186,10 @@ def run(comm, args) -> int:
     from hyper.log import info
     from hyper.mechanics import SolverError
 
+    if args.output is None:
+        args.output = Path("results/contraction") / f"{Path(args.geometry).name}.h5"
+        if cli.unwritable(args.output, folder=False):
+            raise InputError(f"--output: {cli.unwritable(args.output, folder=False)}")
     if args.petsc:
         PETSc.Options().insertString(" ".join(args.petsc))
     try:
