@@ -128,3 +128,19 @@ def test_cli_gain_digest_differs_from_signaling_and_bad_geometry(tmp_path, capsy
     assert sobol.main(["--function", "csa-gain", "--geometry", "sphere", "--output", str(bad)],
                       comm=MPI.COMM_SELF) == 2
     assert "--geometry" in capsys.readouterr().err and not bad.exists()
+
+
+@pytest.mark.mpi
+def test_mpi_gain_farm_equals_serial(tmp_path):
+    from pathlib import Path
+
+    comm = MPI.COMM_WORLD
+    assert comm.size == 2
+    folder = Path(comm.bcast(str(tmp_path) if comm.rank == 0 else None, root=0))
+    X = sobol.sample(GAIN, 8, seed=4)  # 288 rows, 6 chunks of 50
+    Y, results = sobol.run_chunks(comm, X, sobol.csa_gain, folder / "par", "k", chunk=50)
+    if comm.rank == 0:
+        assert [r.status for r in results] == ["done"] * 6
+        assert np.array_equal(Y, sobol.csa_gain(X))
+    else:
+        assert Y is None
