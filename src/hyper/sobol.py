@@ -21,6 +21,16 @@ are computed while any member failed; ``"drop"`` removes every base sample that 
 failed row (its whole block of 2D + 2 rows, which keeps SALib's design intact) and
 says how many.
 
+The grown muscle (``--function csa-gain``): the 9-week CSA gain CSA/CSA0 - 1 at 1512 h
+under ``mwf`` on the fast ODE growth model (`hyper.surrogate`: the signaling ODEs with the
+Hill feedback kM = kM0 h(CSA/CSA0) at every period end, the idealized muscle's section
+factor), as a function of the 17 parameters in ``GAIN_PARAMETERS``: the 12 signaling rates,
+kM, kF, the thresholds thetaM and thetaF, and the feedback's Hill exponent ``hill_n``, each
+uniform on [0.5, 2] x its baseline (hill_n on [2, 8] around the paper's 4). The Hill
+constant K stays 1: h(1) = 1 needs it, and a K off 1 would change kM before any growth.
+Batched like ``signaling``: a chunk is one batch of `surrogate.grow` (compiled RK4,
+failures masked).
+
 The job (``run_chunks`` and ``run``) writes each finished chunk atomically to
 ``<output>/chunks/<digest>/``, the digest covering the sample matrix and every setting,
 so a rerun skips finished chunks and never reuses chunks of a different run.
@@ -51,6 +61,11 @@ from hyper.plot import pyplot
 from hyper.protocols import Protocol, named
 
 PARAMETERS = ("a10", "a20", "a3", "a4", "b1", "b2", "b3", "b4", "c21", "c32", "c42", "c43", "kM", "kF")
+# csa-gain: the signaling rates, kM, kF, the thresholds and the feedback's Hill exponent
+GAIN_PARAMETERS = (*PARAMETERS, "thetaM", "thetaF", "hill_n")
+HILL_N = 4.0  # the paper's Hill exponent of the feedback (growth.feedback)
+GAIN_PROTOCOL = "mwf"  # 9 weeks: the gain is read at its end, 1512 h
+GAIN_GEOMETRY = "idealized"  # the section factor of surrogate.SECTION_FACTOR
 
 # The species a parameter belongs to (the figures' colours). A coupling parameter belongs to
 # the species whose equation it sits in; ``SOURCE`` names the species it comes from.
@@ -59,7 +74,8 @@ SPECIES = {
     "AKT": ("a20", "b2", "c21"),
     "FOXO": ("a3", "b3", "c32"),
     "mTOR": ("a4", "b4", "c42", "c43"),
-    "balance": ("kM", "kF"),
+    "balance": ("kM", "kF", "thetaM", "thetaF"),
+    "feedback": ("hill_n",),
 }
 SOURCE = {"c21": "IGF1", "c32": "AKT", "c42": "AKT", "c43": "FOXO"}
 
@@ -81,6 +97,15 @@ def problem(base: S.SignalingParams | None = None, names=PARAMETERS, low: float 
         "names": list(names),
         "bounds": [[low * float(getattr(base, n)), high * float(getattr(base, n))] for n in names],
     }
+
+
+def gain_problem(base: S.SignalingParams | None = None, low: float = LOW, high: float = HIGH) -> dict:
+    """SALib's problem of the CSA gain: ``GAIN_PARAMETERS`` each uniform on [low, high] x its
+    baseline (the Hill exponent's baseline is ``HILL_N``)."""
+    base = S.SignalingParams() if base is None else base
+    value = {n: HILL_N if n == "hill_n" else float(getattr(base, n)) for n in GAIN_PARAMETERS}
+    return {"num_vars": len(GAIN_PARAMETERS), "names": list(GAIN_PARAMETERS),
+            "bounds": [[low * value[n], high * value[n]] for n in GAIN_PARAMETERS]}
 
 
 def ishigami_problem() -> dict:
@@ -141,6 +166,30 @@ def final_N(X: np.ndarray, *, names=PARAMETERS, protocol: Protocol | None = None
     if backend != "c":
         raise InputError(f"backend must be 'c' or 'numpy', got {backend!r}")
     return S.integrate(p, protocol, y0, 0.0, protocol.end, dt, backend="c", failures="mask")[1][-1, 4]
+
+
+def csa_gain(X: np.ndarray, *, names=GAIN_PARAMETERS, protocol: Protocol | None = None, dt: float = 0.05,
+             geometry: str = GAIN_GEOMETRY, base: S.SignalingParams | None = None,
+             backend: str = "c") -> np.ndarray:
+    """CSA/CSA0 - 1 at the end of ``protocol`` (default mwf, 1512 h) for every row of X, on
+    the fast growth model (`surrogate.grow`, Hill feedback). A column named ``hill_n`` is the
+    feedback's exponent; the others replace SignalingParams fields. NaN marks a member whose
+    trajectory failed (c backend); the numpy backend raises ``SignalingError`` instead."""
+    from hyper import surrogate
+
+    protocol = named(GAIN_PROTOCOL) if protocol is None else protocol
+    if backend not in ("c", "numpy"):
+        raise InputError(f"backend must be 'c' or 'numpy', got {backend!r}")
+    X = np.atleast_2d(np.asarray(X, dtype=float))
+    names = tuple(names)
+    fields = [k for k, n in enumerate(names) if n != "hill_n"]
+    hill_n = X[:, names.index("hill_n")] if "hill_n" in names else HILL_N
+    p = sample_params(X[:, fields], [names[k] for k in fields], base)
+    if p.size is None:  # only the Hill exponent varies: a batch all the same
+        p = dataclasses.replace(p, kM=np.full(X.shape[0], float(p.kM)))
+    g = surrogate.grow(p, protocol, [protocol.end], signaling_dt=dt, factor=surrogate.section_factor(geometry),
+                       hill_n=hill_n, backend=backend, failures="mask" if backend == "c" else "raise")
+    return g.csa_ratio[-1] - 1.0
 
 
 # --------------------------------------------------------------------------------------
@@ -216,14 +265,14 @@ def analyze(prob: dict, Y: np.ndarray, *, seed: int, resamples: int = 100, conf_
 # Figures
 
 COLOURS = {"IGF1": "tab:blue", "AKT": "tab:orange", "FOXO": "tab:red", "mTOR": "tab:green", "balance": "tab:purple",
-           "other": "tab:gray"}
+           "feedback": "tab:brown", "other": "tab:gray"}
 
 
 def species_of(name: str) -> str:
     return next((s for s, names in SPECIES.items() if name in names), "other")
 
 
-def figure_spread(ind: Indices):
+def figure_spread(ind: Indices, output: str = "N(480 h)"):
     """The Fig. 3F analog: for each parameter the bootstrap mean of its index against the bootstrap
     standard deviation, first-order and total side by side. Colour: species; a coupling
     parameter is split between its own species and the one it comes from."""
@@ -240,14 +289,16 @@ def figure_spread(ind: Indices):
         ax.set_xlabel(f"mean of {label} over the bootstrap")
         ax.set_ylabel("standard deviation over the bootstrap")
         ax.grid(alpha=0.3)
-    handles = [plt.Line2D([], [], marker="o", ls="", color=COLOURS[s], markeredgecolor="k", label=s) for s in SPECIES]
+    present = {species_of(n) for n in ind.names}
+    handles = [plt.Line2D([], [], marker="o", ls="", color=COLOURS[s], markeredgecolor="k", label=s)
+               for s in SPECIES if s in present]
     axes[1].legend(handles=handles, loc="best", fontsize=8, title="species (split: coupling)")
-    fig.suptitle(f"Sobol indices of N(480 h), {ind.base_samples} base samples")
+    fig.suptitle(f"Sobol indices of {output}, {ind.base_samples} base samples")
     fig.tight_layout()
     return fig
 
 
-def figure_bars(ind: Indices):
+def figure_bars(ind: Indices, output: str = "N(480 h)"):
     """S1 and ST with their confidence intervals, parameters by decreasing ST."""
     plt = pyplot()
     order = np.argsort(-ind.ST)
@@ -261,7 +312,7 @@ def figure_bars(ind: Indices):
     ax.set_ylabel("Sobol index")
     ax.axhline(0.0, color="k", lw=0.5)
     ax.legend()
-    ax.set_title("first-order and total Sobol indices of N(480 h) (bars: 95 % bootstrap intervals)")
+    ax.set_title(f"first-order and total Sobol indices of {output} (bars: 95 % bootstrap intervals)")
     fig.tight_layout()
     return fig
 
@@ -345,8 +396,14 @@ def remove_stale(folder: Path, key: str) -> list[str]:
 # The job
 
 
+FUNCTIONS = ("signaling", "csa-gain", "ishigami")
+SECTION_GEOMETRIES = ("idealized", "cylinder")
+OUTPUT = {"signaling": "N(end)", "csa-gain": "CSA/CSA0 - 1 at the end", "ishigami": "the Ishigami function"}
+
+
 def parser() -> cli.Parser:
-    p = cli.Parser("sobol", description="Sobol sensitivity analysis of N(480 h) under daily15 (MODEL.md §7),\n"
+    p = cli.Parser("sobol", description="Sobol sensitivity analysis of N(480 h) under daily15 (MODEL.md §7), or\n"
+                   "(--function csa-gain) of the 9-week CSA gain under mwf on the fast growth model,\n"
                    "farmed over MPI ranks (run under mpirun -n K). Writes sobol.h5, indices.csv and two\n"
                    "figures to --output.")
     p.add_argument("--samples", type=cli.integer(2, MAX_SAMPLES), default=10000,
@@ -357,15 +414,19 @@ def parser() -> cli.Parser:
     p.add_argument("--seed", type=cli.integer(0, 2**32 - 2), default=1,
                    help="seed of the design; the bootstrap uses seed + 1")
     p.add_argument("--resamples", type=cli.integer(2, 10**5), default=100, help="bootstrap resamples")
-    p.add_argument("--protocol", default="daily15", metavar="NAME|FILE",
+    p.add_argument("--protocol", default=None, metavar="NAME|FILE",
                    help=f"a named protocol ({', '.join(protocols.NAMES)}) or a TOML protocol file; the output "
-                   "is N at its end")
+                   f"is N (signaling; default daily15) or the CSA gain (csa-gain; default {GAIN_PROTOCOL}) at its end")
     p.add_argument("--on-failure", choices=("abort", "drop"), default="abort",
                    help="failed members: compute no indices (abort), or drop their base samples")
     p.add_argument("--backend", choices=("c", "numpy"), default="c",
                    help="RK4 backend: compiled (c) or signaling.integrate (numpy); same numbers")
-    p.add_argument("--function", choices=("signaling", "ishigami"), default="signaling",
-                   help="the model: the signaling model, or the Ishigami test function")
+    p.add_argument("--function", choices=FUNCTIONS, default="signaling",
+                   help="the model: N(end) of the signaling model, CSA/CSA0 - 1 at the end on the fast "
+                   "growth model (17 parameters: the rates, kM, kF, thetaM, thetaF, the Hill exponent), "
+                   "or the Ishigami test function")
+    p.add_argument("--geometry", choices=tuple(SECTION_GEOMETRIES), default=GAIN_GEOMETRY,
+                   help="csa-gain: whose section factor turns N into CSA (surrogate.SECTION_FACTOR)")
     return p
 
 
@@ -373,6 +434,13 @@ def _settings(args, protocol: Protocol | None) -> dict:
     """Everything a chunk's outputs depend on besides the sample matrix."""
     if args.function == "ishigami":
         return {"function": "ishigami", "a_b": ISHIGAMI_AB}
+    if args.function == "csa-gain":
+        from hyper import surrogate
+
+        return {"function": "csa-gain", "dt": args.signaling_dt, "protocol": protocol.to_attributes(),
+                "baseline": dataclasses.asdict(S.SignalingParams()), "start": "baseline rest state",
+                "names": list(GAIN_PARAMETERS), "feedback": "hill", "K": 1.0, "geometry": args.geometry,
+                "section_factor": surrogate.section_factor(args.geometry), "model": "surrogate.grow"}
     return {"function": "signaling", "dt": args.signaling_dt, "protocol": protocol.to_attributes(),
             "baseline": dataclasses.asdict(S.SignalingParams()), "start": "baseline rest state"}
 
@@ -381,7 +449,8 @@ def _check(args) -> Protocol | None:
     positive_hours(args.signaling_dt, "--signaling-dt", S.SMALLEST_DT)
     if args.function == "ishigami":
         return None
-    found = protocols.from_option(args.protocol)
+    default = GAIN_PROTOCOL if args.function == "csa-gain" else "daily15"
+    found = protocols.from_option(default if args.protocol is None else args.protocol)
     if len(found) > 1:
         raise InputError(f"--protocol {args.protocol}: the analysis takes one protocol")
     return found[0]
@@ -403,7 +472,7 @@ def analyse(comm, args, protocol) -> int:
     # done by rank 0 alone (when it writes the results) it would meet the other ranks' next
     # collective call and hang. All ranks import it here, together.
     io.versions()
-    prob = ishigami_problem() if args.function == "ishigami" else problem()
+    prob = {"ishigami": ishigami_problem, "csa-gain": gain_problem, "signaling": problem}[args.function]()
     D = prob["num_vars"]
     X = sample(prob, args.samples, args.seed) if comm.rank == 0 else np.empty((args.samples * (2 * D + 2), D))
     _idle_barrier(comm)
@@ -420,7 +489,11 @@ def analyse(comm, args, protocol) -> int:
                 cli.error(comm, f"{error}; use --backend numpy")
                 return cli.EXIT_SOME_FAILED
             S.c_backend_error()
-        evaluate = functools.partial(final_N, protocol=protocol, dt=args.signaling_dt, backend=args.backend)
+        if args.function == "csa-gain":
+            evaluate = functools.partial(csa_gain, protocol=protocol, dt=args.signaling_dt,
+                                         geometry=args.geometry, backend=args.backend)
+        else:
+            evaluate = functools.partial(final_N, protocol=protocol, dt=args.signaling_dt, backend=args.backend)
     chunks = args.output / "chunks"
     if comm.rank == 0:
         stale = remove_stale(chunks, key)
@@ -486,7 +559,7 @@ def _finish(args, prob, X, Y, results, protocol, key, timing, start, ranks) -> i
     from importlib.metadata import version
 
     attrs = {
-        "model": f"Sobol indices of {'N(end)' if protocol else 'the Ishigami function'} (MODEL.md §7)",
+        "model": f"Sobol indices of {OUTPUT[args.function]} (MODEL.md §7)",
         "function": args.function, "N": args.samples, "D": prob["num_vars"], "evaluations": X.shape[0],
         "seed": args.seed, "bootstrap_seed": args.seed + 1, "resamples": args.resamples, "conf_level": 0.95,
         "dt": args.signaling_dt, "backend": args.backend, "ranks": ranks, "chunk": args.chunk, "digest": key,
@@ -496,6 +569,12 @@ def _finish(args, prob, X, Y, results, protocol, key, timing, start, ranks) -> i
         "evaluations_computed": evaluated_rows, "evaluations_per_s": rate, "version_SALib": version("SALib"),
         "protocol": protocol.name if protocol else "", "start_state": "baseline rest state (MODEL.md §1)",
     }
+    if args.function == "csa-gain":
+        from hyper import surrogate
+
+        attrs.update(output="CSA/CSA0 - 1 at the protocol's end (surrogate.grow, Hill feedback, K = 1)",
+                     geometry=args.geometry, section_factor=surrogate.section_factor(args.geometry),
+                     hill_n_baseline=HILL_N)
     groups = {"bounds": {n: np.asarray(b, dtype=float) for n, b in zip(prob["names"], prob["bounds"])}}
     if protocol is not None:
         groups["protocol"] = protocol.to_attributes()
@@ -511,8 +590,11 @@ def _finish(args, prob, X, Y, results, protocol, key, timing, start, ranks) -> i
             f.write("parameter,S1,S1_conf,ST,ST_conf\n")
             for k, name in enumerate(ind.names):
                 f.write(f"{name},{ind.S1[k]:.6g},{ind.S1_conf[k]:.6g},{ind.ST[k]:.6g},{ind.ST_conf[k]:.6g}\n")
+    label = {"signaling": f"N({protocol.end:g} h)" if protocol else "",
+             "csa-gain": f"the CSA gain at {protocol.end:g} h ({protocol.name})" if protocol else "",
+             "ishigami": "the Ishigami function"}[args.function]
     for name, make in (("spread.png", figure_spread), ("indices.png", figure_bars)):
-        plot.save(make(ind), out / name, dpi=130)
+        plot.save(make(ind, label), out / name, dpi=130)
     info(None, ind.table())
     info(None, f"wall {wall:.1f} s; results: {out / 'sobol.h5'}, {out / 'indices.csv'}, {out / 'spread.png'}, "
                f"{out / 'indices.png'}")

@@ -62,9 +62,14 @@ class Growth:
 
 
 def grow(params: signaling.SignalingParams, protocol: Protocol, out_times, *, signaling_dt: float = 0.05,
-         feedback: str = "hill", factor: float = 1.0) -> Growth:
+         feedback: str = "hill", factor: float = 1.0, hill_n=4.0, backend: str = "auto",
+         failures: str = "raise") -> Growth:
     """CSA/CSA0, N and kM at ``out_times`` (sorted, within [0, protocol.end]) from the
-    baseline rest state, with kM = kM0 h(CSA/CSA0) updated at every period end."""
+    baseline rest state, with kM = kM0 h(CSA/CSA0) updated at every period end.
+
+    ``hill_n``: the Hill feedback's exponent n (float or per member; the paper's 4).
+    ``backend`` and ``failures`` go to `signaling.integrate`; with ``failures="mask"`` a
+    member whose trajectory fails is NaN from then on, the others are their own bits."""
     if feedback not in growth.FEEDBACK_LAWS:
         raise InputError(f"feedback must be one of {', '.join(growth.FEEDBACK_LAWS)}, got {feedback!r}")
     times = np.asarray(out_times, dtype=float)
@@ -81,11 +86,13 @@ def grow(params: signaling.SignalingParams, protocol: Protocol, out_times, *, si
     for t0, t1, _ in protocol.periods():
         inside = (times > t0) & (times <= t1)
         sample = np.union1d(times[inside], [t0, t1])
-        _, ys = signaling.integrate(params, protocol, y, t0, t1, signaling_dt, out_times=sample, kM=kM)
+        # masked failures come back NaN: a failed member stays NaN (and masked) in later periods
+        ys = signaling.integrate(params, protocol, y, t0, t1, signaling_dt, out_times=sample, kM=kM,
+                                 backend=backend, failures=failures)[1]
         N[inside] = ys[np.searchsorted(sample, times[inside]), 4]
         km[inside] = kM
         y = ys[-1]
-        kM = kM0 * growth.feedback(1.0 + factor * (y[4] - 1.0), feedback)
+        kM = kM0 * growth.feedback(1.0 + factor * (y[4] - 1.0), feedback, n=hill_n)
         km[times == t1] = kM
     return Growth(times, 1.0 + factor * (N - 1.0), N, km)
 
