@@ -100,6 +100,9 @@ class Numerics:
         for name in ("growth_dt", "signaling_dt"):
             if getattr(self, name) is not None:
                 positive_hours(getattr(self, name), name)
+        if self.growth_dt is not None and self.signaling_dt is not None and self.signaling_dt > self.growth_dt:
+            raise InputError(f"{self.signaling_dt:g} h must not exceed the growth step ({self.growth_dt:g} h)",
+                             field="signaling_dt")
         a = self.accuracy
         if a is not None and (isinstance(a, bool) or not isinstance(a, (int, float))
                               or not (math.isfinite(a) and 0 < a < 0.5)):
