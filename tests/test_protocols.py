@@ -142,7 +142,7 @@ def test_load_from_toml(tmp_path):
     "text, message",
     [
         ("end = 10\n[[session]]\nstart = 0\nduration = 1\n", r"session 0: missing intensity"),
-        ("end = 10\nspeed = 3\n", r"unknown key\(s\) speed; known: end, name, session"),
+        ("end = 10\nspeed = 3\n", r"unknown key\(s\) speed; known: end, name, repeat, session"),
         ("end = 10\n[[session]]\nstart = 0\nduration = 1\nintensity = 0.5\nrpm = 2\n",
          r"session 0: unknown key\(s\) rpm"),
         ("end = 10\n[[session]]\nstart = 0\nduration = 1\nintensity = 'high'\n",

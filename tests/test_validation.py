@@ -31,7 +31,7 @@ PROTOCOL_OK = "name = \"short\"\nend = 96.0\n" + session() + session(start=48.0)
 # name -> (protocol file text, message)
 BAD_PROTOCOLS = {
     "protocol_syntax": ("end = \n", r"malformed TOML: Invalid value \(at line 1, column 7\)"),
-    "protocol_unknown_key": ("end = 96.0\nends = 1\n", r"unknown key\(s\) ends; known: end, name, session"),
+    "protocol_unknown_key": ("end = 96.0\nends = 1\n", r"unknown key\(s\) ends; known: end, name, repeat, session"),
     "protocol_missing_end": (session(), r"missing 'end' \(the end time of the protocol in hours\)"),
     "protocol_end_text": ("end = \"96 h\"\n", r"end: expected a number, got '96 h'"),
     "protocol_end_nan": ("end = nan\n", r"end: expected a finite number, got nan"),

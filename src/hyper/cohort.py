@@ -51,6 +51,7 @@ import sys
 import threading
 import time
 import traceback
+from collections.abc import Mapping
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
@@ -75,17 +76,20 @@ PICTURE_SCALE = 10.0  # displacement amplification of the shape picture (the pap
 
 @dataclasses.dataclass(frozen=True)
 class Run:
-    geometry: str
+    geometry: str  # a built-in geometry id, or the stem of ``mesh``
     protocol: Protocol
+    mesh: run.MeshFile | None = None  # a user's mesh file (hyper study); None: the built-in geometry
 
     @property
     def key(self) -> str:
         return f"{self.geometry}_{self.protocol.name}"
 
 
-def plan(geometries, protocol_list) -> list[Run]:
-    """Every geometry with every protocol; names must make unique run keys."""
-    runs = [Run(g, p) for g in geometries for p in protocol_list]
+def plan(geometries, protocol_list, meshes: Mapping[str, run.MeshFile] | None = None) -> list[Run]:
+    """Every geometry with every protocol; names must make unique run keys. ``meshes``
+    maps the geometries that are a user's mesh file to it."""
+    meshes = meshes or {}
+    runs = [Run(g, p, meshes.get(g)) for g in geometries for p in protocol_list]
     keys = [r.key for r in runs]
     repeated = sorted({k for k in keys if keys.count(k) > 1})
     if repeated:
@@ -101,24 +105,30 @@ def member(geometry: str) -> dict[str, str]:
     return {"muscle": "", "subject": "", "side": ""}
 
 
-def mesh_cells(geometry: str) -> int:
-    """The number of cells of a project mesh, read from its file header (no mesh built)."""
+def mesh_cells(geometry: str, path: Path | None = None) -> int:
+    """The number of cells of a project mesh (or of the mesh file ``path``), read from its
+    file header (no mesh built)."""
     import h5py
 
-    path = geo.MESHES_DIR / geo.GEOMETRIES[geometry]
+    path = geo.MESHES_DIR / geo.GEOMETRIES[geometry] if path is None else Path(path)
+    data = path.with_suffix(".h5") if path.suffix == ".xdmf" else path
     if path.suffix == ".xdmf":
-        with h5py.File(path.with_suffix(".h5"), "r") as f:
-            return int(f["Mesh/Grid/topology"].shape[0])
-    # The two Gmsh meshes are small: their file size (about 100 bytes a cell) suffices.
-    return max(1, path.stat().st_size // 100)
+        with h5py.File(data, "r") as f:
+            if "Mesh/Grid/topology" in f:
+                return int(f["Mesh/Grid/topology"].shape[0])
+    # The Gmsh meshes are small, and a user's mesh may name its datasets otherwise: the
+    # file size (about 100 bytes a cell) suffices to order the jobs.
+    return max(1, data.stat().st_size // 100)
 
 
 def growth_steps(protocol: Protocol, growth_dt: float) -> int:
     return sum(len(step_times(t0, t1, growth_dt)) - 1 for t0, t1, _ in protocol.periods())
 
 
-def spec(entry: Run, params, settings: GrowthSettings) -> run.RunSpec:
-    return run.RunSpec(entry.geometry, entry.protocol, params, settings)
+def spec(entry: Run, params, settings: GrowthSettings, options: Mapping | None = None) -> run.RunSpec:
+    """The run of ``entry``; ``options`` more `RunSpec` fields (heterogeneity, seed,
+    linear_solver, choice, quadrature_degree: what a study file sets)."""
+    return run.RunSpec(entry.geometry, entry.protocol, params, settings, mesh=entry.mesh, **(options or {}))
 
 
 def series_path(output: Path, entry: Run) -> Path:
@@ -163,22 +173,23 @@ class _RunLog:
 
 
 def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: GrowthSettings | None = None,
-               snapshot_every: int = run.SNAPSHOT_EVERY, ranks_per_job: int = 1, stop=None) -> list[farm.JobResult]:
+               snapshot_every: int = run.SNAPSHOT_EVERY, ranks_per_job: int = 1, stop=None,
+               options: Mapping | None = None) -> list[farm.JobResult]:
     """Run every run not done before on the farm; collective over ``comm``.
 
     Each run checkpoints every run.CHECKPOINT_EVERY growth steps (runs/KEY.ckpt.h5) and
     resumes from its checkpoint, so a killed cohort loses at most that much per run.
     ``stop()`` turning true (run.StopOnTerm: SIGTERM) stops the running runs at their
     next step boundary with a checkpoint, and the runs not started yet at once; their
-    results are ``{"interrupted": True}``.
+    results are ``{"interrupted": True}``. ``options``: more `RunSpec` fields for every run (`spec`).
     """
     params = signaling.SignalingParams() if params is None else params
     settings = GrowthSettings() if settings is None else settings
     output = Path(output)
-    specs = {r.key: spec(r, params, settings) for r in runs}
+    specs = {r.key: spec(r, params, settings, options) for r in runs}
     digests = {key: s.digest() for key, s in specs.items()}
-    jobs = [farm.Job(r.key, cost=float(mesh_cells(r.geometry) * growth_steps(r.protocol, settings.growth_dt)),
-                     payload=r) for r in runs]
+    jobs = [farm.Job(r.key, cost=float(mesh_cells(r.geometry, r.mesh and r.mesh.path)
+                                       * growth_steps(r.protocol, settings.growth_dt)), payload=r) for r in runs]
     if comm.rank == 0:
         (output / "runs").mkdir(parents=True, exist_ok=True)
 
@@ -200,7 +211,7 @@ def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: Gr
         if subcomm.rank != 0:
             return None
         out.store(done.series, {**done.meta, **member(entry.geometry), "protocol": entry.protocol.name},
-                  run.result_groups(specs[entry.key]))
+                  run.result_groups(specs[entry.key], done.choice))
         return {"csa_ratio": float(done.series["csa_ratio"][-1]),
                 "volume_ratio": float(done.series["volume_ratio"][-1])}
 
@@ -496,7 +507,7 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings]:
     return runs, settings
 
 
-def _idle_barrier(comm) -> None:
+def idle_barrier(comm) -> None:
     """A barrier at which waiting ranks sleep, instead of spinning in MPI and taking a core
     from rank 0 while it writes the summary and figures."""
     request = comm.Ibarrier()
@@ -504,9 +515,9 @@ def _idle_barrier(comm) -> None:
         time.sleep(0.05)
 
 
-def _finish(args, runs: list[Run], results, settings: GrowthSettings, elapsed: float) -> int:
-    """Rank 0: summary, failures, figures, table. Returns the exit status."""
-    output = args.output
+def finish(output: Path, runs: list[Run], results, settings: GrowthSettings, elapsed: float, *,
+           plot_geometry: str, figures: bool = True) -> int:
+    """Rank 0: summary, failures, figures (unless ``figures`` is false), table. Returns the exit status."""
     failed = {r.key: r.error for r in results if r.status == "failed"}
     interrupted = {r.key for r in results if r.status == "done" and r.result and r.result.get("interrupted")}
     rows = summarize(output, runs, failed, interrupted)
@@ -519,14 +530,14 @@ def _finish(args, runs: list[Run], results, settings: GrowthSettings, elapsed: f
         failures.unlink(missing_ok=True)
     done = [r for r in rows if r["status"] == "done"]
     written = [output / "summary.csv"]
-    if done:
+    if done and figures:
         ratio_figure(done, output / "ratios.png")
         written.append(output / "ratios.png")
     pictured = {r.protocol.name: run.Outputs(series_path(output, r)).fields for r in runs
-                if r.geometry == args.plot_geometry}
+                if r.geometry == plot_geometry}
     pictured = {name: p for name, p in pictured.items() if p.is_file()}
-    if pictured:
-        shape_figure({name: final_fields(p) for name, p in pictured.items()}, output / "shape.png", args.plot_geometry)
+    if pictured and figures:
+        shape_figure({name: final_fields(p) for name, p in pictured.items()}, output / "shape.png", plot_geometry)
         written.append(output / "shape.png")
     table = markdown(rows, settings)
     with io.atomic_path(output / "table.md") as tmp:
@@ -564,11 +575,12 @@ def cohort(comm, args) -> int:
         code = 0
         if comm.rank == 0:
             try:
-                code = _finish(args, runs, results, settings, time.perf_counter() - start)
+                code = finish(args.output, runs, results, settings, time.perf_counter() - start,
+                              plot_geometry=args.plot_geometry)
             except Exception:  # noqa: BLE001 - the other ranks wait below: report, never leave them hanging
                 traceback.print_exc()
                 code = cli.EXIT_SOME_FAILED
-        _idle_barrier(comm)
+        idle_barrier(comm)
     return int(comm.bcast(code, root=0))
 
 

@@ -167,11 +167,16 @@ def plan_from(comm, args) -> Plan:
     specs = [run.RunSpec(name, p, params, settings, petsc_options, mesh=mesh, linear_solver=solver, choice=choice)
              for p in runs]
     if not args.restart:
-        for spec, h5 in zip(specs, results):
-            saved = run.Outputs(h5).checkpoint
-            on_rank0(comm, lambda: saved.is_file() and inspect(saved, spec.digest()))
+        refuse_foreign_checkpoints(comm, specs, [run.Outputs(h5) for h5 in results])
     return Plan(specs, [run.Outputs(h5) for h5 in results], plot, args.snapshot_every, args.checkpoint_every,
                 args.restart, choice)
+
+
+def refuse_foreign_checkpoints(comm, specs: list[run.RunSpec], outputs: list[run.Outputs]) -> None:
+    """An InputError where a run's checkpoint belongs to another run (another digest): it
+    is resumed by its own run only, or dropped with --restart."""
+    for spec, out in zip(specs, outputs):
+        on_rank0(comm, lambda: out.checkpoint.is_file() and inspect(out.checkpoint, spec.digest()))
 
 
 def answer_signaling(comm, args) -> int:
@@ -197,37 +202,41 @@ def grow(comm, args, argv: list[str]) -> int:
     import dolfinx_solver  # noqa: F401
     from petsc4py import PETSc  # noqa: F401
 
+    with run.StopOnTerm() as stop:
+        return carry_out(comm, plan_from(comm, args), stop, ["hyper", "grow", *argv])
+
+
+def carry_out(comm, work: Plan, stop, command: list[str], figure: bool = True) -> int:
+    """Run a checked plan: every run in turn, its result stored, then the figure (unless
+    ``figure`` is false). Returns the exit status; ``command`` goes into the checkpoints."""
     from hyper.coupled import GrowthFailure
 
-    with run.StopOnTerm() as stop:
-        work = plan_from(comm, args)
-        with cli.hold(comm, [o.h5 for o in work.outputs]):
-            if work.choice is not None:
-                info(comm, f"fidelity: {work.choice.describe()}")
-            results = {}
-            for spec, out in zip(work.specs, work.outputs):
-                if work.restart:
-                    on_rank0(comm, lambda: out.checkpoint.unlink(missing_ok=True))
-                try:
-                    done = run.execute(comm, spec, out, snapshot_every=work.snapshot_every,
-                                       checkpoint_every=work.checkpoint_every, stop=stop,
-                                       command=["hyper", "grow", *argv])
-                except run.Interrupted as err:
-                    info(comm, f"{spec.protocol.name}: {err}; exit status {cli.EXIT_TERMINATED}")
-                    return cli.EXIT_TERMINATED
-                except (run.Unsaved, GrowthFailure) as err:
-                    cli.error(comm, f"{spec.label}: {err}")
-                    return cli.EXIT_FAILED
-                on_rank0(comm, lambda: out.store(done.series, done.meta, run.result_groups(spec, done.choice)))
-                info(comm, f"{spec.protocol.name}: CSA/CSA0 {done.series['csa_ratio'][-1]:.5f}, V/V0 "
-                           f"{done.series['volume_ratio'][-1]:.5f} in {hms(done.meta['wall_s'])}; wrote {out.h5} "
-                           f"and {out.fields}")
-                results[spec.protocol.name] = done.series
-                done = None  # the model goes before the next run builds its own
-            if comm.rank == 0:
-                from hyper.plot import growth_series
+    with cli.hold(comm, [o.h5 for o in work.outputs]):
+        if work.choice is not None:
+            info(comm, f"fidelity: {work.choice.describe()}")
+        results = {}
+        for spec, out in zip(work.specs, work.outputs):
+            if work.restart:
+                on_rank0(comm, lambda: out.checkpoint.unlink(missing_ok=True))
+            try:
+                done = run.execute(comm, spec, out, snapshot_every=work.snapshot_every,
+                                   checkpoint_every=work.checkpoint_every, stop=stop, command=command)
+            except run.Interrupted as err:
+                info(comm, f"{spec.protocol.name}: {err}; exit status {cli.EXIT_TERMINATED}")
+                return cli.EXIT_TERMINATED
+            except (run.Unsaved, GrowthFailure) as err:
+                cli.error(comm, f"{spec.label}: {err}")
+                return cli.EXIT_FAILED
+            on_rank0(comm, lambda: out.store(done.series, done.meta, run.result_groups(spec, done.choice)))
+            info(comm, f"{spec.protocol.name}: CSA/CSA0 {done.series['csa_ratio'][-1]:.5f}, V/V0 "
+                       f"{done.series['volume_ratio'][-1]:.5f} in {hms(done.meta['wall_s'])}; wrote {out.h5} "
+                       f"and {out.fields}")
+            results[spec.protocol.name] = done.series
+            done = None  # the model goes before the next run builds its own
+        if comm.rank == 0 and figure:
+            from hyper.plot import growth_series
 
-                info(comm, f"figure: {growth_series(results, work.plot, DATA)}")
+            info(comm, f"figure: {growth_series(results, work.plot, DATA)}")
     return cli.EXIT_OK
 
 

@@ -161,39 +161,132 @@ def named(name: str) -> Protocol:
 
 
 SESSION_KEYS = ("start", "duration", "intensity")
+# The training weeks begin on a Monday (after the rest lead-in): day 0 of a week is "mon".
+WEEKDAYS = ("mon", "tue", "wed", "thu", "fri", "sat", "sun")
+REPEAT_KEYS = ("weekdays", "every_days", "duration", "intensity", "weeks", "lead_in_days")
+DAY = 24.0  # h
 
 
-def load(path: str | Path) -> Protocol:
-    """A protocol from a TOML file: ``end`` (h), optional ``name``, and ``[[session]]`` tables
-    with ``start``, ``duration`` (h) and ``intensity``. Unknown keys are an error."""
-    path = Path(path)
-    data = read_toml(path)
-    unknown = sorted(set(data) - {"end", "name", "session"})
+@dataclass(frozen=True)
+class Repeat:
+    """Sessions by rule: on some weekdays of every week, or every N days, for a number of
+    training weeks after a rest lead-in. Exactly one of ``weekdays`` and ``every_days``."""
+
+    duration: float  # h, of each session
+    intensity: float  # fraction of the maximal force capacity, in [0, 1]
+    weeks: int  # training weeks; the protocol ends with the last of them
+    weekdays: tuple[str, ...] = ()  # of WEEKDAYS, the days of each training week with a session
+    every_days: float | None = None  # days from one session's start to the next's
+    lead_in_days: float = 0.0  # days of rest before the first training week
+
+    def __post_init__(self):
+        object.__setattr__(self, "weekdays", tuple(self.weekdays))
+        if bool(self.weekdays) == (self.every_days is not None):
+            raise InputError("give exactly one of weekdays (e.g. [\"mon\", \"wed\", \"fri\"]) and every_days "
+                             "(a number of days)", field="repeat")
+        for day in self.weekdays:
+            if day not in WEEKDAYS:
+                raise InputError(f"expected days of {', '.join(WEEKDAYS)}, got {day!r}", field="weekdays")
+        if len(set(self.weekdays)) < len(self.weekdays):
+            raise InputError(f"a day appears twice in {list(self.weekdays)}", field="weekdays")
+        if self.every_days is not None and not (math.isfinite(self.every_days) and self.every_days > 0):
+            raise InputError(f"expected a finite number of days > 0, got {self.every_days!r}", field="every_days")
+        if isinstance(self.weeks, bool) or not isinstance(self.weeks, int) or not 1 <= self.weeks <= MAX_END / WEEK:
+            raise InputError(f"expected an integer in [1, {MAX_END / WEEK:g}], got {self.weeks!r}", field="weeks")
+        if not (math.isfinite(self.lead_in_days) and self.lead_in_days >= 0):
+            raise InputError(f"expected a finite number of days >= 0, got {self.lead_in_days!r}",
+                             field="lead_in_days")
+
+    def protocol(self, name: str, end: float | None = None) -> Protocol:
+        """The sessions of the rule; ``end`` (h) by default the end of the last training week."""
+        first = self.lead_in_days * DAY
+        stop = first + self.weeks * WEEK
+        if self.weekdays:
+            starts = sorted(first + w * WEEK + WEEKDAYS.index(d) * DAY for w in range(self.weeks)
+                            for d in self.weekdays)
+        else:
+            # sessions start in the training weeks: every_days apart, the first at the lead-in's end
+            count = math.ceil((stop - first) / (self.every_days * DAY))
+            starts = [first + k * self.every_days * DAY for k in range(count)]
+        return Protocol(tuple(Session(s, self.duration, self.intensity) for s in starts),
+                        stop if end is None else end, name)
+
+
+def repeat_from_table(table, where: str) -> Repeat:
+    """A `Repeat` from a TOML table (a protocol's ``[repeat]``); messages start with ``where``."""
+    if not isinstance(table, dict):
+        raise InputError(f"{where}: expected a table of {', '.join(REPEAT_KEYS)}, got {table!r}")
+    unknown = sorted(set(table) - set(REPEAT_KEYS))
     if unknown:
-        raise InputError(f"{path}: unknown key(s) {', '.join(unknown)}; known: end, name, session")
-    if "end" not in data:
-        raise InputError(f"{path}: missing 'end' (the end time of the protocol in hours)")
-    end = as_float(data["end"], f"{path}: end")
-    name = data.get("name", path.stem)
+        raise InputError(f"{where}: unknown key(s) {', '.join(unknown)}; known: {', '.join(REPEAT_KEYS)}")
+    missing = [k for k in ("duration", "intensity", "weeks") if k not in table]
+    if missing:
+        raise InputError(f"{where}: missing {', '.join(missing)}")
+    weekdays = table.get("weekdays", [])
+    if not isinstance(weekdays, list) or not all(isinstance(d, str) for d in weekdays):
+        raise InputError(f"{where}: weekdays: expected an array of day names ({', '.join(WEEKDAYS)}), "
+                         f"got {weekdays!r}")
+    weeks = table["weeks"]
+    if isinstance(weeks, bool) or not isinstance(weeks, int):
+        raise InputError(f"{where}: weeks: expected an integer, got {weeks!r}")
+    every = table.get("every_days")
+    try:
+        return Repeat(as_float(table["duration"], f"{where}: duration"),
+                      as_float(table["intensity"], f"{where}: intensity"), weeks, tuple(weekdays),
+                      None if every is None else as_float(every, f"{where}: every_days"),
+                      as_float(table.get("lead_in_days", 0.0), f"{where}: lead_in_days"))
+    except InputError as err:
+        raise InputError(f"{where}: {err}") from None
+
+
+PROTOCOL_KEYS = ("end", "name", "repeat", "session")
+
+
+def from_table(data: dict, where: str, name: str) -> Protocol:
+    """A protocol from a TOML table: optional ``name`` (else ``name``), and either
+    ``[[session]]`` tables (``start``, ``duration`` in h, ``intensity``) with ``end`` (h), or a
+    ``[repeat]`` rule (`Repeat`) with an optional ``end``. Unknown keys are an error;
+    messages start with ``where``."""
+    unknown = sorted(set(data) - set(PROTOCOL_KEYS))
+    if unknown:
+        raise InputError(f"{where}: unknown key(s) {', '.join(unknown)}; known: {', '.join(PROTOCOL_KEYS)}")
+    name = data.get("name", name)
     if not isinstance(name, str):
-        raise InputError(f"{path}: name must be a string, got {name!r}")
+        raise InputError(f"{where}: name must be a string, got {name!r}")
+    if "repeat" in data and "session" in data:
+        raise InputError(f"{where}: give either [[session]] tables or a [repeat] rule, not both")
+    end = as_float(data["end"], f"{where}: end") if "end" in data else None
+    if "repeat" in data:
+        rule = repeat_from_table(data["repeat"], f"{where}: repeat")
+        try:
+            return rule.protocol(name, end)
+        except InputError as err:
+            raise InputError(f"{where}: {err}") from None
+    if end is None:
+        raise InputError(f"{where}: missing 'end' (the end time of the protocol in hours)")
     tables = data.get("session", [])
     if not isinstance(tables, list) or not all(isinstance(t, dict) for t in tables):
-        raise InputError(f"{path}: 'session' must be an array of tables ([[session]] blocks)")
+        raise InputError(f"{where}: 'session' must be an array of tables ([[session]] blocks)")
     sessions = []
     for i, table in enumerate(tables):
-        where = f"{path}: session {i}"
+        at = f"{where}: session {i}"
         unknown = sorted(set(table) - set(SESSION_KEYS))
         if unknown:
-            raise InputError(f"{where}: unknown key(s) {', '.join(unknown)}; known: {', '.join(SESSION_KEYS)}")
+            raise InputError(f"{at}: unknown key(s) {', '.join(unknown)}; known: {', '.join(SESSION_KEYS)}")
         missing = [k for k in SESSION_KEYS if k not in table]
         if missing:
-            raise InputError(f"{where}: missing {', '.join(missing)}")
-        sessions.append(Session(*(as_float(table[k], f"{where}: {k}") for k in SESSION_KEYS)))
+            raise InputError(f"{at}: missing {', '.join(missing)}")
+        sessions.append(Session(*(as_float(table[k], f"{at}: {k}") for k in SESSION_KEYS)))
     try:
         return Protocol(tuple(sessions), end, name)
     except InputError as err:
-        raise InputError(f"{path}: {err}") from None
+        raise InputError(f"{where}: {err}") from None
+
+
+def load(path: str | Path) -> Protocol:
+    """A protocol from a TOML file (`from_table`); its name defaults to the file's stem."""
+    path = Path(path)
+    return from_table(read_toml(path), str(path), path.stem)
 
 
 def resolve(name_or_path: str | Path) -> Protocol:
