@@ -26,18 +26,16 @@ Exit status: 0 done; 2 bad input (nothing written); 3 a growth step failed for g
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
-from hyper import cli, fidelity, io, protocols, run, signaling
-from hyper.checkpoint import inspect, on_rank0
-from hyper.log import hms, info
+from hyper import cli, fidelity, io, protocols, run, sequence, signaling
+from hyper.checkpoint import on_rank0
+from hyper.log import info
 from hyper.params import InputError, build
 from hyper.signaling.cli import answer
 
 SIGNALING_SAMPLE_EVERY = 0.5  # h, the series of --ask signaling, as hyper signaling samples it
-DATA = Path(__file__).resolve().parents[2] / "data" / "defreitas.csv"
 # the options that set GrowthSettings' fields, for errors that name what the user typed
 SETTING_OPTIONS = {"growth_dt": "--growth-dt", "signaling_dt": "--signaling-dt", "feedback": "--feedback",
                    "max_halvings": "--max-halvings"}
@@ -105,31 +103,12 @@ def choose(scene: fidelity.Scene, args, growth_dt=None) -> fidelity.Choice | Non
         raise InputError(f"--accuracy {args.accuracy:g}: {err}") from None
 
 
-@dataclasses.dataclass(frozen=True)
-class Plan:
-    """The validated command: the runs, where their results go, and how they are written."""
-
-    specs: list[run.RunSpec]
-    outputs: list[run.Outputs]
-    plot: Path
-    snapshot_every: int
-    checkpoint_every: int
-    restart: bool
-    choice: fidelity.Choice | None  # from --accuracy; None: the fixed steps
-
-    # what every run of the command shares
-    geometry = property(lambda self: self.specs[0].geometry)
-    mesh = property(lambda self: self.specs[0].mesh)
-    settings = property(lambda self: self.specs[0].settings)
-    linear_solver = property(lambda self: self.specs[0].linear_solver)
-
-
-def plan(comm, argv) -> Plan:
+def plan(comm, argv) -> sequence.Plan:
     """Parse and check every input; raises InputError before anything is written."""
     return plan_from(comm, parser().parse_args(argv))
 
 
-def plan_from(comm, args) -> Plan:
+def plan_from(comm, args) -> sequence.Plan:
     from hyper.coupled import LAG_OPTION, GrowthSettings, jacobian_lag
 
     if args.mesh is not None and args.geometry is not None:
@@ -167,16 +146,9 @@ def plan_from(comm, args) -> Plan:
     specs = [run.RunSpec(name, p, params, settings, petsc_options, mesh=mesh, linear_solver=solver, choice=choice)
              for p in runs]
     if not args.restart:
-        refuse_foreign_checkpoints(comm, specs, [run.Outputs(h5) for h5 in results])
-    return Plan(specs, [run.Outputs(h5) for h5 in results], plot, args.snapshot_every, args.checkpoint_every,
+        sequence.refuse_foreign_checkpoints(comm, specs, [run.Outputs(h5) for h5 in results])
+    return sequence.Plan(specs, [run.Outputs(h5) for h5 in results], plot, args.snapshot_every, args.checkpoint_every,
                 args.restart, choice)
-
-
-def refuse_foreign_checkpoints(comm, specs: list[run.RunSpec], outputs: list[run.Outputs]) -> None:
-    """An InputError where a run's checkpoint belongs to another run (another digest): it
-    is resumed by its own run only, or dropped with --restart."""
-    for spec, out in zip(specs, outputs):
-        on_rank0(comm, lambda: out.checkpoint.is_file() and inspect(out.checkpoint, spec.digest()))
 
 
 def answer_signaling(comm, args) -> int:
@@ -203,41 +175,7 @@ def grow(comm, args, argv: list[str]) -> int:
     from petsc4py import PETSc  # noqa: F401
 
     with run.StopOnTerm() as stop:
-        return carry_out(comm, plan_from(comm, args), stop, ["hyper", "grow", *argv])
-
-
-def carry_out(comm, work: Plan, stop, command: list[str], figure: bool = True) -> int:
-    """Run a checked plan: every run in turn, its result stored, then the figure (unless
-    ``figure`` is false). Returns the exit status; ``command`` goes into the checkpoints."""
-    from hyper.coupled import GrowthFailure
-
-    with cli.hold(comm, [o.h5 for o in work.outputs]):
-        if work.choice is not None:
-            info(comm, f"fidelity: {work.choice.describe()}")
-        results = {}
-        for spec, out in zip(work.specs, work.outputs):
-            if work.restart:
-                on_rank0(comm, lambda: out.checkpoint.unlink(missing_ok=True))
-            try:
-                done = run.execute(comm, spec, out, snapshot_every=work.snapshot_every,
-                                   checkpoint_every=work.checkpoint_every, stop=stop, command=command)
-            except run.Interrupted as err:
-                info(comm, f"{spec.protocol.name}: {err}; exit status {cli.EXIT_TERMINATED}")
-                return cli.EXIT_TERMINATED
-            except (run.Unsaved, GrowthFailure) as err:
-                cli.error(comm, f"{spec.label}: {err}")
-                return cli.EXIT_FAILED
-            on_rank0(comm, lambda: out.store(done.series, done.meta, run.result_groups(spec, done.choice)))
-            info(comm, f"{spec.protocol.name}: CSA/CSA0 {done.series['csa_ratio'][-1]:.5f}, V/V0 "
-                       f"{done.series['volume_ratio'][-1]:.5f} in {hms(done.meta['wall_s'])}; wrote {out.h5} "
-                       f"and {out.fields}")
-            results[spec.protocol.name] = done.series
-            done = None  # the model goes before the next run builds its own
-        if comm.rank == 0 and figure:
-            from hyper.plot import growth_series
-
-            info(comm, f"figure: {growth_series(results, work.plot, DATA)}")
-    return cli.EXIT_OK
+        return sequence.carry_out(comm, plan_from(comm, args), stop, ["hyper", "grow", *argv])
 
 
 def asks(argv: list[str]) -> str:

@@ -67,7 +67,7 @@ import time
 import traceback
 from pathlib import Path
 
-from hyper import cli, cohort, fidelity, grow, protocols, run, signaling
+from hyper import cli, cohort, fidelity, protocols, run, sequence, signaling
 from hyper import geometry as geo
 from hyper.coupled import GrowthSettings
 from hyper.heterogeneity import Heterogeneity
@@ -361,10 +361,10 @@ def one_run(comm, study: Study, settings, choice, stop, command) -> int:
     spec = run.RunSpec(name, protocol, study.signaling, settings, {}, mesh=study.meshes[0] if study.meshes else None,
                        **spec_options(study, choice))
     outputs = [run.Outputs(folder / f"{name}_{protocol.name}.h5")]
-    grow.refuse_foreign_checkpoints(comm, [spec], outputs)
-    work = grow.Plan([spec], outputs, folder / f"{name}_growth.png", run.SNAPSHOT_EVERY, run.CHECKPOINT_EVERY,
+    sequence.refuse_foreign_checkpoints(comm, [spec], outputs)
+    work = sequence.Plan([spec], outputs, folder / f"{name}_growth.png", run.SNAPSHOT_EVERY, run.CHECKPOINT_EVERY,
                      False, choice)
-    return grow.carry_out(comm, work, stop, command, figure=study.output.figures)
+    return sequence.carry_out(comm, work, stop, command, figure=study.output.figures)
 
 
 def many_runs(comm, study: Study, settings, choice, stop, ranks_per_job: int) -> int:

@@ -1,0 +1,75 @@
+"""Runs one after another in one process, on every rank: the protocols of `hyper grow`,
+the single run of a one-geometry `hyper study`. Each is stored as it ends, so a stop
+after the second keeps the first; the figure comes last.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from hyper import cli, fidelity, run
+from hyper.checkpoint import inspect, on_rank0
+from hyper.log import hms, info
+
+DATA = Path(__file__).resolve().parents[2] / "data" / "defreitas.csv"
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """The validated command: the runs, where their results go, and how they are written."""
+
+    specs: list[run.RunSpec]
+    outputs: list[run.Outputs]
+    plot: Path
+    snapshot_every: int
+    checkpoint_every: int
+    restart: bool
+    choice: fidelity.Choice | None  # from --accuracy; None: the fixed steps
+
+    # what every run of the command shares
+    geometry = property(lambda self: self.specs[0].geometry)
+    mesh = property(lambda self: self.specs[0].mesh)
+    settings = property(lambda self: self.specs[0].settings)
+    linear_solver = property(lambda self: self.specs[0].linear_solver)
+
+
+def refuse_foreign_checkpoints(comm, specs: list[run.RunSpec], outputs: list[run.Outputs]) -> None:
+    """An InputError where a run's checkpoint belongs to another run (another digest): it
+    is resumed by its own run only, or dropped with --restart."""
+    for spec, out in zip(specs, outputs):
+        on_rank0(comm, lambda: out.checkpoint.is_file() and inspect(out.checkpoint, spec.digest()))
+
+
+def carry_out(comm, work: Plan, stop, command: list[str], figure: bool = True) -> int:
+    """Run a checked plan: every run in turn, its result stored, then the figure (unless
+    ``figure`` is false). Returns the exit status; ``command`` goes into the checkpoints."""
+    from hyper.coupled import GrowthFailure
+
+    with cli.hold(comm, [o.h5 for o in work.outputs]):
+        if work.choice is not None:
+            info(comm, f"fidelity: {work.choice.describe()}")
+        results = {}
+        for spec, out in zip(work.specs, work.outputs):
+            if work.restart:
+                on_rank0(comm, lambda: out.checkpoint.unlink(missing_ok=True))
+            try:
+                done = run.execute(comm, spec, out, snapshot_every=work.snapshot_every,
+                                   checkpoint_every=work.checkpoint_every, stop=stop, command=command)
+            except run.Interrupted as err:
+                info(comm, f"{spec.protocol.name}: {err}; exit status {cli.EXIT_TERMINATED}")
+                return cli.EXIT_TERMINATED
+            except (run.Unsaved, GrowthFailure) as err:
+                cli.error(comm, f"{spec.label}: {err}")
+                return cli.EXIT_FAILED
+            on_rank0(comm, lambda: out.store(done.series, done.meta, run.result_groups(spec, done.choice)))
+            info(comm, f"{spec.protocol.name}: CSA/CSA0 {done.series['csa_ratio'][-1]:.5f}, V/V0 "
+                       f"{done.series['volume_ratio'][-1]:.5f} in {hms(done.meta['wall_s'])}; wrote {out.h5} "
+                       f"and {out.fields}")
+            results[spec.protocol.name] = done.series
+            done = None  # the model goes before the next run builds its own
+        if comm.rank == 0 and figure:
+            from hyper.plot import growth_series
+
+            info(comm, f"figure: {growth_series(results, work.plot, DATA)}")
+    return cli.EXIT_OK
