@@ -220,3 +220,39 @@ def test_no_job_leaves_a_rank_waiting_on_bad_input(inputs, tmp_path, job, option
     assert result.returncode == cli.EXIT_INPUT, result.stderr
     assert len(lines) == 1 and message in lines[0], result.stderr
     assert not out.exists()
+
+
+# job -> its command, {out} the output whose lock another run holds
+LOCKED = {
+    "signaling": ["--protocol", "mwf", "--output", "{out}"],
+    "sobol": ["--samples", "4", "--output", "{out}"],
+    "cohort": ["--geometries", "cylinder", "--protocols", "mwf", "--output", "{out}"],
+    "ensemble": ["--geometry", "cylinder", "--samples", "1", "--output", "{out}"],
+    "contraction": ["--geometry", "cylinder", "--output", "{out}.h5"],
+    "meshstats": ["--geometries", "TA_VHF_Left", "--output", "{out}.csv"],
+    "fibers": ["--geometries", "TA_VHF_Left", "--output", "{out}"],
+    "dose": ["--output", "{out}"],
+    "calibrate": ["--data", str(ROOT / "data" / "defreitas.csv"), "--protocol", "mwf", "--fit", "kM",
+                  "--output", "{out}"],
+}
+
+
+@pytest.mark.parametrize("job", sorted(LOCKED))
+def test_every_job_that_writes_stops_at_once_on_an_output_another_run_holds(tmp_path, capsys, job):
+    from hyper import checkpoint
+
+    out = tmp_path / "out"
+    argv = [a.format(out=out) for a in LOCKED[job]]
+    held = argv[argv.index("--output") + 1]
+    if job == "ensemble":  # an ensemble writes, and locks, its label's folder
+        held = str(out / "cylinder_mwf" / "uniform-noise_eps0.01")
+    if job == "signaling":  # signaling locks each result file
+        held = str(out / "mwf.h5")
+    lock = checkpoint.OutputLock(Path(held))
+    assert lock.acquire()
+    try:
+        assert cli.main([job, *argv]) == cli.EXIT_BUSY
+    finally:
+        lock.release()
+    assert "another run is writing this output" in capsys.readouterr().err
+    assert not out.exists() or not any(p.suffix in (".h5", ".csv", ".png", ".json") for p in out.rglob("*"))

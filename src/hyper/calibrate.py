@@ -310,7 +310,7 @@ def parser() -> cli.Parser:
     p.add_argument("--exclude-until", type=float, default=0.0, metavar="WEEK",
                    help="leave out the points in (0, WEEK] weeks (early oedema)")
     p.add_argument("--no-check", action="store_true", help="skip the coupled run at the optimum")
-    p.add_argument("--output", type=Path, default=Path("results/calibration"), help="output folder")
+    p.add_argument("--output", type=cli.output(folder=True), default="results/calibration", help="output folder")
     return p
 
 
@@ -430,7 +430,7 @@ def figure(path: Path, datasets: list[Dataset], f: Fit, times: list[np.ndarray],
     return plot.save(fig, path)
 
 
-main = cli.entry(parser, run)
+main = cli.entry(parser, run, locks=lambda args: [args.output])
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -227,11 +227,14 @@ def hold(comm, outputs: list[Path]) -> Iterator[None]:
 # ---------------------------------------------------------------------------- the entry
 
 
-def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool = True) -> Callable[..., int]:
+def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool = True,
+          locks: Callable[[argparse.Namespace], list[Path]] | None = None) -> Callable[..., int]:
     """The ``main(argv=None)`` of a job: parse, set up logging, run, map errors to exit codes.
 
     ``run(comm, args)`` gets MPI.COMM_WORLD (``world=False``: ``run(None, args)``, for
-    jobs that never start MPI) and returns the exit status.
+    jobs that never start MPI) and returns the exit status. ``locks(args)`` names the
+    outputs whose locks the job holds while it runs (`hold`): a second job on the same
+    output stops at once (exit 4) instead of writing over the first.
     """
 
     def main(argv=None, comm=None) -> int:
@@ -254,7 +257,8 @@ def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool 
 
         io.record_command([*made.prog.split(), *argv])
         try:
-            return int(run(comm, args))
+            with hold(comm, locks(args)) if locks is not None else contextlib.nullcontext():
+                return int(run(comm, args))
         except InputError as err:
             error(comm, str(err))
             return EXIT_INPUT

@@ -105,7 +105,7 @@ def parser() -> cli.Parser:
                    help="weekly loads Σ intensity × duration (h) to find the best protocol under")
     p.add_argument("--accuracy", type=float, default=fidelity.DEFAULT_ACCURACY,
                    help="error allowed, a fraction of the growth: chooses the RK4 step (hyper.fidelity)")
-    p.add_argument("--output", type=Path, default=Path("results/dose"), help="output folder")
+    p.add_argument("--output", type=cli.output(folder=True), default="results/dose", help="output folder")
     return p
 
 
@@ -204,7 +204,7 @@ def returns(path: Path, gains: dict) -> Path:
     return plot.save(fig, path)
 
 
-main = cli.entry(parser, run)
+main = cli.entry(parser, run, locks=lambda args: [args.output])
 
 if __name__ == "__main__":
     raise SystemExit(main())

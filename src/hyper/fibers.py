@@ -640,7 +640,7 @@ def run(comm, args) -> int:
     return comm.bcast(status, root=0)
 
 
-main = cli.entry(parser, run)
+main = cli.entry(parser, run, locks=lambda args: [args.output])
 
 if __name__ == "__main__":
     sys.exit(main())

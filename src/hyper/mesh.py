@@ -562,7 +562,7 @@ def gmsh_version() -> str:
     return gmsh.__version__
 
 
-main = cli.entry(parser, run)
+main = cli.entry(parser, run, locks=lambda args: [args.output])
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -158,7 +158,7 @@ def run(comm, args) -> int:
     return cli.EXIT_OK
 
 
-main = cli.entry(parser, run)
+main = cli.entry(parser, run, locks=lambda args: [args.output])
 
 if __name__ == "__main__":
     sys.exit(main())
