@@ -93,7 +93,8 @@ def parser(ask: str = "growth") -> cli.Parser:
     p.add_argument("--checkpoint-every", type=cli.integer(0), default=run.CHECKPOINT_EVERY,
                    help="checkpoint every K growth steps (0: only on SIGTERM and failures)")
     p.add_argument("--restart", action="store_true", help="ignore and delete an existing checkpoint")
-    p.add_argument("--plot", type=Path, help="figure (.png); next to the output by default")
+    p.add_argument("--plot", type=Path, help="figure (.png); by default next to the output: RESULT.png for an .h5 output, "
+                   "GEOMETRY_PROTOCOL_growth.png in a folder for one protocol, GEOMETRY_growth.png for several")
     return p
 
 
@@ -157,8 +158,16 @@ def plan_from(comm, args) -> Plan:
     if LAG_OPTION in petsc_options:
         jacobian_lag(petsc_options[LAG_OPTION])
     results = io.result_paths(args.output, [f"{name}_{p.name}" for p in runs])
-    plot = args.plot or (args.output.with_suffix(".png") if args.output.suffix == ".h5"
-                         else args.output / f"{name}_growth.png")
+    # The default figure is named per run (GEOMETRY_PROTOCOL_growth.png) for one protocol:
+    # array tasks of one geometry share an output folder and must not replace each other's.
+    if args.plot is not None:
+        plot = args.plot
+    elif args.output.suffix == ".h5":
+        plot = args.output.with_suffix(".png")
+    elif len(runs) == 1:
+        plot = results[0].with_name(f"{results[0].stem}_growth.png")
+    else:
+        plot = args.output / f"{name}_growth.png"
     if plot.suffix != ".png":
         raise InputError(f"--plot {plot}: expected a .png file")
     if mesh is not None:
