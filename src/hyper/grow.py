@@ -93,8 +93,8 @@ def parser(ask: str = "growth") -> cli.Parser:
     p.add_argument("--checkpoint-every", type=cli.integer(0), default=run.CHECKPOINT_EVERY,
                    help="checkpoint every K growth steps (0: only on SIGTERM and failures)")
     p.add_argument("--restart", action="store_true", help="ignore and delete an existing checkpoint")
-    p.add_argument("--plot", type=Path, help="figure (.png); by default next to the output: RESULT.png for an .h5 output, "
-                   "GEOMETRY_PROTOCOL_growth.png in a folder for one protocol, GEOMETRY_growth.png for several")
+    p.add_argument("--plot", type=Path, help="figure (.png); by default next to the output: RESULT.png for an .h5 "
+                   "output, GEOMETRY_PROTOCOL_growth.png in a folder for one protocol, GEOMETRY_growth.png for several")
     return p
 
 
