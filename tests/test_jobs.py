@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -50,9 +51,11 @@ trap 'echo "srun: forcing job termination"; kill -KILL "$TASK"; exit 137' TERM
 wait "$TASK"
 """,
     # The run: FAKE_SLEEP seconds of work; on TERM it notes it and exits with FAKE_TERM_RC
-    # (143, as hyper's jobs do after their checkpoint).
+    # (143, as hyper's jobs do after their checkpoint). It leaves the file FAKE_SHM, as
+    # MPICH ranks killed by a signal leave their shared-memory segment.
     "task": """#!/bin/bash
 trap 'echo TERM > "$FAKE/task.term"; exit "${FAKE_TERM_RC:-143}"' TERM
+[ -z "${FAKE_SHM:-}" ] || touch "$FAKE_SHM"
 for _ in $(seq "$((${FAKE_SLEEP:-0} * 10))"); do sleep 0.1; done
 """,
     # `scancel --signal=SIG JOB`, as Slurm does it: the signal goes to the steps' tasks.
@@ -169,6 +172,23 @@ def test_warning_stops_the_ranks_and_requeues(tmp_path, fake_slurm, restarts, te
         assert not scontrol.exists()
         assert ("this was restart 3, the last of --max-requeue 3" in out if term_rc == 143
                 else f"the run ended with exit status {term_rc} before it stopped on the TERM: not requeued" in out)
+
+
+@pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="no /dev/shm")
+def test_the_segments_a_step_leaves_are_removed(tmp_path, fake_slurm):
+    # A requeued job's step has the same name, and MPICH would read the stale segment.
+    fake, env = fake_slurm
+    tag = f"mpich_shm_hypertest{os.getpid()}"
+    older, left = Path("/dev/shm", f"{tag}a_0"), Path("/dev/shm", f"{tag}b_0")
+    older.touch()  # another job's: there before the script started
+    try:
+        script = render("sobol", tmp_path)
+        subprocess.run(["bash", str(script)], cwd=tmp_path, check=True, capture_output=True, timeout=30,
+                       env=dict(env, FAKE_SHM=str(left)))
+        assert older.exists() and not left.exists()
+    finally:
+        older.unlink(missing_ok=True)
+        left.unlink(missing_ok=True)
 
 
 def test_a_term_from_elsewhere_is_not_requeued(tmp_path, fake_slurm):
