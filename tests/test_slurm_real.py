@@ -233,6 +233,13 @@ def uninterrupted(cluster, tmp_path_factory):
 # -------------------------------------------------------------------------------- tests
 
 
+@pytest.mark.parametrize("kind", ["cohort", "grow-array", "sobol"])
+def test_sbatch_accepts_the_scripts(cluster, kind, tmp_path):
+    script = render(cluster, kind, tmp_path, "--ntasks", "1")
+    done = _run("sbatch", "--test-only", str(script), env=cluster, check=False)
+    assert done.returncode == 0 and "to start at" in done.stderr, done.stderr
+
+
 def test_srun_kills_its_tasks_on_term(cluster, tmp_path):
     # Why the scripts never signal srun, and what the stand-in srun of test_jobs.py copies.
     handler = tmp_path / "handler.py"
