@@ -34,7 +34,7 @@ SRC = Path(slurm.__file__).resolve().parents[1]
 # the runs: short, but long enough (about 6 s of growth steps) for a TERM to land mid-run
 GROW_ARGS = ["--geometry", "cylinder", "--growth-dt", "12", "--checkpoint-every", "0"]
 PROTOCOLS = ("weekly", "every3days")
-SOBOL_ARGS = ["--samples", "64", "--chunk", "16"]  # 120 chunks, about 10 s on 2 ranks
+SOBOL_ARGS = ["--samples", "32", "--chunk", "16"]  # 60 chunks, about 5 s on 2 ranks
 
 
 def _run(*command, env=None, timeout=60, check=True):
@@ -172,7 +172,7 @@ def requeued_then_released(env, job_id: str) -> None:
     """Wait for the job to stop and requeue itself, then lift Slurm's 2-minute delay."""
     state = wait_until(f"job {job_id} requeued", lambda: (s := job(env, job_id))["JobState"] == "PENDING" and s,
                        timeout=60)
-    assert state["Restarts"] == "1" and state["Reason"] == "BeginTime"
+    assert state["Restarts"] == "1"
     _run("scontrol", "update", f"JobId={job_id}", "StartTime=now", env=env)
 
 
@@ -330,21 +330,21 @@ def test_sobol_stopped_requeued_and_resumed(cluster, tmp_path):
                     "--args=" + " ".join(SOBOL_ARGS[2:]))
     job_id = submit(cluster, script)
     chunks = tmp_path / "results" / "sobol" / "chunks"
-    wait_until("10 chunks done", lambda: len(list(chunks.glob("*/*.npz"))) >= 10, timeout=60)
+    wait_until("5 chunks done", lambda: len(list(chunks.glob("*/*.npz"))) >= 5, timeout=60)
     warn(cluster, job_id)
     requeued_then_released(cluster, job_id)
     assert completed(cluster, job_id)["JobState"] == "COMPLETED"
     text = (tmp_path / "logs" / f"hyper-sobol-{job_id}.out").read_text()
     kept = int(re.findall(r"sobol: (\d+) to run, (\d+) skipped", text)[1][1])
-    assert 10 <= kept < 120
+    assert 5 <= kept < 60
     lines = [
         f"sending TERM to the run's ranks (scancel --signal=TERM {job_id})", f"*** STEP {job_id}.0 ON",
         "tasks 0-1: Terminated", f"requeueing job {job_id} (restart 1 of at most 1)",
-        f"sobol: {120 - kept} to run, {kept} skipped (done before)", "the run ended with exit status 0",
+        f"sobol: {60 - kept} to run, {kept} skipped (done before)", "the run ended with exit status 0",
     ]
     assert_in_order(text, lines)
     resumed, whole = tmp_path / "results" / "sobol" / "sobol.h5", tmp_path / "whole" / "sobol.h5"
     with h5py.File(resumed) as got, h5py.File(whole) as want:
         for name in ("X", "Y", "S1", "S1_conf", "ST", "ST_conf", "S2", "S2_conf", "S1_bootstrap", "ST_bootstrap"):
             assert got[name][()].tobytes() == want[name][()].tobytes(), name
-        assert got.attrs["digest"] == want.attrs["digest"] and got.attrs["evaluations_computed"] == 1920 - 16 * kept
+        assert got.attrs["digest"] == want.attrs["digest"] and got.attrs["evaluations_computed"] == 960 - 16 * kept
