@@ -37,6 +37,11 @@ PROTOCOLS = ("weekly", "every3days")
 SOBOL_ARGS = ["--samples", "32", "--chunk", "16"]  # 60 chunks, about 5 s on 2 ranks
 
 
+def _tool(name: str) -> str | None:
+    """The path of a Slurm or munge program; the daemons live in /usr/sbin, often not on PATH."""
+    return shutil.which(name) or shutil.which(name, path="/usr/sbin:/sbin")
+
+
 def _run(*command, env=None, timeout=60, check=True):
     return subprocess.run(command, env=env, capture_output=True, text=True, timeout=timeout, check=check)
 
@@ -52,7 +57,7 @@ def _why_not() -> str | None:
     if not sys.platform.startswith("linux"):
         return "Slurm runs on Linux only"
     missing = [tool for tool in ("slurmctld", "slurmd", "sbatch", "scontrol", "scancel", "munged", "munge")
-               if shutil.which(tool) is None and not Path("/usr/sbin", tool).exists()]
+               if _tool(tool) is None]
     if missing:
         return (f"not installed: {', '.join(missing)} (Debian: slurm-wlm munge; .ci/run installs them where "
                 "apt-get works as root)")
@@ -101,7 +106,7 @@ def cluster(tmp_path_factory):
         # munged refuses to run as root ("Logfile is insecure"): run it as its own user
         Path("/run/munge").mkdir(exist_ok=True)
         shutil.chown("/run/munge", "munge", "munge")
-        _run("runuser", "-u", "munge", "--", "/usr/sbin/munged", check=False)
+        _run("runuser", "-u", "munge", "--", _tool("munged"), check=False)
         started_munge = Path("/run/munge/munged.pid")
         if not _munge_works():
             pytest.skip("no real Slurm: munged did not start (`munge -n | unmunge` fails)")
@@ -122,8 +127,8 @@ def cluster(tmp_path_factory):
     env = dict(os.environ, SLURM_CONF=str(conf), PYTHONPATH=f"{SRC}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
                OMP_NUM_THREADS="1")
     try:
-        _run("slurmctld", env=env)
-        _run("slurmd", env=env)
+        _run(_tool("slurmctld"), env=env)
+        _run(_tool("slurmd"), env=env)
         end = time.monotonic() + 30
         while _run("sinfo", "-h", "-o", "%T", env=env, check=False).stdout.strip() != "idle":
             if time.monotonic() > end:
