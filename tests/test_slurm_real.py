@@ -178,13 +178,17 @@ def requeued_then_released(env, job_id: str) -> None:
     state = wait_until(f"job {job_id} requeued", lambda: (s := job(env, job_id))["JobState"] == "PENDING" and s,
                        timeout=60)
     assert state["Restarts"] == "1"
+    # Started again while the node still cleans up the last start, the job fails to launch
+    # (the 2 minutes leave time for that): wait until its slurmstepd processes are gone.
+    wait_until(f"the steps of job {job_id} gone",
+               lambda: _run("pgrep", "-f", rf"^slurmstepd: \[{job_id}\.", check=False).returncode == 1, timeout=30)
     _run("scontrol", "update", f"JobId={job_id}", "StartTime=now", env=env)
 
 
-def completed(env, job_id: str, timeout: float = 90) -> dict:
-    return wait_until(f"job {job_id} completed",
-                      lambda: (s := job(env, job_id))["JobState"] in ("COMPLETED", "FAILED", "TIMEOUT", "CANCELLED")
-                      and s, timeout)
+def completed(env, job_id: str, timeout: float = 90) -> None:
+    state = wait_until(f"job {job_id} ended", lambda: (s := job(env, job_id))["JobState"] in
+                       ("COMPLETED", "FAILED", "TIMEOUT", "CANCELLED") and s, timeout)
+    assert state["JobState"] == "COMPLETED" and state["ExitCode"] == "0:0", state
 
 
 def render(env, kind: str, workdir: Path, *options) -> Path:
@@ -258,7 +262,8 @@ def test_srun_kills_its_tasks_on_term(cluster, tmp_path):
     wait_until("the task to start", lambda: log.is_file() and "ready" in log.read_text(), timeout=60)
     srun = _run("pgrep", "-f", f"^srun {PYTHON} {handler}", env=cluster).stdout.split()[0]
     os.kill(int(srun), 15)
-    assert completed(cluster, job_id)["ExitCode"] == "137:0"
+    state = wait_until("srun's job ended", lambda: (s := job(cluster, job_id))["JobState"] != "RUNNING" and s, 60)
+    assert state["ExitCode"] == "137:0", state
     text = log.read_text()
     assert "srun: forcing job termination" in text and "task 0: Killed" in text
 
@@ -273,7 +278,7 @@ def test_grow_array_task_stopped_requeued_and_resumed(cluster, uninterrupted, tm
     warn(cluster, task0)
     requeued_then_released(cluster, task0)
     for task in (task0, f"{array}_1"):
-        assert completed(cluster, task)["JobState"] == "COMPLETED"
+        completed(cluster, task)
     text = log.read_text()
     stopped = int(re.search(r"weekly: stopped on request at step (\d+)", text).group(1))
     lines = [
@@ -307,7 +312,7 @@ def test_cohort_stopped_requeued_and_resumed(cluster, uninterrupted, tmp_path):
                timeout=60)
     warn(cluster, job_id)
     requeued_then_released(cluster, job_id)
-    assert completed(cluster, job_id)["JobState"] == "COMPLETED"
+    completed(cluster, job_id)
     text = (tmp_path / "logs" / f"hyper-cohort-{job_id}.out").read_text()
     lines = [
         f"time limit in 60 s or less (Slurm's warning signal USR1): sending TERM to the run's ranks "
@@ -338,7 +343,7 @@ def test_sobol_stopped_requeued_and_resumed(cluster, tmp_path):
     wait_until("5 chunks done", lambda: len(list(chunks.glob("*/*.npz"))) >= 5, timeout=60)
     warn(cluster, job_id)
     requeued_then_released(cluster, job_id)
-    assert completed(cluster, job_id)["JobState"] == "COMPLETED"
+    completed(cluster, job_id)
     text = (tmp_path / "logs" / f"hyper-sobol-{job_id}.out").read_text()
     kept = int(re.findall(r"sobol: (\d+) to run, (\d+) skipped", text)[1][1])
     assert 5 <= kept < 60
