@@ -7,13 +7,14 @@ where Slurm cannot be started, every test here is skipped with the reason.
 Each template's job is stopped mid-run the way a time limit stops it: the test sends the
 batch script USR1, which is what Slurm does `--warn-s` seconds before the limit
 (`#SBATCH --signal=B:USR1@WARN`), rather than waiting minutes for a real limit. The job
-sends TERM to its ranks, the run stops and requeues itself; the test then lifts the
-2 minutes Slurm makes a requeued job wait (`scontrol update StartTime=now`), and the
-resumed result is compared with an uninterrupted run on the same number of ranks.
+sends TERM to its ranks, the run stops and requeues itself; the cluster makes a requeued
+job wait 10 s instead of 120 (cred_expire), and the resumed result is compared with an
+uninterrupted run on the same number of ranks.
 """
 
 from __future__ import annotations
 
+import datetime
 import os
 import re
 import shutil
@@ -34,6 +35,8 @@ SRC = Path(slurm.__file__).resolve().parents[1]
 # the runs: short, but long enough (about 6 s of growth steps) for a TERM to land mid-run
 GROW_ARGS = ["--geometry", "cylinder", "--growth-dt", "12", "--checkpoint-every", "0"]
 PROTOCOLS = ("weekly", "every3days")
+# How long a requeued job waits (Slurm's default is 120 s); short for the tests.
+CRED_EXPIRE_S = 10
 SOBOL_ARGS = ["--samples", "32", "--chunk", "16"]  # 60 chunks, about 5 s on 2 ranks
 
 
@@ -120,7 +123,8 @@ def cluster(tmp_path_factory):
         f"StateSaveLocation={folder}/state", f"SlurmdSpoolDir={folder}/spool",
         f"SlurmctldPidFile={folder}/slurmctld.pid", f"SlurmdPidFile={folder}/slurmd.pid",
         f"SlurmctldLogFile={folder}/ctld.log", f"SlurmdLogFile={folder}/d.log",
-        "ProctrackType=proctrack/linuxproc", "TaskPlugin=task/none", "SchedulerType=sched/builtin",
+        f"AuthInfo=cred_expire={CRED_EXPIRE_S}", "ProctrackType=proctrack/linuxproc", "TaskPlugin=task/none",
+        "SchedulerType=sched/builtin",
         "SelectType=select/cons_tres", "SelectTypeParameters=CR_Core", "ReturnToService=2", "MpiDefault=none",
         f"NodeName={host} CPUs={os.cpu_count()} State=UNKNOWN",
         f"PartitionName=debug Nodes={host} Default=YES MaxTime=INFINITE State=UP", ""]))
@@ -174,14 +178,15 @@ def warn(env, job_id: str) -> None:
 
 
 def requeued_then_released(env, job_id: str) -> None:
-    """Wait for the job to stop and requeue itself, then lift Slurm's 2-minute delay."""
+    """Wait for the job to stop and requeue itself, then start it as soon as Slurm allows."""
     state = wait_until(f"job {job_id} requeued", lambda: (s := job(env, job_id))["JobState"] == "PENDING" and s,
                        timeout=60)
     assert state["Restarts"] == "1"
-    # Started again while the node still cleans up the last start, the job fails to launch
-    # (the 2 minutes leave time for that): wait until its slurmstepd processes are gone.
-    wait_until(f"the steps of job {job_id} gone",
-               lambda: _run("pgrep", "-f", rf"^slurmstepd: \[{job_id}\.", check=False).returncode == 1, timeout=30)
+    # slurmd refuses a job id it killed until the credential lifetime (cred_expire, here
+    # CRED_EXPIRE_S) has passed ("Job credential revoked"); Slurm makes the job eligible
+    # only then. Once it is, start it now rather than at the scheduler's next pass.
+    eligible = datetime.datetime.fromisoformat(state["EligibleTime"])
+    wait_until(f"job {job_id} eligible", lambda: datetime.datetime.now() > eligible, timeout=CRED_EXPIRE_S + 30)
     _run("scontrol", "update", f"JobId={job_id}", "StartTime=now", env=env)
 
 
