@@ -91,7 +91,8 @@ def parser(ask: str = "growth") -> cli.Parser:
     p.add_argument("--checkpoint-every", type=cli.integer(0), default=run.CHECKPOINT_EVERY,
                    help="checkpoint every K growth steps (0: only on SIGTERM and failures)")
     p.add_argument("--restart", action="store_true", help="ignore and delete an existing checkpoint")
-    p.add_argument("--plot", type=cli.output(folder=False, suffixes=(".png",)), help="figure; beside the output")
+    p.add_argument("--plot", type=cli.output(folder=False, suffixes=(".png",)), help="figure; beside the output: "
+                   "RESULT.png, or in a folder GEOMETRY_PROTOCOL_growth.png (one protocol), GEOMETRY_growth.png")
     return p
 
 
@@ -136,8 +137,14 @@ def plan_from(comm, args) -> sequence.Plan:
     if LAG_OPTION in petsc_options:
         jacobian_lag(petsc_options[LAG_OPTION])
     results = io.result_paths(args.output, [f"{name}_{p.name}" for p in runs])
-    plot = args.plot or (args.output.with_suffix(".png") if args.output.suffix == ".h5"
-                         else args.output / f"{name}_growth.png")
+    # named per run for one protocol: array tasks of one geometry share an output folder
+    if args.plot is not None:
+        plot = args.plot
+    elif args.output.suffix == ".h5":
+        plot = args.output.with_suffix(".png")
+    else:
+        plot = results[0].with_name(f"{results[0].stem}_growth.png") if len(runs) == 1 else \
+            args.output / f"{name}_growth.png"
     if cli.unwritable(plot, folder=False):
         raise InputError(f"--plot: {cli.unwritable(plot, folder=False)}")
     if mesh is not None:

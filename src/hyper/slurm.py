@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import re
 import shlex
+import subprocess
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -25,6 +26,8 @@ from hyper import cli, log, protocols
 from hyper.params import InputError
 
 ROOT = Path(__file__).resolve().parents[2]
+# Slurm keeps the warning time of --signal=SIG@TIME in 16 bits
+MAX_WARN_S = 65535
 TEMPLATES = {
     "cohort": ROOT / "jobs" / "cohort.sbatch.in",
     "grow-array": ROOT / "jobs" / "grow-array.sbatch.in",
@@ -86,10 +89,19 @@ def _word(value, option: str) -> str:
     return text
 
 
-def _count(value: int, option: str, minimum: int = 1) -> int:
-    if value < minimum:
-        raise InputError(f"{option} must be an integer >= {minimum}, got {value}")
-    return value
+def _folder(path: Path, option: str) -> str:
+    """An existing folder, as an absolute path that needs no shell quoting."""
+    if not path.is_dir():
+        raise InputError(f"{option} {path}: no such folder")
+    return _word(path.resolve(), option)
+
+
+def check_syntax(script: str, source: str) -> None:
+    """``bash -n`` on a rendered script: what an --args value can still break."""
+    done = subprocess.run(["bash", "-n"], input=script, capture_output=True, text=True, timeout=30)
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or ["no message"])[-1]
+        raise InputError(f"{source}: the rendered script is not valid bash ({last}); check --args")
 
 
 def values_for(kind: str, args: argparse.Namespace) -> dict[str, Any]:
@@ -98,30 +110,37 @@ def values_for(kind: str, args: argparse.Namespace) -> dict[str, Any]:
         raise InputError(f"--time: {args.time!r} is not a Slurm time (M, H:M:S, D-H:M:S, ...)")
     if "\n" in args.args:
         raise InputError("--args must be one line")
+    try:
+        shlex.split(args.args)
+    except ValueError as err:  # an unbalanced quote would swallow the rest of the script
+        raise InputError(f"--args {args.args!r}: {err}") from None
+    venv = args.venv.resolve()
+    if not (venv / "bin" / "activate").is_file():
+        raise InputError(f"--venv {args.venv}: no bin/activate, not a virtual environment")
     values = {
         "job_name": _word(args.job_name, "--job-name"),
-        "ntasks": _count(args.ntasks, "--ntasks"),
+        "ntasks": args.ntasks,
         "time": args.time,
-        "workdir": _word(args.workdir.resolve(), "--workdir"),
-        "venv": _word(args.venv.resolve(), "--venv"),
+        "workdir": _folder(args.workdir, "--workdir"),
+        "venv": _word(venv, "--venv"),
         "output": _word(args.output, "--output"),
         "log_dir": _word(args.log_dir, "--log-dir"),
-        "warn_s": _count(args.warn_s, "--warn-s"),
-        "max_requeue": _count(args.max_requeue, "--max-requeue", 0),
+        "warn_s": args.warn_s,
+        "max_requeue": args.max_requeue,
         "srun_mpi": _word(args.srun_mpi, "--srun-mpi"),
         "args": args.args,
     }
     if kind == "cohort":
-        values["ranks_per_job"] = _count(args.ranks_per_job, "--ranks-per-job")
+        values["ranks_per_job"] = args.ranks_per_job
         if args.ntasks % args.ranks_per_job:
             raise InputError(f"--ranks-per-job {args.ranks_per_job} must divide --ntasks {args.ntasks}")
     elif kind == "grow-array":
         runs = cohort_runs(args.geometries, args.protocols)
-        throttle = f"%{_count(args.max_parallel, '--max-parallel')}" if args.max_parallel else ""
+        throttle = f"%{args.max_parallel}" if args.max_parallel is not None else ""
         values["runs"] = runs_block(runs)
         values["array"] = f"0-{len(runs) - 1}{throttle}"
     elif kind == "sobol":
-        values["samples"] = _count(args.samples, "--samples")
+        values["samples"] = args.samples
     return values
 
 
@@ -140,39 +159,49 @@ class _KindParser(cli.Parser):
 
 
 def parser() -> cli.Parser:
+    from hyper import sobol
+
     p = cli.Parser("slurm", description=__doc__)
     kinds = p.add_subparsers(dest="kind", required=True, metavar="{cohort,grow-array,sobol}",
                              parser_class=_KindParser, help="the template to render")
     for kind, (ntasks, time, output) in DEFAULTS.items():
         k = kinds.add_parser(kind, help=f"render jobs/{TEMPLATES[kind].name}")
         k.add_argument("-o", "--script", type=Path, help="where to write the script (stdout if not given)")
-        k.add_argument("--ntasks", type=int, default=ntasks, help="MPI ranks")
+        k.add_argument("--ntasks", type=cli.integer(1), default=ntasks, help="MPI ranks")
         k.add_argument("--time", default=time, help="time limit")
         k.add_argument("--job-name", default=f"hyper-{kind}", help="the Slurm job name")
         k.add_argument("--output", default=output, help="results folder")
-        k.add_argument("--workdir", type=Path, default=ROOT, help="the project folder the job runs in")
+        k.add_argument("--workdir", type=Path, default=ROOT, help="the project folder the job runs in (must exist)")
         k.add_argument("--venv", type=Path, default=Path(sys.prefix), help="virtual environment to activate")
         k.add_argument("--log-dir", default="results/slurm", help="Slurm logs, relative to --workdir")
-        k.add_argument("--warn-s", type=int, default=300, help="TERM this many s before the time limit")
-        k.add_argument("--max-requeue", type=int, default=3, help="requeue at most this many times")
+        k.add_argument("--warn-s", type=cli.integer(1, MAX_WARN_S), default=300,
+                       help="stop the run (TERM to its ranks) this many s before the time limit")
+        k.add_argument("--max-requeue", type=cli.integer(0), default=3, help="requeue at most this many times")
         k.add_argument("--srun-mpi", default="pmi2", help="srun --mpi plugin")
         k.add_argument("--args", default="", help="extra options for the python command, as one string")
         if kind == "cohort":
-            k.add_argument("--ranks-per-job", type=int, default=1, help="ranks per run")
+            k.add_argument("--ranks-per-job", type=cli.integer(1), default=1, help="ranks per run")
         elif kind == "grow-array":
             k.add_argument("--geometries", nargs="+", metavar="ID",
                            help="geometries; the 12 anatomical meshes if not given")
             k.add_argument("--protocols", nargs="+", metavar="NAME", default=list(protocols.PAPER), help="protocols")
-            k.add_argument("--max-parallel", type=int, help="at most this many array tasks at once")
+            k.add_argument("--max-parallel", type=cli.integer(1), help="at most this many array tasks at once")
         else:
-            k.add_argument("--samples", type=int, default=10000, help="Sobol base samples")
+            k.add_argument("--samples", type=cli.integer(2, sobol.MAX_SAMPLES), default=10000,
+                           help="Sobol base samples (hyper.sobol's bounds)")
     return p
 
 
 def run(comm, args) -> int:
     script = render_template(TEMPLATES[args.kind], **values_for(args.kind, args))
+    check_syntax(script, f"hyper slurm {args.kind}")
+    logs = args.workdir / args.log_dir
+    if logs.exists() and not logs.is_dir():
+        raise InputError(f"--log-dir {args.log_dir}: {logs} is not a folder")
+    if args.script is not None and args.script.is_dir():
+        raise InputError(f"--script {args.script}: is a folder; name the script file")
     # Slurm does not create the folder of --output: a missing one fails the job silently.
-    (args.workdir / args.log_dir).mkdir(parents=True, exist_ok=True)
+    logs.mkdir(parents=True, exist_ok=True)
     if args.script is None:
         sys.stdout.write(script)
     else:
