@@ -269,16 +269,19 @@ def test_checkpoint_of_other_settings_is_refused(inputs, killed, tmp_path, capsy
 
 
 def test_grow_array_script_stops_requeues_and_resumes(inputs, tmp_path):
-    """The Slurm array script with stand-ins (srun runs the command here, scontrol records):
-    TERM to the batch shell stops the run at a step boundary with its checkpoint, the task
-    is requeued, and the requeued script resumes the run to the end."""
+    """The Slurm array script with stand-ins that behave as Slurm's (srun runs the command
+    here and kills it on a TERM of its own; scancel --signal signals the task; scontrol
+    records): Slurm's warning (USR1 to the batch shell) stops the run at a step boundary with
+    its checkpoint, the task is requeued, and the requeued script resumes the run to the end."""
     from hyper import slurm
 
     fake = tmp_path / "fake"
     fake.mkdir()
-    (fake / "srun").write_text('#!/bin/bash\nshift\nexec "$@"\n')  # drop --mpi=...
+    (fake / "srun").write_text('#!/bin/bash\nshift\n"$@" &\nTASK=$!\necho "$TASK" > "$FAKE/task.pid"\n'
+                               "trap 'kill -KILL \"$TASK\"; exit 137' TERM\nwait \"$TASK\"\n")  # drops --mpi=...
+    (fake / "scancel").write_text('#!/bin/bash\nkill -"${1#--signal=}" "$(cat "$FAKE/task.pid")"\n')
     (fake / "scontrol").write_text('#!/bin/bash\necho "$@" >> "$FAKE/scontrol.args"\n')
-    for tool in ("srun", "scontrol"):
+    for tool in ("srun", "scancel", "scontrol"):
         (fake / tool).chmod(0o755)
     script = tmp_path / "array.sbatch"
     assert slurm.main(["grow-array", "-o", str(script), "--workdir", str(tmp_path), "--geometries", "cylinder",
@@ -293,7 +296,7 @@ def test_grow_array_script_stops_requeues_and_resumes(inputs, tmp_path):
                            stderr=subprocess.STDOUT, text=True)
     try:
         wait_for(Path(str(result) + ".lock"), job)  # inputs checked, TERM handler installed
-        job.send_signal(signal.SIGTERM)
+        job.send_signal(signal.SIGUSR1)  # what --signal=B:USR1@WARN does before the time limit
         log = job.communicate(timeout=120)[0]
     finally:
         job.kill()
