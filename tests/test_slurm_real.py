@@ -354,7 +354,8 @@ def test_sobol_stopped_requeued_and_resumed(cluster, tmp_path):
     assert 5 <= kept < 60
     lines = [
         f"sending TERM to the run's ranks (scancel --signal=TERM {job_id})", f"*** STEP {job_id}.0 ON",
-        "tasks 0-1: Terminated", f"requeueing job {job_id} (restart 1 of at most 1)",
+        "stopped by SIGTERM", "tasks 0-1: Exited with exit code 143",
+        f"requeueing job {job_id} (restart 1 of at most 1)",
         f"sobol: {60 - kept} to run, {kept} skipped (done before)", "the run ended with exit status 0",
     ]
     assert_in_order(text, lines)

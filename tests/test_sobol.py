@@ -250,3 +250,23 @@ def test_mpi_ishigami_farm_equals_serial(tmp_path):
         check_ishigami(a)
     else:
         assert Y is None
+
+
+def test_a_sigterm_lets_the_chunk_in_progress_finish_and_starts_no_other(tmp_path):
+    """What Slurm's warning does to a Sobol job: the chunks done are kept, the rest left for
+    the rerun, which computes only those and gives the uninterrupted outputs."""
+    X = sobol.sample(sobol.ishigami_problem(), 64, seed=3)
+    reference, _ = sobol.run_chunks(MPI.COMM_SELF, X, sobol.ishigami, tmp_path / "ref", "k", chunk=100)
+    calls = []
+
+    def stop():
+        calls.append(1)
+        return len(calls) > 2  # asked before each chunk: two run, then the TERM has come
+
+    Y, results = sobol.run_chunks(MPI.COMM_SELF, X, sobol.ishigami, tmp_path / "run", "k", chunk=100, stop=stop)
+    assert Y is None
+    assert sum(sobol.interrupted(r) for r in results) == len(results) - 2
+    assert len(list((tmp_path / "run" / "k").glob("*.npz"))) == 2
+    Y, results = sobol.run_chunks(MPI.COMM_SELF, X, sobol.ishigami, tmp_path / "run", "k", chunk=100)
+    assert sum(r.status == "skipped" for r in results) == 2
+    np.testing.assert_array_equal(Y, reference)

@@ -52,6 +52,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from mpi4py import MPI
 
 from hyper import cli, protocols
 from hyper import signaling as S
@@ -345,13 +346,15 @@ def _chunk_ok(path: Path, key: str, start: int, stop: int) -> bool:
 
 
 def run_chunks(comm, X: np.ndarray, evaluate: Callable[[np.ndarray], np.ndarray], folder: Path, key: str,
-               chunk: int, label: str = "sobol"):
+               chunk: int, label: str = "sobol", stop: Callable[[], bool] | None = None):
     """Evaluate every row of X in chunks farmed over ``comm``; collective.
 
     Each chunk is written atomically to ``folder/<key>/<job key>.npz`` with its row range,
-    the digest ``key`` and a complete mark; chunks already there are skipped. Returns
-    (Y, farm results): Y, all outputs in row order, on rank 0 (None elsewhere, and None on
-    rank 0 too if a chunk failed).
+    the digest ``key`` and a complete mark; chunks already there are skipped. Once
+    ``stop()`` turns true (SIGTERM) the chunks in progress finish and are written, and the
+    others are not started: their results are ``{"interrupted": True}``. Returns (Y, farm
+    results): Y, all outputs in row order, on rank 0 (None elsewhere, and None on rank 0
+    too if a chunk failed or was not computed).
     """
     from hyper import farm, io
 
@@ -365,23 +368,30 @@ def run_chunks(comm, X: np.ndarray, evaluate: Callable[[np.ndarray], np.ndarray]
         return _chunk_ok(path(job), key, *job.payload)
 
     def work(subcomm, job):
-        start, stop = job.payload
-        Y = np.asarray(evaluate(X[start:stop]), dtype=float)
-        if Y.shape != (stop - start,):
-            raise ValueError(f"the evaluator returned shape {Y.shape} for {stop - start} rows")
+        if subcomm.allreduce(bool(stop is not None and stop()), op=MPI.LOR):
+            return {"interrupted": True}
+        first, last = job.payload
+        Y = np.asarray(evaluate(X[first:last]), dtype=float)
+        if Y.shape != (last - first,):
+            raise ValueError(f"the evaluator returned shape {Y.shape} for {last - first} rows")
         with io.atomic_path(path(job)) as tmp:
             with open(tmp, "wb") as f:
-                np.savez(f, Y=Y, start=start, stop=stop, digest=key, complete=True)
+                np.savez(f, Y=Y, start=first, stop=last, digest=key, complete=True)
         return {"failed": int((~np.isfinite(Y)).sum())}
 
     results = farm.run(comm, jobs, work, is_done=is_done, label=label)
     Y = None
-    if comm.rank == 0 and all(r.status != "failed" for r in results):
+    if comm.rank == 0 and all(r.status != "failed" and not interrupted(r) for r in results):
         Y = np.empty(X.shape[0])
         for job in jobs:
             with np.load(path(job)) as f:
                 Y[job.payload[0]:job.payload[1]] = f["Y"]
     return Y, results
+
+
+def interrupted(result) -> bool:
+    """A chunk that a SIGTERM kept from starting."""
+    return result.status == "done" and bool(result.result) and bool(result.result.get("interrupted"))
 
 
 def remove_stale(folder: Path, key: str) -> list[str]:
@@ -507,7 +517,16 @@ def analyse(comm, args, protocol) -> int:
                f"{args.chunk} on {comm.size} rank(s), dt = {args.signaling_dt} h, backend {args.backend}, "
                f"digest {key}")
     t_eval, c_eval = time.perf_counter(), time.process_time()
-    Y, results = run_chunks(comm, X, evaluate, chunks, key, args.chunk, label="sobol")
+    from hyper.run import StopOnTerm
+
+    with StopOnTerm() as stop:
+        Y, results = run_chunks(comm, X, evaluate, chunks, key, args.chunk, label="sobol", stop=stop)
+    if comm.allreduce(stop(), op=MPI.LOR):
+        left = sum(interrupted(r) for r in results)
+        info(comm, f"stopped by SIGTERM: {left} chunk(s) not computed, the others saved in {chunks}; "
+                   f"run the same command again to continue; exit status {cli.EXIT_TERMINATED}")
+        _idle_barrier(comm)
+        return cli.EXIT_TERMINATED
     eval_wall = time.perf_counter() - t_eval
     # CPU time of all ranks: on a shared machine, cpu / (wall x ranks) is the share of their
     # cores the ranks actually got
