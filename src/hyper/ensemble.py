@@ -38,6 +38,7 @@ import dataclasses
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
@@ -143,9 +144,9 @@ def gather_cells(comm, mesh, values: dict[str, np.ndarray], points: np.ndarray) 
     return out
 
 
-def std_columns(comm) -> dict:
-    """The series columns of the spread of each state across all cells."""
-    return {name: (lambda model, i=i: state_std(comm, model.y)[i]) for i, name in enumerate(STD)}
+def std_columns(comm) -> tuple[tuple[str, ...], Callable]:
+    """The series columns of the spread of each state across all cells, one reduction a step."""
+    return STD, lambda model: state_std(comm, model.y)
 
 
 def run_sample(comm, sample: Sample, *, snapshot_every: int, stop=None) -> dict:

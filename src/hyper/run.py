@@ -320,15 +320,16 @@ def available_memory_mb(comm) -> float:
 
 
 class Series:
-    """The time series of a run: one row per growth step, `SERIES` and any ``extra`` columns.
+    """The time series of a run: one row per growth step, `SERIES` and any extra columns.
 
-    ``extra`` maps a column name to a function of the model giving its value; all
-    ranks call it (it may reduce over the communicator).
+    ``extra`` is (names, function): the function of the model gives the values of all the
+    extra columns at once (so a reduction over the communicator serves them all); every
+    rank calls it.
     """
 
-    def __init__(self, extra: Mapping[str, Callable] | None = None):
-        self.extra = dict(extra or {})
-        self.columns = (*SERIES, *self.extra)
+    def __init__(self, extra: tuple[tuple[str, ...], Callable] | None = None):
+        self.extra_names, self.extra = extra if extra is not None else ((), None)
+        self.columns = (*SERIES, *self.extra_names)
         self.rows = {name: [] for name in self.columns}
 
     def append(self, report, model, wall_s: float) -> None:
@@ -341,8 +342,9 @@ class Series:
         self.rows["newton_iterations"].append(report.newton_iterations)
         self.rows["halvings"].append(report.halvings)
         self.rows["wall_s"].append(wall_s)
-        for name, value in self.extra.items():
-            self.rows[name].append(value(model))
+        if self.extra is not None:
+            for name, value in zip(self.extra_names, self.extra(model), strict=True):
+                self.rows[name].append(value)
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {k: np.asarray(v) for k, v in self.rows.items()}
@@ -474,7 +476,7 @@ def build(comm, spec: RunSpec, *, monitor=None, integrator=None):
 
 def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAPSHOT_EVERY,
             checkpoint_every: int = CHECKPOINT_EVERY, stop: Callable[[], bool] | None = None,
-            extra_series: Mapping[str, Callable] | None = None, checkpoints: bool = True,
+            extra_series: tuple[tuple[str, ...], Callable] | None = None, checkpoints: bool = True,
             progress_every: float = 2.0, monitor=None, command: list[str] | None = None) -> Result:
     """Run ``spec``, writing its snapshots to ``outputs.fields``; return its `Result`.
 
