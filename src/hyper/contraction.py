@@ -188,8 +188,9 @@ def run(comm, args) -> int:
 
     if args.output is None:
         args.output = Path("results/contraction") / f"{Path(args.geometry).name}.h5"
-        if cli.unwritable(args.output, folder=False):
-            raise InputError(f"--output: {cli.unwritable(args.output, folder=False)}")
+        problem = cli.unwritable(args.output, folder=False)
+        if problem is not None:
+            raise InputError(f"--output: {problem}")
     if args.petsc:
         PETSc.Options().insertString(" ".join(args.petsc))
     try:

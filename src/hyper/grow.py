@@ -145,8 +145,9 @@ def plan_from(comm, args) -> sequence.Plan:
     else:
         plot = results[0].with_name(f"{results[0].stem}_growth.png") if len(runs) == 1 else \
             args.output / f"{name}_growth.png"
-    if cli.unwritable(plot, folder=False):
-        raise InputError(f"--plot: {cli.unwritable(plot, folder=False)}")
+    problem = cli.unwritable(plot, folder=False)
+    if problem is not None:
+        raise InputError(f"--plot: {problem}")
     if mesh is not None:
         mesh.load(comm)  # units and tags, before anything is written
     solver = args.linear_solver or ("auto" if args.accuracy is not None else "lu")

@@ -68,6 +68,12 @@ class Interrupted(RuntimeError):
 # ------------------------------------------------------------------------- what a run is
 
 
+def mesh_files(path: Path) -> list[Path]:
+    """A mesh file and, for XDMF, its HDF5 data: what a mesh's SHA-256 hashes."""
+    data = path.with_suffix(".h5")
+    return [path] + ([data] if path.suffix == ".xdmf" and data.is_file() else [])
+
+
 @dataclasses.dataclass(frozen=True)
 class MeshFile:
     """A user's tetrahedral XDMF mesh with facet tags ``tags``: 1 and 2 the ends, 3 the
@@ -105,9 +111,7 @@ class MeshFile:
         return geometry
 
     def identity(self) -> dict:
-        data = self.path.with_suffix(".h5")
-        files = [self.path] + ([data] if data.is_file() else [])
-        return {"mesh_sha256": ckpt.file_digest(*files), "unit": self.unit, "tags": self.tags}
+        return {"mesh_sha256": ckpt.file_digest(*mesh_files(self.path)), "unit": self.unit, "tags": self.tags}
 
 
 def check_geometry(comm, name: str, option: str = "--geometry") -> None:
@@ -194,14 +198,12 @@ class RunSpec:
         return ckpt.digest(self.describe())
 
     def mesh_files(self) -> list[Path]:
-        """The mesh file and its HDF5 data: what `mesh_sha256` hashes."""
+        """The files of this run's mesh (`mesh_files`)."""
         if self.mesh is not None:
-            path = Path(self.mesh.path)
-        else:
-            from hyper import geometry as geo
+            return mesh_files(Path(self.mesh.path))
+        from hyper import geometry as geo
 
-            path = geo.MESHES_DIR / geo.GEOMETRIES[self.geometry]
-        return [p for p in (path, path.with_suffix(".h5")) if p.is_file() and (p == path or path.suffix == ".xdmf")]
+        return mesh_files(geo.MESHES_DIR / geo.GEOMETRIES[self.geometry])
 
     def load_geometry(self, comm):
         from hyper import geometry as geo
