@@ -23,7 +23,7 @@ from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from hyper import growth, section, signaling
+from hyper import growth, newton, section, signaling
 from hyper.mechanics import MechanicsProblem, SolverError
 from hyper.params import InputError, positive_hours
 from hyper.protocols import Protocol
@@ -40,6 +40,10 @@ class GrowthSettings:
     grow_during_sessions: bool = True  # False reproduces the original code
     consistent_stress: bool = True  # P = det(Fg) Fe S Fg⁻ᵀ; False: the original Fe S
     max_halvings: int = 4  # growth-step cuts tried before a failed solve stops the run
+    # How each step's equilibrium is solved: "kept" (factors kept across steps,
+    # hyper.newton) or "lagged" (SNES Newton with a lagged Jacobian, before issue 17).
+    # Both stop at the same Newton tolerances, so this is not part of the answer.
+    newton: str = "kept"
 
     # A step cut k times is 2^k solves: beyond this a run is better stopped and looked at.
     MAX_HALVINGS = 12
@@ -53,6 +57,8 @@ class GrowthSettings:
         if self.feedback not in growth.FEEDBACK_LAWS:
             raise InputError(f"must be one of {', '.join(growth.FEEDBACK_LAWS)}, got {self.feedback!r}",
                              field="feedback")
+        if self.newton not in NEWTON_METHODS:
+            raise InputError(f"must be one of {', '.join(NEWTON_METHODS)}, got {self.newton!r}", field="newton")
         if isinstance(self.max_halvings, bool) or not (
             isinstance(self.max_halvings, int) and 0 <= self.max_halvings <= self.MAX_HALVINGS
         ):
@@ -61,9 +67,10 @@ class GrowthSettings:
 
     def model_attributes(self) -> dict:
         """The settings that define the solution; max_halvings only decides how hard a
-        failing step is tried, so a stopped run may be resumed with another value."""
+        failing step is tried, so a stopped run may be resumed with another value, and
+        newton how the same equilibrium is found."""
         out = dataclasses.asdict(self)
-        del out["max_halvings"]
+        del out["max_halvings"], out["newton"]
         return out
 
 
@@ -74,6 +81,7 @@ class GrowthSettings:
 # -mechanics_snes_lag_jacobian) sets it and never reaches PETSc.
 JACOBIAN_LAG = 10
 LAG_OPTION = "snes_lag_jacobian"
+NEWTON_METHODS = ("kept", "lagged")
 
 
 class NoTiming:
@@ -87,9 +95,11 @@ class NoTiming:
         return contextlib.nullcontext()
 
 
-# The phases a model times through its monitor. "jacobian assembly" happens inside
+# The phases a model times through its monitor. "jacobian assembly", "residual
+# assembly", and with kept factors "factorisation" and "back-solves", happen inside
 # "mechanics" (the Newton solves); the others do not overlap.
-PHASES = ("signaling", "mechanics", "jacobian assembly", "growth update", "measures")
+PHASES = ("signaling", "mechanics", "jacobian assembly", "residual assembly", "growth update", "measures")
+KEPT_PHASES = ("factorisation", "back-solves")
 
 
 class GrowthFailure(RuntimeError):
@@ -125,6 +135,11 @@ class LaggedJacobian:
         self._refresh = False
         K = problem.jacobian_matrix
         problem.snes.setJacobian(self._jacobian, K, K)
+        problem.snes.setFunction(self._residual, problem.snes.getFunction()[0])
+
+    def _residual(self, snes, x, f) -> None:
+        with self.monitor.track("residual assembly"):
+            self.problem.assemble_residual(x, f)
 
     def refresh(self) -> None:
         """Assemble anew at the next Newton iteration."""
@@ -243,7 +258,10 @@ class CoupledModel:
                 **kwargs,
             )
         self.growth.set_deformation(self.problem.F)
-        self.jacobian = LaggedJacobian(self.problem, self.growth.function, lag, self.monitor)
+        if settings.newton == "kept":
+            self.jacobian = newton.KeptFactors(self.problem, self.growth.function, self.monitor)
+        else:
+            self.jacobian = LaggedJacobian(self.problem, self.growth.function, lag, self.monitor)
         if geometry.midsection is not None:
             self.section = growth.FacetSection(geometry, self.problem.F)
         else:
@@ -300,7 +318,11 @@ class CoupledModel:
 
     def _solve(self) -> int:
         """Newton from the previous state; a failure with a lagged Jacobian is retried
-        once with a fresh one before the caller cuts the step."""
+        once with a fresh one before the caller cuts the step. Kept factors retry
+        inside their own solve."""
+        if self.settings.newton == "kept":
+            with self.monitor.track("mechanics"):
+                return self.jacobian.solve()
         try:
             with self.monitor.track("mechanics"):
                 return self.problem.solve()
