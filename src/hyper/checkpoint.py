@@ -10,7 +10,8 @@ a kill during the write leaves the previous checkpoint in place, never half a fi
     cells/<name>        (n, ...) one row per cell in that order: the model's per-cell
                         state (see `model_state`) and the snapshots
     global/<name>       scalars and small arrays (CSA/V ratios, time, step, protocol
-                        position, multipliers, Jacobian count, uniform signaling state)
+                        position, multipliers, Jacobian count, uniform signaling state,
+                        growth amounts and multipliers of the predictor's solutions)
     series/<name>       the time series so far
 
 Keyed by the original cell index, the file is read back on any number of ranks: rank
@@ -247,6 +248,11 @@ def model_state(model: CoupledModel) -> tuple[np.ndarray, dict, dict]:
         w_j, g_j = jacobian.point
         per_cell["jacobian_w"] = w_j[wdofs]
         per_cell["jacobian_Gbar"] = g_j.reshape(-1, 9)[growth.dofs]
+    history = getattr(jacobian, "history", [])  # the solutions kept for a predictor
+    if history:
+        glob["predictor_amounts"] = np.array([s for s, _, _ in history])
+        glob["predictor_multipliers"] = np.array([m for _, _, m in history], dtype=float)
+        per_cell["predictor_w"] = np.stack([w_k[wdofs] for _, w_k, _ in history], axis=1)
     per_cell_y = model.y.ndim == 2
     (per_cell if per_cell_y else glob)["y"] = model.y.T if per_cell_y else model.y
     if np.ndim(model.kM):
@@ -322,6 +328,14 @@ def restore_model(model: CoupledModel, rows: Callable[[str], np.ndarray | None],
         g.x.scatter_forward()
         point = (pw, g.x.array.copy())
     model.jacobian.rebuild(int(glob["jacobian_count"]), point)
+    kept = rows("predictor_w")
+    if kept is not None and hasattr(model.jacobian, "history"):
+        history = []
+        for i, amount in enumerate(np.asarray(glob["predictor_amounts"], dtype=float)):
+            w_k = np.zeros_like(w.x.array)
+            w_k[wdofs] = kept[:, i]
+            history.append((float(amount), w_k, np.array(glob["predictor_multipliers"][i], dtype=float)))
+        model.jacobian.history = history
     model.resumed = True
 
 

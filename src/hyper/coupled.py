@@ -321,8 +321,10 @@ class CoupledModel:
         once with a fresh one before the caller cuts the step. Kept factors retry
         inside their own solve."""
         if self.settings.newton == "kept":
+            amount = self.comm.allreduce(float(np.sum(self.growth.cell_det())), op=MPI.SUM)
+            amount = math.log(amount / self.comm.allreduce(len(self.growth.cells), op=MPI.SUM))
             with self.monitor.track("mechanics"):
-                return self.jacobian.solve()
+                return self.jacobian.solve(amount)
         try:
             with self.monitor.track("mechanics"):
                 return self.problem.solve()
@@ -361,6 +363,8 @@ class CoupledModel:
             self.problem.w.x.array[:] = w
             self.problem.multipliers = mult
             self.growth.set(Gbar, A)
+            if self.settings.newton == "kept":
+                self.jacobian.forget()
             raise GrowthFailure(
                 f"growth step {self.step + 1} ({t0:g} h to {t1:g} h): Newton did not converge "
                 f"with the step cut {self.settings.max_halvings} time(s): {err}",

@@ -63,12 +63,36 @@ def transverse_growth_ufl(theta, a0):
 
 def cumulative_update(Gbar, A, G):
     """Ḡ_new = A⁻¹ G A Ḡ: unload by A, grow by G, reload (stacks of 3×3 tensors)."""
-    return np.linalg.solve(A, G @ A @ Gbar)
+    return inverse(A) @ (G @ A @ Gbar)
+
+
+def transverse_update(Gbar, A, theta, a0):
+    """`cumulative_update` for G = `transverse_growth`(ϑ, a0), by its structure
+    G = √ϑ I + (1 - √ϑ) a0⊗a0: Ḡ_new = √ϑ Ḡ + (1 - √ϑ) (A⁻¹a0) ⊗ (Ḡᵀ Aᵀ a0),
+    a few array operations per point instead of a 3×3 solve and three products."""
+    s = np.sqrt(np.asarray(theta, dtype=float))[..., None, None]
+    left = (inverse(A) @ a0[..., None])[..., 0]
+    right = np.einsum("...ji,...j->...i", Gbar, np.einsum("...ji,...j->...i", A, a0))
+    return s * Gbar + (1.0 - s) * left[..., :, None] * right[..., None, :]
 
 
 def elastic_part(F, Gbar):
     """A = F Ḡ⁻¹ (stacks of 3×3 tensors)."""
-    return np.linalg.solve(np.swapaxes(Gbar, -1, -2), np.swapaxes(F, -1, -2)).swapaxes(-1, -2)
+    return F @ inverse(Gbar)
+
+
+def inverse(M):
+    """M⁻¹ of a stack of 3×3 tensors by the adjugate: for the well-conditioned tensors
+    of growth (det near 1) as exact as LAPACK's, and several times faster on stacks."""
+    a, b, c = M[..., 0, 0], M[..., 0, 1], M[..., 0, 2]
+    d, e, f = M[..., 1, 0], M[..., 1, 1], M[..., 1, 2]
+    g, h, i = M[..., 2, 0], M[..., 2, 1], M[..., 2, 2]
+    out = np.empty(np.shape(M))
+    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2] = e * i - f * h, c * h - b * i, b * f - c * e
+    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2] = f * g - d * i, a * i - c * g, c * d - a * f
+    out[..., 2, 0], out[..., 2, 1], out[..., 2, 2] = d * h - e * g, b * g - a * h, a * e - b * d
+    out /= (a * out[..., 0, 0] + b * out[..., 1, 0] + c * out[..., 2, 0])[..., None, None]
+    return out
 
 
 class GrowthField:
@@ -122,9 +146,8 @@ class GrowthField:
         theta = np.asarray(theta, dtype=float)
         if theta.ndim == 1:
             theta = theta[:, None]
-        G = transverse_growth(theta, self.a0)
         self._previous = self.Gbar
-        self.Gbar = cumulative_update(self.Gbar, self.A, G)
+        self.Gbar = transverse_update(self.Gbar, self.A, theta, self.a0)
         self._write(self.Gbar)
 
     def revert(self) -> None:

@@ -35,9 +35,12 @@ import numpy as np
 from hyper.mechanics import SolverError
 
 DEPTH = 5  # earlier iterates combined in each Anderson step
-# An iteration whose residual falls by less than this factor, with factors not assembled
-# for this step, makes the next one start from fresh factors.
-SLOW = 0.25
+# The first iterate extrapolates the last ORDER + 1 solutions, as polynomials in the growth
+# amount (log of the mean det Ḡ): on BFLH_VHF_Left (mwf) the first residual falls from
+# 1e-2 to 1e-5, and the soft motions start within the reach of kept factors.
+ORDER = 2
+# Iterations tried with the factors of an earlier step before the matrix is assembled anew.
+KEPT_ITERATIONS = 6
 RCOND = 1e-12  # of the scaled least-squares problem: nearly dependent residuals are dropped
 
 
@@ -62,6 +65,8 @@ class KeptFactors:
         self.count = 0  # iterations over all solves
         self.assemblies = 0  # Newton matrices assembled (each factorised once)
         self.point: tuple[np.ndarray, np.ndarray] | None = None  # (w, Ḡ) local arrays of the last assembly
+        # the last solutions: (growth amount, w local array, multipliers), oldest first
+        self.history: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._refresh = False
         K = problem.jacobian_matrix
         ksp = problem.snes.getKSP()
@@ -113,13 +118,15 @@ class KeptFactors:
             self.pc.apply(r, f)
         f.scale(-1.0)
 
-    def solve(self) -> int:
-        """Solve for the current Ḡ from the current state; returns the iterations.
+    def solve(self, amount: float) -> int:
+        """Solve for the current Ḡ, whose growth amount is ``amount``, from the solutions
+        of earlier amounts (or the current state); returns the iterations.
 
         Raises SolverError (state restored) if the iteration fails even with fresh factors.
         """
         problem = self.problem
         previous = problem.w.x.array.copy(), problem.multipliers.copy()
+        self._predict(amount)
         x = self.x
         problem.load_state(x)
         try:
@@ -129,7 +136,29 @@ class KeptFactors:
             problem.w.x.scatter_forward()
             problem.multipliers = previous[1]
             raise
+        self.history.append((amount, problem.w.x.array.copy(), problem.multipliers.copy()))
+        del self.history[: -(ORDER + 1)]
         return iterations
+
+    def forget(self) -> None:
+        """Drop the solutions kept for the predictor (the state went back before them)."""
+        self.history.clear()
+
+    def _predict(self, amount: float) -> None:
+        """w and μ extrapolated to ``amount`` through the kept solutions (Lagrange)."""
+        points = self.history
+        if len(points) < 2 or len({s for s, _, _ in points} | {amount}) < len(points) + 1:
+            return
+        weights = []
+        for i, (s_i, _, _) in enumerate(points):
+            weight = 1.0
+            for j, (s_j, _, _) in enumerate(points):
+                if j != i:
+                    weight *= (amount - s_j) / (s_i - s_j)
+            weights.append(weight)
+        problem = self.problem
+        problem.w.x.array[:] = sum(c * w for c, (_, w, _) in zip(weights, points))
+        problem.multipliers = sum(c * m for c, (_, _, m) in zip(weights, points))
 
     def _iterate(self, x) -> int:
         snes = self.problem.snes
@@ -145,9 +174,9 @@ class KeptFactors:
         if norm0 < atol:
             return 0
         tol = max(atol, rtol * norm0)
-        best = (norm0, x.copy())
+        start = x.copy()
         history: list[tuple] = []  # (x_i + f_i, R_i)
-        iterations = 0
+        iterations = kept = 0
         while True:
             self._factorise()
             f = x.duplicate()
@@ -156,7 +185,6 @@ class KeptFactors:
             history.append((f, r.copy()))
             del history[: -(self.depth + 1)]
             self._combine(history, x)
-            previous = norm
             norm = self._residual(x, r)
             iterations += 1
             self.count += 1
@@ -170,15 +198,15 @@ class KeptFactors:
                 reason = "DIVERGED_DTOL"
             else:
                 reason = None
-            if norm < best[0]:
-                best = (norm, x.copy())
-            if reason is None and not (norm > SLOW * previous and not fresh):
+            kept += 1
+            if reason is None and (fresh or (kept < KEPT_ITERATIONS and norm < norm0)):
                 continue
             if fresh and reason is not None:
                 raise SolverError(self._message(iterations, reason))
-            # Slow (or failing) with factors of an earlier step: start again from the best
-            # iterate with the matrix assembled there.
-            best[1].copy(x)
+            # Slow (or failing) with factors of an earlier step: start again with the matrix
+            # assembled at the start. Not at the best iterate: a small residual may hide a
+            # large error in a soft motion, where a matrix would be a poor one.
+            start.copy(x)
             self._assemble(x)
             norm = self._residual(x, r)
             history.clear()
