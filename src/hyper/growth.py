@@ -164,7 +164,10 @@ class GrowthField:
 
     def cell_det(self) -> np.ndarray:
         """det Ḡ averaged over each owned cell (the volume growth per cell)."""
-        det = np.linalg.det(self.Gbar)
+        G = self.Gbar
+        det = (G[..., 0, 0] * (G[..., 1, 1] * G[..., 2, 2] - G[..., 1, 2] * G[..., 2, 1])
+               - G[..., 0, 1] * (G[..., 1, 0] * G[..., 2, 2] - G[..., 1, 2] * G[..., 2, 0])
+               + G[..., 0, 2] * (G[..., 1, 0] * G[..., 2, 1] - G[..., 1, 1] * G[..., 2, 0]))
         return det @ self.weights / self.weights.sum()
 
 
