@@ -40,6 +40,8 @@ class GrowthSettings:
     grow_during_sessions: bool = True  # False reproduces the original code
     consistent_stress: bool = True  # P = det(Fg) Fe S Fg⁻ᵀ; False: the original Fe S
     max_halvings: int = 4  # growth-step cuts tried before a failed solve stops the run
+    # where G, Ḡ and A live: "quadrature" points, or "dg1" nodes (the original code)
+    growth_fields: str = "quadrature"
 
     # A step cut k times is 2^k solves: beyond this a run is better stopped and looked at.
     MAX_HALVINGS = 12
@@ -53,6 +55,9 @@ class GrowthSettings:
         if self.feedback not in growth.FEEDBACK_LAWS:
             raise InputError(f"must be one of {', '.join(growth.FEEDBACK_LAWS)}, got {self.feedback!r}",
                              field="feedback")
+        if self.growth_fields not in growth.GROWTH_FIELDS:
+            raise InputError(f"must be one of {', '.join(growth.GROWTH_FIELDS)}, got {self.growth_fields!r}",
+                             field="growth_fields")
         if isinstance(self.max_halvings, bool) or not (
             isinstance(self.max_halvings, int) and 0 <= self.max_halvings <= self.MAX_HALVINGS
         ):
@@ -64,6 +69,8 @@ class GrowthSettings:
         failing step is tried, so a stopped run may be resumed with another value."""
         out = dataclasses.asdict(self)
         del out["max_halvings"]
+        if self.growth_fields == "quadrature":
+            del out["growth_fields"]  # the default: digests of earlier runs stay valid
         return out
 
 
@@ -225,7 +232,7 @@ class CoupledModel:
         self.settings = settings
         self.integrator = integrator if integrator is not None else signaling.integrate
         self.monitor = monitor if monitor is not None else NoTiming()
-        self.growth = growth.GrowthField(geometry.mesh, a0, geometry.quadrature_degree)
+        self.growth = growth.GrowthField(geometry.mesh, a0, geometry.quadrature_degree, settings.growth_fields)
         kwargs = {} if material is None else {"material": material}
         options = dict(petsc_options or {})
         lag = jacobian_lag(options.pop(LAG_OPTION, JACOBIAN_LAG))
