@@ -100,4 +100,4 @@ def test_end_force_converges_under_refinement():
                        for p in problems])
     assert values == pytest.approx(np.array([[0.57195, 0.57195, 0.38785, 0.56610],
                                              [0.55595, 0.55595, 0.41250, 0.57559]]), rel=1e-4)
-    assert np.allclose(values[:, 0], values[:, 1], rtol=1e-8)
+    assert np.allclose(values[:, 0], values[:, 1], rtol=1e-5)  # to the Newton tolerance (1e-6 relative)
