@@ -62,6 +62,7 @@ from hyper import checkpoint as ckpt
 from hyper import cli, farm, io, plot, protocols, run, signaling
 from hyper import geometry as geo
 from hyper.coupled import GrowthSettings, step_times
+from hyper.growth import GROWTH_FIELDS
 from hyper.log import hms, info
 from hyper.params import InputError, build
 from hyper.protocols import Protocol
@@ -484,6 +485,15 @@ def parser() -> cli.Parser:
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run fails; a failed run "
                         "resumes from its checkpoint with a larger value")
+    p.add_argument("--growth-fields", choices=GROWTH_FIELDS, default=GrowthSettings.growth_fields,
+                   help="where G, Ḡ and A live: at the quadrature points, or at the nodes of DG1 fields "
+                        "(the original code)")
+    p.add_argument("--ends", choices=geo.IDEALIZED_ENDS, default="disks",
+                   help="the idealized shape's spring ends: the flat end disks, or the XDMF's end tags with "
+                        "their lateral band (the original code; --geometries idealized only)")
+    p.add_argument("--fibers", choices=("auto", "original"), default="auto",
+                   help="the geometries' fibres, or the original code's on the idealized shape (P2 used as they "
+                        "are, surface integrals at UFL's estimated degree; --geometries idealized only)")
     p.add_argument("--snapshot-every", type=cli.integer(1), default=run.SNAPSHOT_EVERY,
                    help="XDMF snapshot every K growth steps")
     p.add_argument("--plot-geometry", default="BFLH_VHF_Left", metavar="ID",
@@ -501,8 +511,11 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings]:
     for name in args.geometries:
         run.check_geometry(comm, name, "--geometries")
     run.check_geometry(comm, args.plot_geometry, "--plot-geometry")
-    settings = build(GrowthSettings, {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings"},
-                     growth_dt=args.growth_dt, max_halvings=args.max_halvings)
+    if (args.ends, args.fibers) != ("disks", "auto") and set(args.geometries) != {"idealized"}:
+        raise InputError("--ends and --fibers original apply to the idealized shape only (--geometries idealized)")
+    settings = build(GrowthSettings, {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings",
+                                      "growth_fields": "--growth-fields"},
+                     growth_dt=args.growth_dt, max_halvings=args.max_halvings, growth_fields=args.growth_fields)
     runs = plan(args.geometries, [p for text in args.protocols for p in protocols.from_option(text, "--protocols")])
     return runs, settings
 
@@ -571,7 +584,8 @@ def cohort(comm, args) -> int:
                    f"{settings.growth_dt:g} h, output {args.output}")
         with run.StopOnTerm() as stop:
             results = run_cohort(comm, runs, args.output, settings=settings, snapshot_every=args.snapshot_every,
-                                 ranks_per_job=args.ranks_per_job, stop=stop)
+                                 ranks_per_job=args.ranks_per_job, stop=stop,
+                                 options={"ends": args.ends, "fibers": args.fibers})
         code = 0
         if comm.rank == 0:
             try:

@@ -208,7 +208,7 @@ class CoupledModel:
 
     ``integrator`` advances the signaling ODEs, with the signature of
     `signaling.integrate` (the default); ``monitor`` times the `PHASES` of the run
-    (default `NoTiming`).
+    (default `NoTiming`); ``normalize_fibres`` goes to `MechanicsProblem`.
     """
 
     def __init__(
@@ -224,6 +224,7 @@ class CoupledModel:
         linear_solver: str = "lu",
         integrator: Callable | None = None,
         monitor=None,
+        normalize_fibres: bool = True,
     ):
         self.geometry = geometry
         self.comm = geometry.mesh.comm
@@ -247,6 +248,7 @@ class CoupledModel:
                 petsc_options=options,
                 options_prefix=MECHANICS_PREFIX,
                 linear_solver=linear_solver,
+                normalize_fibres=normalize_fibres,
                 **kwargs,
             )
         self.growth.set_deformation(self.problem.F)

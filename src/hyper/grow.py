@@ -38,7 +38,7 @@ from hyper.signaling.cli import answer
 SIGNALING_SAMPLE_EVERY = 0.5  # h, the series of --ask signaling, as hyper signaling samples it
 # the options that set GrowthSettings' fields, for errors that name what the user typed
 SETTING_OPTIONS = {"growth_dt": "--growth-dt", "signaling_dt": "--signaling-dt", "feedback": "--feedback",
-                   "max_halvings": "--max-halvings"}
+                   "max_halvings": "--max-halvings", "growth_fields": "--growth-fields"}
 
 
 def scene_options(p: cli.Parser) -> None:
@@ -65,19 +65,29 @@ def parser(ask: str = "growth") -> cli.Parser:
         p.add_argument("--output", type=cli.output(), default="results/signaling", help="an .h5 file or a folder")
         return p
     from hyper.coupled import GrowthSettings
-    from hyper.growth import FEEDBACK_LAWS
+    from hyper.geometry import IDEALIZED_ENDS
+    from hyper.growth import FEEDBACK_LAWS, GROWTH_FIELDS
 
     p = cli.Parser("grow", __doc__)
     p.add_argument("--geometry", help="geometry id (idealized, cylinder, BFLH_VHF_Left, …); idealized by default")
     p.add_argument("--mesh", type=Path, help="your own tetrahedral XDMF mesh instead of --geometry (facet tags "
                    "'ft_small': 1, 2 the ends, 3 the side; fibres along its principal axis)")
     p.add_argument("--mesh-unit", help=f"length unit of --mesh ({' or '.join(run.MESH_UNITS)}); m by default")
+    p.add_argument("--ends", choices=IDEALIZED_ENDS, default="disks",
+                   help="the idealized shape's spring ends: the flat end disks, or the XDMF's end tags with "
+                        "their lateral band (the original code)")
+    p.add_argument("--fibers", choices=("auto", "original"), default="auto",
+                   help="the geometry's fibres, or on the idealized shape the original code's (P2 used as they "
+                        "are, surface integrals at UFL's estimated degree)")
     scene_options(p)
     p.add_argument("--output", type=cli.output(), default="results/grow", help="an .h5 file (one protocol) or a folder")
     p.add_argument("--growth-dt", type=float,
                    help=f"growth step Δtg (h); {GrowthSettings.growth_dt:g} unless --accuracy chooses one")
     p.add_argument("--feedback", choices=FEEDBACK_LAWS, default="hill", help="feedback of CSA on protein synthesis")
     p.add_argument("--skip-sessions", action="store_true", help="no growth during sessions (the original code)")
+    p.add_argument("--growth-fields", choices=GROWTH_FIELDS, default=GrowthSettings.growth_fields,
+                   help="where G, Ḡ and A live: at the quadrature points, or at the nodes of DG1 fields "
+                        "(the original code)")
     p.add_argument("--fe-stress", action="store_true",
                    help="P = Fe S (the original code) instead of the consistent det(Fg) Fe S Fg⁻ᵀ")
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
@@ -132,7 +142,8 @@ def plan_from(comm, args) -> sequence.Plan:
         signaling_dt = GrowthSettings.signaling_dt if args.signaling_dt is None else args.signaling_dt
     settings = build(GrowthSettings, SETTING_OPTIONS, growth_dt=growth_dt, signaling_dt=signaling_dt,
                      feedback=args.feedback, grow_during_sessions=not args.skip_sessions,
-                     consistent_stress=not args.fe_stress, max_halvings=args.max_halvings)
+                     consistent_stress=not args.fe_stress, max_halvings=args.max_halvings,
+                     growth_fields=args.growth_fields)
     petsc_options = dict(cli.petsc_option(text) for text in args.petsc_option)
     if LAG_OPTION in petsc_options:
         jacobian_lag(petsc_options[LAG_OPTION])
@@ -151,8 +162,10 @@ def plan_from(comm, args) -> sequence.Plan:
     if mesh is not None:
         mesh.load(comm)  # units and tags, before anything is written
     solver = args.linear_solver or ("auto" if args.accuracy is not None else "lu")
-    specs = [run.RunSpec(name, p, params, settings, petsc_options, mesh=mesh, linear_solver=solver, choice=choice)
-             for p in runs]
+    if (args.ends, args.fibers) != ("disks", "auto") and name != "idealized":
+        raise InputError("--ends and --fibers original apply to the idealized shape only")
+    specs = [run.RunSpec(name, p, params, settings, petsc_options, mesh=mesh, linear_solver=solver, choice=choice,
+                         ends=args.ends, fibers=args.fibers) for p in runs]
     if not args.restart:
         sequence.refuse_foreign_checkpoints(comm, specs, [run.Outputs(h5) for h5 in results])
     return sequence.Plan(specs, [run.Outputs(h5) for h5 in results], plot, args.snapshot_every, args.checkpoint_every,

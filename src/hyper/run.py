@@ -153,6 +153,10 @@ class RunSpec:
     # (None: the geometry's own, 4)
     refine: int = 0
     quadrature_degree: int | None = None
+    # the original code's idealized shape (MODEL.md §9): its end tags ("tags") and its
+    # fibres ("original": P2 used as they are, surface integrals at UFL's estimated degree)
+    ends: str = "disks"
+    fibers: str = "auto"
 
     def __post_init__(self):
         if self.settings is None:
@@ -192,6 +196,10 @@ class RunSpec:
             out["refine"] = self.refine
         if self.quadrature_degree is not None:
             out["quadrature_degree"] = self.quadrature_degree
+        if self.ends != "disks":
+            out["ends"] = self.ends
+        if self.fibers != "auto":
+            out["fibers"] = self.fibers
         return out
 
     def digest(self) -> str:
@@ -209,11 +217,12 @@ class RunSpec:
         from hyper import geometry as geo
 
         if self.mesh is not None:
-            if self.refine or self.quadrature_degree is not None:
-                raise InputError("refinement and quadrature degree apply to the built-in geometries only")
+            if self.refine or self.quadrature_degree is not None or (self.ends, self.fibers) != ("disks", "auto"):
+                raise InputError("refinement, quadrature degree, ends and fibres apply to the built-in geometries only")
             return self.mesh.load(comm)
         kwargs = {} if self.quadrature_degree is None else {"quadrature_degree": self.quadrature_degree}
-        geometry = geo.load(self.geometry, comm, **kwargs)
+        geometry = geo.load(self.geometry, comm, ends=self.ends, estimated_surface_degree=not self.unit_fibres,
+                            **kwargs)
         for _ in range(self.refine):
             geometry = geo.refine(geometry)
         return geometry
@@ -221,7 +230,14 @@ class RunSpec:
     def fiber_field(self, geometry):
         from hyper import fibers
 
-        return fibers.fiber_field(geometry, "principal" if self.mesh is not None else "auto")
+        return fibers.fiber_field(geometry, "principal" if self.mesh is not None else self.fibers)
+
+    @property
+    def unit_fibres(self) -> bool:
+        """Whether the mechanics normalises the fibres at its points (all but the original's)."""
+        from hyper import fibers
+
+        return self.fibers not in fibers.UNNORMALISED_KINDS
 
     def cell_params(self, geometry):
         """The signaling parameters of this run on this rank's cells."""
@@ -472,7 +488,8 @@ def build(comm, spec: RunSpec, *, monitor=None, integrator=None):
         info(comm, f"fidelity: {reason}")
     kwargs = {name: value for name, value in (("monitor", monitor), ("integrator", integrator)) if value is not None}
     model = CoupledModel(geometry, a0, spec.protocol, params=spec.cell_params(geometry), settings=spec.settings,
-                         petsc_options=dict(spec.petsc_options), linear_solver=solver, **kwargs)
+                         petsc_options=dict(spec.petsc_options), linear_solver=solver,
+                         normalize_fibres=spec.unit_fibres, **kwargs)
     return model, a0, {"linear_solver": solver, "linear_solver_reason": reason}, choice
 
 
@@ -574,6 +591,10 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAP
         "geometry": spec.geometry,
         "mesh_sha256": ckpt.on_rank0(comm, lambda: ckpt.file_digest(*spec.mesh_files())),
         "quadrature_degree": model.geometry.quadrature_degree,
+        "ends": spec.ends,
+        "fibers": spec.fibers,
+        "surface_quadrature_degree": "estimated" if model.geometry.estimated_surface_degree
+        else model.geometry.quadrature_degree,
         "csa0_m2": model.csa0,
         "volume0_m3": model.volume0,
         "ranks": comm.size,
