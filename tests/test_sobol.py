@@ -199,7 +199,7 @@ def test_cli_signaling_small(tmp_path, capsys):
     with h5py.File(out / "sobol.h5") as f:
         assert f.attrs["evaluations"] == 480 and f.attrs["dt"] == 0.05 and f.attrs["protocol"] == "daily15"
         assert f.attrs["failures"] == 0 and f["failed_rows"].shape == (0,)
-        assert f["protocol"].attrs["end"] == 480.0 and f["baseline"].attrs["kM"] == 0.01
+        assert f["protocol"].attrs["end"] == 480.0 and f["signaling"].attrs["kM"] == 0.01
         X, Y = f["X"][()], f["Y"][()]
     assert np.array_equal(Y[:30], sobol.final_N(X[:30]))
 

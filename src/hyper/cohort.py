@@ -11,7 +11,8 @@ communicator. Per run, under OUTPUT/runs/:
     GEOMETRY_PROTOCOL.h5            the time series (as hyper.grow writes it) with the
                                     attributes geometry, muscle, subject, side, protocol,
                                     csa0_m2, volume0_m3, wall_s, ranks, run_digest and
-                                    the groups signaling, protocol, settings
+                                    the groups signaling, material, protocol, settings
+                                    and the equivalent study file (hyper.provenance)
     GEOMETRY_PROTOCOL_fields.xdmf   snapshots of u, det Ḡ and a0 for ParaView
     GEOMETRY_PROTOCOL.log           the run's own progress lines
 
@@ -59,7 +60,7 @@ import numpy as np
 from mpi4py import MPI
 
 from hyper import checkpoint as ckpt
-from hyper import cli, farm, io, plot, protocols, run, signaling
+from hyper import cli, farm, io, material, plot, protocols, run, signaling
 from hyper import geometry as geo
 from hyper.coupled import GrowthSettings, step_times
 from hyper.log import hms, info
@@ -481,6 +482,8 @@ def parser() -> cli.Parser:
     p.add_argument("--ranks-per-job", type=cli.integer(1), default=1,
                    help="MPI ranks per run; must divide the number of ranks")
     p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step Δtg (h)")
+    p.add_argument("--material", type=Path, metavar="F.toml",
+                   help="TOML file overriding the muscle law's parameters (hyper.material.MaterialParams)")
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run fails; a failed run "
                         "resumes from its checkpoint with a larger value")
@@ -491,7 +494,7 @@ def parser() -> cli.Parser:
     return p
 
 
-def check(args, comm) -> tuple[list[Run], GrowthSettings]:
+def check(args, comm) -> tuple[list[Run], GrowthSettings, material.MaterialParams]:
     unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
     if unknown:
         raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")
@@ -504,7 +507,7 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings]:
     settings = build(GrowthSettings, {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings"},
                      growth_dt=args.growth_dt, max_halvings=args.max_halvings)
     runs = plan(args.geometries, [p for text in args.protocols for p in protocols.from_option(text, "--protocols")])
-    return runs, settings
+    return runs, settings, material.load(args.material) if args.material else material.MaterialParams()
 
 
 def idle_barrier(comm) -> None:
@@ -564,14 +567,14 @@ def finish(output: Path, runs: list[Run], results, settings: GrowthSettings, ela
 
 def cohort(comm, args) -> int:
     start = time.perf_counter()
-    runs, settings = check(args, comm)
+    runs, settings, muscle = check(args, comm)
     with cli.hold(comm, [args.output]):
         info(comm, f"cohort: {len(runs)} runs ({len(args.geometries)} geometries × {len(args.protocols)} "
                    f"protocols) on {comm.size} rank(s) in groups of {args.ranks_per_job}, growth step "
                    f"{settings.growth_dt:g} h, output {args.output}")
         with run.StopOnTerm() as stop:
             results = run_cohort(comm, runs, args.output, settings=settings, snapshot_every=args.snapshot_every,
-                                 ranks_per_job=args.ranks_per_job, stop=stop)
+                                 ranks_per_job=args.ranks_per_job, stop=stop, options={"material": muscle})
         code = 0
         if comm.rank == 0:
             try:

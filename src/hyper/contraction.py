@@ -1,7 +1,8 @@
 """hyper contraction: ramp the activation α from 0 to 1 on one geometry.
 
 Writes <output>.h5 (series alpha, reaction_force, reaction_force_current,
-newton_iterations, volume_ratio, stretch_min, stretch_max; parameters as attributes),
+newton_iterations, volume_ratio, stretch_min, stretch_max; the groups material and
+settings),
 <output>_fields.xdmf (displacement u and pressure p on P1, fibre stretch λ per cell, one
 time step per activation level) and <output>.png (force against activation).
 A step whose Newton solve fails is retried as two half steps, down to --max-halvings.
@@ -22,6 +23,8 @@ from hyper.params import InputError, as_attributes
 
 SERIES = ("alpha", "reaction_force", "reaction_force_current", "newton_iterations",
           "volume_ratio", "stretch_min", "stretch_max", "wall_s")
+UNITS = {"alpha": "1", "reaction_force": "N", "reaction_force_current": "N", "newton_iterations": "count",
+         "volume_ratio": "1", "stretch_min": "1", "stretch_max": "1", "wall_s": "s"}
 
 
 class _Parser(cli.Parser):
@@ -46,6 +49,8 @@ def parser() -> cli.Parser:
                    help="HDF5 series file; results/contraction/GEOMETRY.h5 by default")
     p.add_argument("--fibers", default="auto", metavar="KIND",
                    help=f"fibre field kind: {', '.join(fibers.FIBER_KINDS)} (see hyper.fibers.fiber_field)")
+    p.add_argument("--material", type=Path, metavar="F.toml",
+                   help="TOML file overriding the muscle law's parameters (hyper.material.MaterialParams)")
     p.add_argument("--quadrature-degree", type=cli.integer(1, 12), default=4, help="quadrature degree of the forms")
     p.add_argument("--max-halvings", type=cli.integer(0, 12), default=6, help="step cuts allowed per step")
     return p
@@ -128,12 +133,11 @@ def contract(comm, args) -> dict:
     from hyper import fibers, io
     from hyper import geometry as geo
     from hyper.log import Progress, info
-    from hyper.material import MaterialParams
     from hyper.mechanics import MechanicsProblem
 
     geometry = geo.load(args.geometry, comm, quadrature_degree=args.quadrature_degree)
     a0 = fibers.fiber_field(geometry, args.fibers)
-    material = MaterialParams()
+    material = args.material
     problem = MechanicsProblem(geometry, a0, material)
     info(comm, f"{args.geometry}: {geometry.num_cells()} cells, {problem.num_dofs} unknowns, "
                f"{comm.size} rank(s); rigid motions: {problem.rigid.description}")
@@ -158,21 +162,27 @@ def contract(comm, args) -> dict:
             progress.update(k, f"α = {alpha:.3f}: R = {values[1]:.4e} N, R_current = {values[2]:.4e} N, "
                                f"λ in [{lo:.4f}, {hi:.4f}], {iterations} Newton its"
                                + (f" ({halvings} halvings)" if halvings else ""), force=True)
+    from hyper import checkpoint, run
+
     attrs = {
         "geometry": args.geometry,
-        "steps": args.steps,
-        "fibers": args.fibers,
+        "mesh_sha256": checkpoint.on_rank0(comm, lambda: checkpoint.file_digest(
+            *run.mesh_files(geo.MESHES_DIR / geo.GEOMETRIES[args.geometry]))),
         "cells": geometry.num_cells(),
         "unknowns": problem.num_dofs,
         "ranks": comm.size,
         "quadrature_degree": geometry.quadrature_degree,
+        "linear_solver": "lu",
         "rigid_motions": problem.rigid.description,
         "fields_xdmf": xdmf_path.name,
-        "petsc_prefix": problem.snes.getOptionsPrefix(),
-        "snes_tolerances_rtol_atol": [problem.snes.getTolerances()[0], problem.snes.getTolerances()[1]],
     }
+    settings = {"steps": args.steps, "fibers": args.fibers, "quadrature_degree": geometry.quadrature_degree,
+                "max_halvings": args.max_halvings, "petsc_prefix": problem.snes.getOptionsPrefix(),
+                "petsc_options": " ".join(args.petsc),
+                "snes_rtol": problem.snes.getTolerances()[0], "snes_atol": problem.snes.getTolerances()[1]}
     if comm.rank == 0:
-        io.write_series(output, series, attrs=attrs, groups={"material": as_attributes(material)})
+        io.write_series(output, series, attrs=attrs, units=UNITS,
+                        groups={"material": as_attributes(material), "settings": settings})
         plot(output.with_suffix(".png"), series, f"{args.geometry}: {geometry.num_cells()} cells, "
                                                   f"{problem.num_dofs} unknowns")
     comm.barrier()
@@ -186,6 +196,9 @@ def run(comm, args) -> int:
     from hyper.log import info
     from hyper.mechanics import SolverError
 
+    from hyper import material
+
+    args.material = material.load(args.material) if args.material is not None else material.MaterialParams()
     if args.output is None:
         args.output = Path("results/contraction") / f"{Path(args.geometry).name}.h5"
         problem = cli.unwritable(args.output, folder=False)

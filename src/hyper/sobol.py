@@ -405,6 +405,11 @@ def remove_stale(folder: Path, key: str) -> list[str]:
 # --------------------------------------------------------------------------------------
 # The job
 
+# the units of sobol.h5's datasets: the indices are fractions of the output's variance
+INDEX_UNITS = {"parameters": "name", "X": "the parameters' own (see the bounds group)", "Y": "the output's own",
+               "failed_rows": "index", **{k: "1" for k in ("S1", "S1_conf", "ST", "ST_conf", "S2", "S2_conf",
+                                                          "S1_bootstrap", "ST_bootstrap")}}
+
 
 FUNCTIONS = ("signaling", "csa-gain", "ishigami")
 SECTION_GEOMETRIES = ("idealized", "cylinder")
@@ -597,13 +602,13 @@ def _finish(args, prob, X, Y, results, protocol, key, timing, start, ranks) -> i
     groups = {"bounds": {n: np.asarray(b, dtype=float) for n, b in zip(prob["names"], prob["bounds"])}}
     if protocol is not None:
         groups["protocol"] = protocol.to_attributes()
-        groups["baseline"] = dataclasses.asdict(S.SignalingParams())
+        groups["signaling"] = dataclasses.asdict(S.SignalingParams())
     out = args.output
     io.write_series(out / "sobol.h5", {
         "parameters": np.array(prob["names"], dtype="S"), "X": X, "Y": Y, "failed_rows": failed,
         "S1": ind.S1, "S1_conf": ind.S1_conf, "ST": ind.ST, "ST_conf": ind.ST_conf, "S2": ind.S2,
         "S2_conf": ind.S2_conf, "S1_bootstrap": ind.S1_boot, "ST_bootstrap": ind.ST_boot,
-    }, attrs=attrs, groups=groups)
+    }, attrs=attrs, groups=groups, units=INDEX_UNITS)
     with io.atomic_path(out / "indices.csv") as tmp:
         with open(tmp, "w") as f:
             f.write("parameter,S1,S1_conf,ST,ST_conf\n")
