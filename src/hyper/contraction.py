@@ -193,10 +193,9 @@ def run(comm, args) -> int:
     import dolfinx_solver  # noqa: F401  (before petsc4py)
     from petsc4py import PETSc
 
+    from hyper import material
     from hyper.log import info
     from hyper.mechanics import SolverError
-
-    from hyper import material
 
     args.material = material.load(args.material) if args.material is not None else material.MaterialParams()
     if args.output is None:

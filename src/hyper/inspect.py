@@ -19,7 +19,6 @@ import numpy as np
 from hyper import cli
 from hyper.params import InputError
 
-
 # the groups every job names alike, shown first
 GROUPS = ("signaling", "material", "protocol", "settings", "heterogeneity", "fidelity")
 
