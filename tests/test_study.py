@@ -214,6 +214,7 @@ MALFORMED = {
     "material_unknown": (GOOD + "[material]\nc3 = 1\n", r"material: unknown key\(s\) c3; known: c1"),
     "material_value": (GOOD + "[material]\nlambda0 = 0\n", r"material: lambda0: expected a number > 0"),
     "material_not_number": (GOOD + "[material]\nc1 = 'soft'\n", r"material: c1: expected a number"),
+    "sobol_key": (GOOD + "[sobol]\nnames = ['kM']\nspread = 2\n", r"sobol: unknown key\(s\) spread; known: function"),
     "feedback": (GOOD + '[numerics]\nfeedback = "cubic"\n', r"numerics.feedback: expected one of hill"),
     "consistent_stress": (GOOD + "[numerics]\nconsistent_stress = 1\n",
                           r"numerics.consistent_stress: expected true or false"),
@@ -298,3 +299,12 @@ def test_one_run_study_writes_what_grow_writes(tmp_path):
     assert io.is_complete(tmp_path / "one" / "cylinder_short.h5")
     assert (tmp_path / "one" / "cylinder_short_fields.xdmf").is_file()
     assert (tmp_path / "one" / "cylinder_growth.png").is_file()
+
+
+def test_a_study_carries_the_sobol_problem(tmp_path):
+    from hyper import sobol
+
+    path = write(tmp_path, GOOD + '[sobol]\nnames = ["kM"]\nbounds = [[0.005, 0.02]]\nprotocol = "weekly"\n')
+    assert study.load(path).names == ["cylinder"]
+    protocol, prob = sobol._check(sobol.parser().parse_args(["--problem", str(path)]))
+    assert protocol.name == "weekly" and prob == {"num_vars": 1, "names": ["kM"], "bounds": [[0.005, 0.02]]}

@@ -24,16 +24,17 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from hyper import cli, log, protocols
+from hyper import cli, log, protocols, resources
 from hyper.params import InputError
 
-ROOT = Path(__file__).resolve().parents[2]
+# the folder a job runs in by default: the checkout, or (installed) the current folder
+ROOT = resources.checkout() or Path.cwd()
 # Slurm keeps the warning time of --signal=SIG@TIME in 16 bits
 MAX_WARN_S = 65535
 TEMPLATES = {
-    "cohort": ROOT / "jobs" / "cohort.sbatch.in",
-    "grow-array": ROOT / "jobs" / "grow-array.sbatch.in",
-    "sobol": ROOT / "jobs" / "sobol.sbatch.in",
+    "cohort": resources.folder("jobs") / "cohort.sbatch.in",
+    "grow-array": resources.folder("jobs") / "grow-array.sbatch.in",
+    "sobol": resources.folder("jobs") / "sobol.sbatch.in",
 }
 PLACEHOLDER = re.compile(r"\{([a-z][a-z0-9_]*)\}")
 # Slurm's time formats: M, M:S, H:M:S, D-H, D-H:M, D-H:M:S

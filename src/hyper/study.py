@@ -54,6 +54,10 @@ of inputs are relative to the study file's folder (the output folder to the curr
     folder = "results/study"   # (the default)
     figures = true
 
+    [sobol]                    # the sensitivity analysis of `hyper sobol --problem STUDY.toml`
+    names = ["kM", "kF"]       # (checked here, run there; see hyper.sobol)
+    bounds = [[0.005, 0.02], [0.0095, 0.038]]
+
 Precedence: a command-line option wins over the study file, and the file over the
 defaults (--output over [output] folder, --growth-dt over [numerics] growth_dt, and so on
 for each key). Wherever they come from, a growth or RK4 step given explicitly wins over
@@ -83,7 +87,7 @@ from hyper.params import InputError, as_attributes, build, positive_hours, read_
 from hyper.protocols import Protocol
 
 KEYS = ("geometries", "protocols", "mesh", "protocol", "signaling", "material", "heterogeneity", "numerics",
-        "output")
+        "output", "sobol")
 MESH_KEYS = ("file", "unit")
 HETEROGENEITY_KEYS = ("model", "epsilon", "length", "nu", "seed")
 OUTPUT_KEYS = ("folder", "figures")
@@ -275,6 +279,10 @@ def load(path: str | Path, overrides: dict | None = None) -> Study:
     base = path.parent
     data = read_toml(path)
     keys_of(data, where, KEYS)
+    if "sobol" in data:
+        from hyper import sobol
+
+        sobol.read_config(path)
     overrides = overrides or {}
     protocol_list = [p for text in strings(data, "protocols", where)
                      for p in named_protocol(text, base, f"{where}: protocols")]
