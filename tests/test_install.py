@@ -49,7 +49,8 @@ def test_the_installed_package_carries_its_inputs(installed):
                            text=True, check=True).stdout.split()
     assert lines == [str(target / "hyper" / "__init__.py"), str(target / "hyper" / "meshes"), "None", "True"]
     for name in ("data/defreitas.csv", "studies/paper-cohort.toml", "studies/custom.toml", "jobs/paraview_render.py",
-                 "meshes/VHF_Left_Muscle_TibialisAnterior_smooth/fibers.h5", "meshes/muscle-idealized/muscle-idealized.msh"):
+                 "meshes/VHF_Left_Muscle_TibialisAnterior_smooth/fibers.h5",
+                 "meshes/muscle-idealized/muscle-idealized.msh"):
         assert (target / "hyper" / name).read_bytes() == (ROOT / name).read_bytes(), name
 
 
