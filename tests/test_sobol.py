@@ -337,3 +337,17 @@ def test_an_analysis_of_two_parameters_at_a_time(tmp_path):
         assert list(f["bounds"].attrs["kM"]) == [0.005, 0.02]
         X, Y = f["X"][()], f["Y"][()]
     assert np.array_equal(Y, sobol.final_N(X, names=["kM", "a10"], protocol=sobol.named("mwf"), at=168.0))
+
+
+def test_spread_labels_overlap_neither_each_other_nor_a_point():
+    rng = np.random.default_rng(3)
+    points = np.vstack([rng.normal(100.0, 6.0, (12, 2)), [[400.0, 300.0], [404.0, 302.0]]])  # a cluster, a pair
+    sizes = [(20.0 + 3 * k, 13.0) for k in range(len(points))]
+    offsets = sobol.label_offsets(points, sizes, 8.0)
+    boxes = [(x + dx, y + dy, x + dx + w, y + dy + h) for (x, y), (dx, dy), (w, h) in zip(points, offsets, sizes)]
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1:]:
+            assert not (a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]), (a, b)
+        inside = (points[:, 0] > a[0] - 8) & (points[:, 0] < a[2] + 8) & (points[:, 1] > a[1] - 8) & \
+            (points[:, 1] < a[3] + 8)
+        assert not inside.any()

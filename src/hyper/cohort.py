@@ -24,7 +24,7 @@ nothing left to do writes the same summary):
     failures.txt    the error of every failed run (only when some failed)
     ratios.png      final CSA and volume change by muscle and protocol, mean ± standard
                     error over the four members of each muscle (Fig. 6C–D analog)
-    shape.png       the grown --plot-geometry geometry (default BFLH_VHF_Left) per protocol,
+    shape.png       the grown --plot-geometry geometry (BFLH_VHF_Left, or the first) per protocol,
                     displacement amplified 10× (Fig. 6A analog)
     table.md        the results against the paper (MODEL.md §8)
 
@@ -73,6 +73,7 @@ PAPER_PROTOCOLS = protocols.PAPER  # in the paper's order of growth: mwf > every
 # MODEL.md §8, anatomical cohort under mwf: increases in percent (low, high)
 PAPER_MWF_INCREASE = {"volume": (8.0, 9.0), "csa": (3.0, 6.0)}
 PICTURE_SCALE = 10.0  # displacement amplification of the shape picture (the paper's Fig. 6A)
+SHAPE_GEOMETRY = "BFLH_VHF_Left"  # the paper's Fig. 6A
 
 
 @dataclasses.dataclass(frozen=True)
@@ -390,14 +391,17 @@ def ratio_figure(rows: list[dict], path: Path) -> None:
             x = np.arange(len(groups)) + (j - (len(names) - 1) / 2) * width
             cells = [stats.get((g, name), {"mean": np.nan, "se": np.nan}) for g in groups]
             ax.bar(x, [c["mean"] for c in cells], width * 0.9, yerr=[np.nan_to_num(c["se"]) for c in cells],
-                   capsize=3, label=name, zorder=2)
+                   capsize=3, label=name, zorder=2, color=plot.protocol_colour(name))
             for xi, g in zip(x, groups):
                 values = [percent(r, quantity) for r in rows
                           if group(r) == g and r["protocol"] == name and r["status"] == "done"]
                 ax.plot([xi] * len(values), values, "k.", ms=3, zorder=3)
         ax.set_xticks(range(len(groups)), groups)
         ax.set_ylabel(f"{title} change (%)")
-        ax.set_title(f"final {title}: mean ± standard error, dots: members")
+        members = max((sum(group(r) == g and r["protocol"] == n for r in rows) for g in groups for n in names),
+                      default=0)
+        ax.set_title(f"final {title}: mean ± standard error, dots: members" if members > 1
+                     else f"final {title} (one member per bar: no spread)")
         ax.grid(axis="y", alpha=0.3)
     axes[0].legend(fontsize=8)
     plot.save(fig, path, dpi=140)
@@ -489,8 +493,9 @@ def parser() -> cli.Parser:
                         "resumes from its checkpoint with a larger value")
     p.add_argument("--snapshot-every", type=cli.integer(1), default=run.SNAPSHOT_EVERY,
                    help="XDMF snapshot every K growth steps")
-    p.add_argument("--plot-geometry", default="BFLH_VHF_Left", metavar="ID",
-                   help="geometry of the shape plot (the paper's Fig. 6A)")
+    p.add_argument("--plot-geometry", metavar="ID",
+                   help=f"geometry of the shape plot (the paper's Fig. 6A), one of --geometries; {SHAPE_GEOMETRY} "
+                        "when it is one of them, else the first")
     return p
 
 
@@ -503,7 +508,11 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings, material.MaterialParam
                          f"got {args.ranks_per_job}")
     for name in args.geometries:
         run.check_geometry(comm, name, "--geometries")
-    run.check_geometry(comm, args.plot_geometry, "--plot-geometry")
+    if args.plot_geometry is None:
+        args.plot_geometry = SHAPE_GEOMETRY if SHAPE_GEOMETRY in args.geometries else args.geometries[0]
+    elif args.plot_geometry not in args.geometries:
+        raise InputError(f"--plot-geometry {args.plot_geometry}: not one of --geometries "
+                         f"({', '.join(args.geometries)}); its shape could not be drawn")
     settings = build(GrowthSettings, {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings"},
                      growth_dt=args.growth_dt, max_halvings=args.max_halvings)
     runs = plan(args.geometries, [p for text in args.protocols for p in protocols.from_option(text, "--protocols")])
@@ -542,6 +551,8 @@ def finish(output: Path, runs: list[Run], results, settings: GrowthSettings, ela
     if pictured and figures:
         shape_figure({name: final_fields(p) for name, p in pictured.items()}, output / "shape.png", plot_geometry)
         written.append(output / "shape.png")
+    elif figures:
+        info(None, f"shape.png not written: {plot_geometry}, its geometry, has no finished run")
     table = markdown(rows, settings)
     with io.atomic_path(output / "table.md") as tmp:
         tmp.write_text(table)
