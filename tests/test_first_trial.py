@@ -52,7 +52,7 @@ def test_the_growth_figure_has_one_time_range(tmp_path):
         plot.growth_series(results, tmp_path / "g.png")
     finally:
         plot.save = original
-    assert saved[0] == [(0.0, 2.0)] * 3
+    assert saved[0] == [(-0.04, 2.04)] * 3
     plt.close("all")
 
 

@@ -63,8 +63,8 @@ def growth_series(results: dict[str, dict], path: str | Path, data: Path | None 
         axes[0].plot(measured["week"], 100 * (measured["csa"] / measured["csa"][0] - 1), "ko", ms=4,
                      label="DeFreitas 2011 (mwf)")
         end = max(end, float(np.max(measured["week"])))
-    for ax in axes:  # one time range in the three panels
-        ax.set_xlim(0.0, end)
+    for ax in axes:  # one time range in the three panels, with room for the end points
+        ax.set_xlim(-0.02 * end, 1.02 * end)
     axes[0].set_ylabel("CSA change (%)")
     axes[1].set_ylabel("volume change (%)")
     axes[2].set_ylabel("kM (1/h)")
