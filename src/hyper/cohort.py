@@ -11,7 +11,8 @@ communicator. Per run, under OUTPUT/runs/:
     GEOMETRY_PROTOCOL.h5            the time series (as hyper.grow writes it) with the
                                     attributes geometry, muscle, subject, side, protocol,
                                     csa0_m2, volume0_m3, wall_s, ranks, run_digest and
-                                    the groups signaling, protocol, settings
+                                    the groups signaling, material, protocol, settings
+                                    and the equivalent study file (hyper.provenance)
     GEOMETRY_PROTOCOL_fields.xdmf   snapshots of u, det Ḡ and a0 for ParaView
     GEOMETRY_PROTOCOL.log           the run's own progress lines
 
@@ -23,7 +24,7 @@ nothing left to do writes the same summary):
     failures.txt    the error of every failed run (only when some failed)
     ratios.png      final CSA and volume change by muscle and protocol, mean ± standard
                     error over the four members of each muscle (Fig. 6C–D analog)
-    shape.png       the grown --plot-geometry geometry (default BFLH_VHF_Left) per protocol,
+    shape.png       the grown --plot-geometry geometry (BFLH_VHF_Left, or the first) per protocol,
                     displacement amplified 10× (Fig. 6A analog)
     table.md        the results against the paper (MODEL.md §8)
 
@@ -59,7 +60,7 @@ import numpy as np
 from mpi4py import MPI
 
 from hyper import checkpoint as ckpt
-from hyper import cli, farm, io, plot, protocols, run, signaling
+from hyper import cli, farm, io, material, plot, protocols, run, signaling
 from hyper import geometry as geo
 from hyper.coupled import GrowthSettings, step_times
 from hyper.growth import GROWTH_FIELDS
@@ -73,6 +74,7 @@ PAPER_PROTOCOLS = protocols.PAPER  # in the paper's order of growth: mwf > every
 # MODEL.md §8, anatomical cohort under mwf: increases in percent (low, high)
 PAPER_MWF_INCREASE = {"volume": (8.0, 9.0), "csa": (3.0, 6.0)}
 PICTURE_SCALE = 10.0  # displacement amplification of the shape picture (the paper's Fig. 6A)
+SHAPE_GEOMETRY = "BFLH_VHF_Left"  # the paper's Fig. 6A
 
 
 @dataclasses.dataclass(frozen=True)
@@ -390,14 +392,17 @@ def ratio_figure(rows: list[dict], path: Path) -> None:
             x = np.arange(len(groups)) + (j - (len(names) - 1) / 2) * width
             cells = [stats.get((g, name), {"mean": np.nan, "se": np.nan}) for g in groups]
             ax.bar(x, [c["mean"] for c in cells], width * 0.9, yerr=[np.nan_to_num(c["se"]) for c in cells],
-                   capsize=3, label=name, zorder=2)
+                   capsize=3, label=name, zorder=2, color=plot.protocol_colour(name))
             for xi, g in zip(x, groups):
                 values = [percent(r, quantity) for r in rows
                           if group(r) == g and r["protocol"] == name and r["status"] == "done"]
                 ax.plot([xi] * len(values), values, "k.", ms=3, zorder=3)
         ax.set_xticks(range(len(groups)), groups)
         ax.set_ylabel(f"{title} change (%)")
-        ax.set_title(f"final {title}: mean ± standard error, dots: members")
+        members = max((sum(group(r) == g and r["protocol"] == n for r in rows) for g in groups for n in names),
+                      default=0)
+        ax.set_title(f"final {title}: mean ± standard error, dots: members" if members > 1
+                     else f"final {title} (one member per bar: no spread)")
         ax.grid(axis="y", alpha=0.3)
     axes[0].legend(fontsize=8)
     plot.save(fig, path, dpi=140)
@@ -482,6 +487,8 @@ def parser() -> cli.Parser:
     p.add_argument("--ranks-per-job", type=cli.integer(1), default=1,
                    help="MPI ranks per run; must divide the number of ranks")
     p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step Δtg (h)")
+    p.add_argument("--material", type=Path, metavar="F.toml",
+                   help="TOML file overriding the muscle law's parameters (hyper.material.MaterialParams)")
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run fails; a failed run "
                         "resumes from its checkpoint with a larger value")
@@ -496,12 +503,13 @@ def parser() -> cli.Parser:
                         "are, surface integrals at UFL's estimated degree; --geometries idealized only)")
     p.add_argument("--snapshot-every", type=cli.integer(1), default=run.SNAPSHOT_EVERY,
                    help="XDMF snapshot every K growth steps")
-    p.add_argument("--plot-geometry", default="BFLH_VHF_Left", metavar="ID",
-                   help="geometry of the shape plot (the paper's Fig. 6A)")
+    p.add_argument("--plot-geometry", metavar="ID",
+                   help=f"geometry of the shape plot (the paper's Fig. 6A), one of --geometries; {SHAPE_GEOMETRY} "
+                        "when it is one of them, else the first")
     return p
 
 
-def check(args, comm) -> tuple[list[Run], GrowthSettings]:
+def check(args, comm) -> tuple[list[Run], GrowthSettings, material.MaterialParams]:
     unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
     if unknown:
         raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")
@@ -510,14 +518,18 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings]:
                          f"got {args.ranks_per_job}")
     for name in args.geometries:
         run.check_geometry(comm, name, "--geometries")
-    run.check_geometry(comm, args.plot_geometry, "--plot-geometry")
+    if args.plot_geometry is None:
+        args.plot_geometry = SHAPE_GEOMETRY if SHAPE_GEOMETRY in args.geometries else args.geometries[0]
+    elif args.plot_geometry not in args.geometries:
+        raise InputError(f"--plot-geometry {args.plot_geometry}: not one of --geometries "
+                         f"({', '.join(args.geometries)}); its shape could not be drawn")
     if (args.ends, args.fibers) != ("disks", "auto") and set(args.geometries) != {"idealized"}:
         raise InputError("--ends and --fibers original apply to the idealized shape only (--geometries idealized)")
     settings = build(GrowthSettings, {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings",
                                       "growth_fields": "--growth-fields"},
                      growth_dt=args.growth_dt, max_halvings=args.max_halvings, growth_fields=args.growth_fields)
     runs = plan(args.geometries, [p for text in args.protocols for p in protocols.from_option(text, "--protocols")])
-    return runs, settings
+    return runs, settings, material.load(args.material) if args.material else material.MaterialParams()
 
 
 def idle_barrier(comm) -> None:
@@ -552,6 +564,8 @@ def finish(output: Path, runs: list[Run], results, settings: GrowthSettings, ela
     if pictured and figures:
         shape_figure({name: final_fields(p) for name, p in pictured.items()}, output / "shape.png", plot_geometry)
         written.append(output / "shape.png")
+    elif figures:
+        info(None, f"shape.png not written: {plot_geometry}, its geometry, has no finished run")
     table = markdown(rows, settings)
     with io.atomic_path(output / "table.md") as tmp:
         tmp.write_text(table)
@@ -577,7 +591,7 @@ def finish(output: Path, runs: list[Run], results, settings: GrowthSettings, ela
 
 def cohort(comm, args) -> int:
     start = time.perf_counter()
-    runs, settings = check(args, comm)
+    runs, settings, muscle = check(args, comm)
     with cli.hold(comm, [args.output]):
         info(comm, f"cohort: {len(runs)} runs ({len(args.geometries)} geometries × {len(args.protocols)} "
                    f"protocols) on {comm.size} rank(s) in groups of {args.ranks_per_job}, growth step "
@@ -585,7 +599,7 @@ def cohort(comm, args) -> int:
         with run.StopOnTerm() as stop:
             results = run_cohort(comm, runs, args.output, settings=settings, snapshot_every=args.snapshot_every,
                                  ranks_per_job=args.ranks_per_job, stop=stop,
-                                 options={"ends": args.ends, "fibers": args.fibers})
+                                 options={"ends": args.ends, "fibers": args.fibers, "material": muscle})
         code = 0
         if comm.rank == 0:
             try:

@@ -1,8 +1,8 @@
 """hyper contraction: ramp the activation α from 0 to 1 on one geometry.
 
 Writes <output>.h5 (series alpha, end_force, spring_force, reaction_force_original,
-reaction_force_current, newton_iterations, volume_ratio, stretch_min, stretch_max;
-parameters as attributes),
+reaction_force_current, newton_iterations, volume_ratio, stretch_min, stretch_max; the
+groups material and settings),
 <output>_fields.xdmf (displacement u and pressure p on P1, fibre stretch λ per cell, one
 time step per activation level) and <output>.png (force against activation).
 The forces on the end Γ1 (N, positive in tension), along its mean outward normal d:
@@ -32,6 +32,9 @@ from hyper.params import InputError, as_attributes
 
 SERIES = ("alpha", "end_force", "spring_force", "reaction_force_original", "reaction_force_current",
           "newton_iterations", "volume_ratio", "stretch_min", "stretch_max", "wall_s")
+UNITS = {"alpha": "1", "end_force": "N", "spring_force": "N", "reaction_force_original": "N",
+         "reaction_force_current": "N", "newton_iterations": "count",
+         "volume_ratio": "1", "stretch_min": "1", "stretch_max": "1", "wall_s": "s"}
 
 
 class _Parser(cli.Parser):
@@ -61,6 +64,8 @@ def parser() -> cli.Parser:
     p.add_argument("--fibers", default="auto", metavar="KIND",
                    help=f"fibre field kind: {', '.join(fibers.FIBER_KINDS)} (see hyper.fibers.fiber_field); "
                         "original: the original code's idealized fibres, with its surface quadrature")
+    p.add_argument("--material", type=Path, metavar="F.toml",
+                   help="TOML file overriding the muscle law's parameters (hyper.material.MaterialParams)")
     p.add_argument("--quadrature-degree", type=cli.integer(1, 12), default=4, help="quadrature degree of the forms")
     p.add_argument("--max-halvings", type=cli.integer(0, 12), default=6, help="step cuts allowed per step")
     return p
@@ -144,14 +149,13 @@ def contract(comm, args) -> dict:
     from hyper import fibers, io
     from hyper import geometry as geo
     from hyper.log import Progress, info
-    from hyper.material import MaterialParams
     from hyper.mechanics import MechanicsProblem
 
     original = args.fibers in fibers.UNNORMALISED_KINDS
     geometry = geo.load(args.geometry, comm, quadrature_degree=args.quadrature_degree, ends=args.ends,
                         estimated_surface_degree=original)
     a0 = fibers.fiber_field(geometry, args.fibers)
-    material = MaterialParams()
+    material = args.material
     problem = MechanicsProblem(geometry, a0, material, normalize_fibres=not original)
     info(comm, f"{args.geometry}: {geometry.num_cells()} cells, {problem.num_dofs} unknowns, "
                f"{comm.size} rank(s); rigid motions: {problem.rigid.description}")
@@ -177,6 +181,8 @@ def contract(comm, args) -> dict:
             progress.update(k, f"α = {alpha:.3f}: end force {values[1]:.4e} N, original R {values[3]:.4e} N, "
                                f"λ in [{lo:.4f}, {hi:.4f}], {iterations} Newton its"
                                + (f" ({halvings} halvings)" if halvings else ""), force=True)
+    from hyper import checkpoint, run
+
     attrs = {
         "geometry": args.geometry,
         "steps": args.steps,
@@ -186,17 +192,24 @@ def contract(comm, args) -> dict:
         "end_areas_m2": [geometry.area(tag) for tag in geometry.ends],
         "end_axis": problem.end_axis,
         "surface_quadrature_degree": "estimated" if geometry.estimated_surface_degree else geometry.quadrature_degree,
+        "mesh_sha256": checkpoint.on_rank0(comm, lambda: checkpoint.file_digest(
+            *run.mesh_files(geo.MESHES_DIR / geo.GEOMETRIES[args.geometry]))),
         "cells": geometry.num_cells(),
         "unknowns": problem.num_dofs,
         "ranks": comm.size,
         "quadrature_degree": geometry.quadrature_degree,
+        "linear_solver": "lu",
         "rigid_motions": problem.rigid.description,
         "fields_xdmf": xdmf_path.name,
-        "petsc_prefix": problem.snes.getOptionsPrefix(),
-        "snes_tolerances_rtol_atol": [problem.snes.getTolerances()[0], problem.snes.getTolerances()[1]],
     }
+    settings = {"steps": args.steps, "fibers": args.fibers, "ends": args.ends,
+                "quadrature_degree": geometry.quadrature_degree,
+                "max_halvings": args.max_halvings, "petsc_prefix": problem.snes.getOptionsPrefix(),
+                "petsc_options": " ".join(args.petsc),
+                "snes_rtol": problem.snes.getTolerances()[0], "snes_atol": problem.snes.getTolerances()[1]}
     if comm.rank == 0:
-        io.write_series(output, series, attrs=attrs, groups={"material": as_attributes(material)})
+        io.write_series(output, series, attrs=attrs, units=UNITS,
+                        groups={"material": as_attributes(material), "settings": settings})
         plot(output.with_suffix(".png"), series, f"{args.geometry}: {geometry.num_cells()} cells, "
                                                   f"{problem.num_dofs} unknowns")
     comm.barrier()
@@ -207,9 +220,11 @@ def run(comm, args) -> int:
     import dolfinx_solver  # noqa: F401  (before petsc4py)
     from petsc4py import PETSc
 
+    from hyper import material
     from hyper.log import info
     from hyper.mechanics import SolverError
 
+    args.material = material.load(args.material) if args.material is not None else material.MaterialParams()
     if args.output is None:
         args.output = Path("results/contraction") / f"{Path(args.geometry).name}.h5"
         problem = cli.unwritable(args.output, folder=False)

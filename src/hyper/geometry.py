@@ -43,9 +43,10 @@ from dolfinx.io import XDMFFile
 from dolfinx.io.utils import distribute_entity_data
 from mpi4py import MPI
 
+from hyper import resources
 from hyper.params import InputError
 
-MESHES_DIR = Path(__file__).resolve().parents[2] / "meshes"
+MESHES_DIR = resources.folder("meshes")
 LATERAL_TAG = 4
 MM = 1.0e-3  # m per mm: the anatomical meshes are stored in millimetres
 

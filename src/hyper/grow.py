@@ -29,7 +29,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from hyper import cli, fidelity, io, protocols, run, sequence, signaling
+from hyper import cli, fidelity, io, material, protocols, run, sequence, signaling
 from hyper.checkpoint import on_rank0
 from hyper.log import info
 from hyper.params import InputError, build
@@ -81,6 +81,8 @@ def parser(ask: str = "growth") -> cli.Parser:
                         "are, surface integrals at UFL's estimated degree)")
     scene_options(p)
     p.add_argument("--output", type=cli.output(), default="results/grow", help="an .h5 file (one protocol) or a folder")
+    p.add_argument("--material", type=Path, metavar="F.toml",
+                   help="TOML file overriding the muscle law's parameters (hyper.material.MaterialParams)")
     p.add_argument("--growth-dt", type=float,
                    help=f"growth step Δtg (h); {GrowthSettings.growth_dt:g} unless --accuracy chooses one")
     p.add_argument("--feedback", choices=FEEDBACK_LAWS, default="hill", help="feedback of CSA on protein synthesis")
@@ -132,6 +134,7 @@ def plan_from(comm, args) -> sequence.Plan:
         run.check_geometry(comm, name)
     runs = protocols.from_option(args.protocol)
     params = signaling.load_params(args.params) if args.params else signaling.SignalingParams()
+    muscle = material.load(args.material) if args.material else material.MaterialParams()
     # hyper grow takes uniform parameters only (per-cell ones are hyper ensemble's)
     scene = fidelity.Scene(name, ",".join(p.name for p in runs), heterogeneous=False, ask="growth")
     choice = choose(scene, args, args.growth_dt)
@@ -165,7 +168,7 @@ def plan_from(comm, args) -> sequence.Plan:
     if (args.ends, args.fibers) != ("disks", "auto") and name != "idealized":
         raise InputError("--ends and --fibers original apply to the idealized shape only")
     specs = [run.RunSpec(name, p, params, settings, petsc_options, mesh=mesh, linear_solver=solver, choice=choice,
-                         ends=args.ends, fibers=args.fibers) for p in runs]
+                         ends=args.ends, fibers=args.fibers, material=muscle) for p in runs]
     if not args.restart:
         sequence.refuse_foreign_checkpoints(comm, specs, [run.Outputs(h5) for h5 in results])
     return sequence.Plan(specs, [run.Outputs(h5) for h5 in results], plot, args.snapshot_every, args.checkpoint_every,

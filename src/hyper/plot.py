@@ -7,7 +7,19 @@ killed job never leaves half a PNG that looks whole.
 
 from __future__ import annotations
 
+import zlib
 from pathlib import Path
+
+# One colour per protocol name in every figure (signaling, growth, cohort): the built-in
+# protocols their own, any other name one of OTHER_COLOURS picked by the name itself, not
+# by its place in a figure (two such names may share one).
+PROTOCOL_COLOURS = {"mwf": "#c0392b", "every3days": "#2471a3", "weekly": "#229954", "daily15": "#8e44ad",
+                    "rest": "#555555"}
+OTHER_COLOURS = ("#d35400", "#17a589", "#b7950b", "#2e4053", "#a04000", "#1f618d", "#7b241c", "#6c3483")
+
+
+def protocol_colour(name: str) -> str:
+    return PROTOCOL_COLOURS.get(name) or OTHER_COLOURS[zlib.crc32(name.encode()) % len(OTHER_COLOURS)]
 
 
 def pyplot():
@@ -38,15 +50,21 @@ def growth_series(results: dict[str, dict], path: str | Path, data: Path | None 
 
     plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), constrained_layout=True)
+    end = 0.0
     for name, s in results.items():
         weeks = s["t"] / 168.0
-        axes[0].plot(weeks, 100 * (s["csa_ratio"] - 1), label=name)
-        axes[1].plot(weeks, 100 * (s["volume_ratio"] - 1), label=name)
-        axes[2].plot(weeks, s["kM"], label=name)
+        end = max(end, float(weeks[-1]))
+        colour = protocol_colour(name)
+        axes[0].plot(weeks, 100 * (s["csa_ratio"] - 1), label=name, color=colour)
+        axes[1].plot(weeks, 100 * (s["volume_ratio"] - 1), label=name, color=colour)
+        axes[2].plot(weeks, s["kM"], label=name, color=colour)
     if data is not None and data.is_file():
         measured = np.genfromtxt(data, delimiter=",", names=True)
         axes[0].plot(measured["week"], 100 * (measured["csa"] / measured["csa"][0] - 1), "ko", ms=4,
                      label="DeFreitas 2011 (mwf)")
+        end = max(end, float(np.max(measured["week"])))
+    for ax in axes:  # one time range in the three panels, with room for the end points
+        ax.set_xlim(-0.02 * end, 1.02 * end)
     axes[0].set_ylabel("CSA change (%)")
     axes[1].set_ylabel("volume change (%)")
     axes[2].set_ylabel("kM (1/h)")

@@ -34,8 +34,9 @@ import numpy as np
 from mpi4py import MPI
 
 from hyper import checkpoint as ckpt
-from hyper import fidelity, io, signaling
+from hyper import fidelity, io, provenance, signaling
 from hyper.log import Progress, info
+from hyper.material import MaterialParams
 from hyper.params import InputError, as_attributes
 from hyper.protocols import Protocol
 
@@ -157,6 +158,7 @@ class RunSpec:
     # fibres ("original": P2 used as they are, surface integrals at UFL's estimated degree)
     ends: str = "disks"
     fibers: str = "auto"
+    material: MaterialParams = MaterialParams()  # the muscle law's parameters (--material)
 
     def __post_init__(self):
         if self.settings is None:
@@ -200,6 +202,8 @@ class RunSpec:
             out["ends"] = self.ends
         if self.fibers != "auto":
             out["fibers"] = self.fibers
+        if self.material != MaterialParams():
+            out["material"] = as_attributes(self.material)
         return out
 
     def digest(self) -> str:
@@ -285,8 +289,8 @@ class Outputs:
 def result_groups(spec: RunSpec, choice: fidelity.Choice | None = None) -> dict:
     """The attribute groups every run's result carries; ``choice`` the run's fidelity
     choice (`Result.choice`)."""
-    groups = {"signaling": as_attributes(spec.params), "protocol": spec.protocol.to_attributes(),
-              "settings": dataclasses.asdict(spec.settings)}
+    groups = {"signaling": as_attributes(spec.params), "material": as_attributes(spec.material),
+              "protocol": spec.protocol.to_attributes(), "settings": dataclasses.asdict(spec.settings)}
     if spec.heterogeneity is not None:
         groups["heterogeneity"] = {**spec.heterogeneity.attributes(), "seed": spec.seed}
     if choice is not None:
@@ -487,8 +491,8 @@ def build(comm, spec: RunSpec, *, monitor=None, integrator=None):
             solver, reason = choice.linear_solver, choice.linear_solver_reason
         info(comm, f"fidelity: {reason}")
     kwargs = {name: value for name, value in (("monitor", monitor), ("integrator", integrator)) if value is not None}
-    model = CoupledModel(geometry, a0, spec.protocol, params=spec.cell_params(geometry), settings=spec.settings,
-                         petsc_options=dict(spec.petsc_options), linear_solver=solver,
+    model = CoupledModel(geometry, a0, spec.protocol, params=spec.cell_params(geometry), material=spec.material,
+                         settings=spec.settings, petsc_options=dict(spec.petsc_options), linear_solver=solver,
                          normalize_fibres=spec.unit_fibres, **kwargs)
     return model, a0, {"linear_solver": solver, "linear_solver_reason": reason}, choice
 
@@ -603,6 +607,7 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAP
         "segments": segments,
         "run_digest": run_digest,
         "unknowns": model.problem.num_dofs,
+        "study": provenance.study_text(spec),
         **solver,
     }
     return Result(series.arrays(), meta, model, choice)

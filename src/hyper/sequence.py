@@ -8,11 +8,11 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from hyper import cli, fidelity, run
+from hyper import cli, fidelity, resources, run
 from hyper.checkpoint import inspect, on_rank0
 from hyper.log import hms, info
 
-DATA = Path(__file__).resolve().parents[2] / "data" / "defreitas.csv"
+DATA = resources.folder("data") / "defreitas.csv"
 
 
 @dataclasses.dataclass(frozen=True)
