@@ -38,7 +38,7 @@ from hyper.signaling.cli import answer
 SIGNALING_SAMPLE_EVERY = 0.5  # h, the series of --ask signaling, as hyper signaling samples it
 # the options that set GrowthSettings' fields, for errors that name what the user typed
 SETTING_OPTIONS = {"growth_dt": "--growth-dt", "signaling_dt": "--signaling-dt", "feedback": "--feedback",
-                   "max_halvings": "--max-halvings"}
+                   "max_halvings": "--max-halvings", "csa_method": "--csa-method"}
 
 
 def scene_options(p: cli.Parser) -> None:
@@ -64,7 +64,7 @@ def parser(ask: str = "growth") -> cli.Parser:
         scene_options(p)
         p.add_argument("--output", type=cli.output(), default="results/signaling", help="an .h5 file or a folder")
         return p
-    from hyper.coupled import GrowthSettings
+    from hyper.coupled import CSA_METHODS, GrowthSettings
     from hyper.growth import FEEDBACK_LAWS
 
     p = cli.Parser("grow", __doc__)
@@ -77,6 +77,10 @@ def parser(ask: str = "growth") -> cli.Parser:
     p.add_argument("--growth-dt", type=float,
                    help=f"growth step Δtg (h); {GrowthSettings.growth_dt:g} unless --accuracy chooses one")
     p.add_argument("--feedback", choices=FEEDBACK_LAWS, default="hill", help="feedback of CSA on protein synthesis")
+    p.add_argument("--csa-method", choices=CSA_METHODS, default=GrowthSettings.csa_method,
+                   help="the CSA the feedback sees on a mesh without a tagged mid-section: the exact plane cut, or "
+                        "the original code's box staircase (MODEL.md §9); both are recorded (csa_ratio_cut, "
+                        "csa_ratio_box)")
     p.add_argument("--skip-sessions", action="store_true", help="no growth during sessions (the original code)")
     p.add_argument("--fe-stress", action="store_true",
                    help="P = Fe S (the original code) instead of the consistent det(Fg) Fe S Fg⁻ᵀ")
@@ -132,7 +136,8 @@ def plan_from(comm, args) -> sequence.Plan:
         signaling_dt = GrowthSettings.signaling_dt if args.signaling_dt is None else args.signaling_dt
     settings = build(GrowthSettings, SETTING_OPTIONS, growth_dt=growth_dt, signaling_dt=signaling_dt,
                      feedback=args.feedback, grow_during_sessions=not args.skip_sessions,
-                     consistent_stress=not args.fe_stress, max_halvings=args.max_halvings)
+                     consistent_stress=not args.fe_stress, max_halvings=args.max_halvings,
+                     csa_method=args.csa_method)
     petsc_options = dict(cli.petsc_option(text) for text in args.petsc_option)
     if LAG_OPTION in petsc_options:
         jacobian_lag(petsc_options[LAG_OPTION])
