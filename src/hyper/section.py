@@ -19,15 +19,13 @@ import numpy as np
 from mpi4py import MPI
 
 
-def principal_frame(points) -> tuple[np.ndarray, np.ndarray]:
-    """(mean, axes) of ``points`` (n, 3): the columns of ``axes`` (3, 3) are their
-    principal axes by decreasing variance, each with its largest component (in absolute
-    value; the first of equals) positive.
+def principal_plane(points) -> tuple[np.ndarray, np.ndarray]:
+    """(origin, unit normal): the plane through the mean of ``points`` (n, 3), normal to
+    their first principal axis (largest variance).
 
     Pass every vertex once. The points are put in lexicographic order first, so the
-    result is bitwise the same however they were gathered (any number of ranks). Only
-    the first axis must be unique: the other two may share a variance (a round section),
-    and are then some orthonormal pair across it.
+    result is bitwise the same however they were gathered (any number of ranks). The
+    normal's largest component (in absolute value; the first of equals) is positive.
     """
     pts = np.asarray(points, dtype=float)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 4:
@@ -38,18 +36,10 @@ def principal_frame(points) -> tuple[np.ndarray, np.ndarray]:
     variance, axes = np.linalg.eigh(centred.T @ centred / len(pts))
     if variance[2] - variance[1] <= 1e-12 * variance[2]:
         raise ValueError(f"no unique first principal axis (variances {variance})")
-    axes = axes[:, ::-1].copy()
-    for k in range(3):
-        if axes[np.argmax(np.abs(axes[:, k])), k] < 0:
-            axes[:, k] = -axes[:, k]
-    return origin, axes
-
-
-def principal_plane(points) -> tuple[np.ndarray, np.ndarray]:
-    """(origin, unit normal): the plane through the mean of ``points`` (n, 3), normal to
-    their first principal axis (largest variance), as `principal_frame` gives them."""
-    origin, axes = principal_frame(points)
-    return origin, axes[:, 0]
+    normal = axes[:, 2]
+    if normal[np.argmax(np.abs(normal))] < 0:
+        normal = -normal
+    return origin, normal
 
 
 def signed_distance(x, origin, normal) -> np.ndarray:
