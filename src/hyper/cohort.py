@@ -292,9 +292,15 @@ def group(row: dict) -> str:
     return row["muscle"] or row["geometry"]
 
 
+def ratio_column(quantity: str) -> str:
+    """The summary column of ``quantity``: 'csa', 'volume', or 'csa_cut', 'csa_box' (one CSA measure)."""
+    name, _, method = quantity.partition("_")
+    return f"final_{name}_ratio" + (f"_{method}" if method else "")
+
+
 def percent(row: dict, quantity: str) -> float:
-    """The final relative increase of ``quantity`` ('csa' or 'volume') in percent."""
-    return 100.0 * (row[f"final_{quantity}_ratio"] - 1.0)
+    """The final relative increase of ``quantity`` (`ratio_column`) in percent."""
+    return 100.0 * (row[ratio_column(quantity)] - 1.0)
 
 
 def group_statistics(rows: list[dict], quantity: str) -> dict[tuple[str, str], dict]:
@@ -365,7 +371,7 @@ def markdown(rows: list[dict], settings: GrowthSettings) -> str:
                   "| quantity | mean | min | max | paper |", "|---|---|---|---|---|"]
         done = [r for r in rows if r["status"] == "done"]
         measured = [(f"csa_{m}", f"mid-belly CSA increase, {m}") for m in CSA_METHODS
-                    if all(math.isfinite(r.get(f"final_csa_{m}_ratio", math.nan)) for r in done)]
+                    if done and all(math.isfinite(r.get(ratio_column(f"csa_{m}"), math.nan)) for r in done)]
         for quantity, label in (("volume", "volume increase"), ("csa", "mid-belly CSA increase"), *measured):
             s = mwf_statistics(rows, quantity)
             lo, hi = PAPER_MWF_INCREASE[quantity.split("_")[0]]
