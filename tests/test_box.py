@@ -187,9 +187,12 @@ def test_grow_records_both_measures_and_feeds_back_the_chosen_one(tmp_path):
     series = {}
     for method in ("cut", "box"):
         out = tmp_path / f"{method}.h5"
+        picture = ["--plot-box", str(tmp_path / "box.png")] if method == "box" else []
         assert grow.main(["--mesh", str(tmp_path / "prism.xdmf"), "--protocol", str(tmp_path / "one.toml"),
-                          "--growth-dt", "24", "--csa-method", method, "--output", str(out)], MPI.COMM_SELF) == 0
+                          "--growth-dt", "24", "--csa-method", method, "--output", str(out), *picture],
+                         MPI.COMM_SELF) == 0
         series[method] = io.read_series(out)
+    assert (tmp_path / "box.png").stat().st_size > 10_000
     for method, s in series.items():
         assert np.array_equal(s["csa_ratio"], s[f"csa_ratio_{method}"])
         assert s["csa_ratio_cut"][-1] > 1.0005 and s["csa_ratio_box"][-1] < s["csa_ratio_cut"][-1]
@@ -211,3 +214,10 @@ def test_cohort_summary_has_both_measures(tmp_path):
     table = cohort.markdown(rows, cohort.GrowthSettings())
     assert "| mid-belly CSA increase, cut (n = 1) | +8.00 % |" in table
     assert "| mid-belly CSA increase, box (n = 1) | +4.00 % |" in table
+
+
+def test_plot_box_needs_a_mesh_without_a_tagged_section(tmp_path, capsys):
+    assert grow.main(["--geometry", "idealized", "--plot-box", str(tmp_path / "b.png"),
+                      "--output", str(tmp_path / "r.h5")], MPI.COMM_SELF) == 2
+    assert "--plot-box: idealized has a tagged mid-section" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
