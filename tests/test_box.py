@@ -221,3 +221,25 @@ def test_plot_box_needs_a_mesh_without_a_tagged_section(tmp_path, capsys):
                       "--output", str(tmp_path / "r.h5")], MPI.COMM_SELF) == 2
     assert "--plot-box: idealized has a tagged mid-section" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+def test_a_resumed_run_records_both_measures_as_an_uninterrupted_one(tmp_path):
+    from hyper import protocols, run, signaling
+    from hyper.coupled import GrowthSettings
+
+    write_prism(tmp_path / "prism.xdmf")
+    (tmp_path / "one.toml").write_text(PROTOCOL)
+    spec = run.RunSpec("prism", protocols.from_option(str(tmp_path / "one.toml"))[0],
+                       signaling.SignalingParams(thetaM=0.46), GrowthSettings(growth_dt=8.0, csa_method="box"),
+                       mesh=run.MeshFile(tmp_path / "prism.xdmf"))
+    comm = MPI.COMM_SELF
+    whole = run.execute(comm, spec, run.Outputs(tmp_path / "whole.h5"), checkpoints=False).series
+    out = run.Outputs(tmp_path / "parts.h5")
+    reports = iter(range(100))
+    with pytest.raises(run.Interrupted):
+        run.execute(comm, spec, out, stop=lambda: next(reports) >= 2)
+    parts = run.execute(comm, spec, out).series
+    assert len(parts["t"]) == len(whole["t"]) > 4
+    for name in ("csa_ratio", "csa_ratio_cut", "csa_ratio_box", "volume_ratio", "kM"):
+        np.testing.assert_array_equal(parts[name], whole[name], err_msg=name)
+    assert whole["csa_ratio_box"][-1] < whole["csa_ratio_cut"][-1]
