@@ -20,7 +20,10 @@ and for the cohort, written by rank 0 from the complete .h5 files (so a rerun th
 nothing left to do writes the same summary):
 
     summary.csv     geometry,muscle,subject,side,protocol,csa0_cm2,volume0_cm3,
-                    final_csa_ratio,final_volume_ratio,wall_s,status
+                    final_csa_ratio,final_csa_ratio_cut,final_csa_ratio_box,
+                    final_volume_ratio,wall_s,status (final_csa_ratio is the one
+                    --csa-method feeds back; cut and box are blank on meshes with a
+                    tagged mid-section)
     failures.txt    the error of every failed run (only when some failed)
     ratios.png      final CSA and volume change by muscle and protocol, mean ± standard
                     error over the four members of each muscle (Fig. 6C–D analog)
@@ -62,14 +65,17 @@ from mpi4py import MPI
 from hyper import checkpoint as ckpt
 from hyper import cli, farm, io, material, plot, protocols, run, signaling
 from hyper import geometry as geo
-from hyper.coupled import GrowthSettings, step_times
+from hyper.coupled import CSA_METHODS, GrowthSettings, step_times
 from hyper.growth import GROWTH_FIELDS
 from hyper.log import hms, info
 from hyper.params import InputError, build
 from hyper.protocols import Protocol
 
 COLUMNS = ("geometry", "muscle", "subject", "side", "protocol", "csa0_cm2", "volume0_cm3",
-           "final_csa_ratio", "final_volume_ratio", "wall_s", "status")
+           "final_csa_ratio", "final_csa_ratio_cut", "final_csa_ratio_box", "final_volume_ratio", "wall_s", "status")
+# the summary's numbers: CSA by the feedback's method and by each method (blank without them)
+NUMBERS = ("csa0_cm2", "volume0_cm3", "final_csa_ratio", "final_csa_ratio_cut", "final_csa_ratio_box",
+           "final_volume_ratio", "wall_s")
 PAPER_PROTOCOLS = protocols.PAPER  # in the paper's order of growth: mwf > every3days > weekly
 # MODEL.md §8, anatomical cohort under mwf: increases in percent (low, high)
 PAPER_MWF_INCREASE = {"volume": (8.0, 9.0), "csa": (3.0, 6.0)}
@@ -235,8 +241,10 @@ def summary_row(path: Path) -> dict:
             "geometry": str(a["geometry"]), "muscle": str(a["muscle"]), "subject": str(a["subject"]),
             "side": str(a["side"]), "protocol": str(a["protocol"]),
             "csa0_cm2": float(a["csa0_m2"]) * 1e4, "volume0_cm3": float(a["volume0_m3"]) * 1e6,
-            "final_csa_ratio": float(f["csa_ratio"][-1]), "final_volume_ratio": float(f["volume_ratio"][-1]),
-            "wall_s": float(a["wall_s"]), "status": "done",
+            "final_csa_ratio": float(f["csa_ratio"][-1]),
+            **{f"final_csa_ratio_{m}": float(f[f"csa_ratio_{m}"][-1]) if f"csa_ratio_{m}" in f else float("nan")
+               for m in CSA_METHODS},
+            "final_volume_ratio": float(f["volume_ratio"][-1]), "wall_s": float(a["wall_s"]), "status": "done",
         }
 
 
@@ -269,7 +277,7 @@ def read_csv(path: Path) -> list[dict]:
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
     for row in rows:
-        for key in ("csa0_cm2", "volume0_cm3", "final_csa_ratio", "final_volume_ratio", "wall_s"):
+        for key in NUMBERS:
             row[key] = float(row[key]) if row[key] else float("nan")
     return rows
 
@@ -287,9 +295,15 @@ def group(row: dict) -> str:
     return row["muscle"] or row["geometry"]
 
 
+def ratio_column(quantity: str) -> str:
+    """The summary column of ``quantity``: 'csa', 'volume', or 'csa_cut', 'csa_box' (one CSA measure)."""
+    name, _, method = quantity.partition("_")
+    return f"final_{name}_ratio" + (f"_{method}" if method else "")
+
+
 def percent(row: dict, quantity: str) -> float:
-    """The final relative increase of ``quantity`` ('csa' or 'volume') in percent."""
-    return 100.0 * (row[f"final_{quantity}_ratio"] - 1.0)
+    """The final relative increase of ``quantity`` (`ratio_column`) in percent."""
+    return 100.0 * (row[ratio_column(quantity)] - 1.0)
 
 
 def group_statistics(rows: list[dict], quantity: str) -> dict[tuple[str, str], dict]:
@@ -358,9 +372,12 @@ def markdown(rows: list[dict], settings: GrowthSettings) -> str:
         lines.append(f"- relative volume increase > relative CSA increase under mwf: {vol_ok} of {len(geometries)}.")
         lines += ["", "mwf across the geometries against the paper:", "",
                   "| quantity | mean | min | max | paper |", "|---|---|---|---|---|"]
-        for quantity, label in (("volume", "volume increase"), ("csa", "mid-belly CSA increase")):
+        done = [r for r in rows if r["status"] == "done"]
+        measured = [(f"csa_{m}", f"mid-belly CSA increase, {m}") for m in CSA_METHODS
+                    if done and all(math.isfinite(r.get(ratio_column(f"csa_{m}"), math.nan)) for r in done)]
+        for quantity, label in (("volume", "volume increase"), ("csa", "mid-belly CSA increase"), *measured):
             s = mwf_statistics(rows, quantity)
-            lo, hi = PAPER_MWF_INCREASE[quantity]
+            lo, hi = PAPER_MWF_INCREASE[quantity.split("_")[0]]
             if s is not None:
                 lines.append(f"| {label} (n = {s['n']}) | {s['mean']:+.2f} % | {s['min']:+.2f} % | "
                              f"{s['max']:+.2f} % | +{lo:g}–{hi:g} % |")
@@ -489,6 +506,9 @@ def parser() -> cli.Parser:
     p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step Δtg (h)")
     p.add_argument("--material", type=Path, metavar="F.toml",
                    help="TOML file overriding the muscle law's parameters (hyper.material.MaterialParams)")
+    p.add_argument("--csa-method", choices=CSA_METHODS, default=GrowthSettings.csa_method,
+                   help="the CSA the feedback sees: the exact plane cut, or the original code's box staircase "
+                        "(MODEL.md §9); summary.csv has both (final_csa_ratio_cut, final_csa_ratio_box)")
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run fails; a failed run "
                         "resumes from its checkpoint with a larger value")
@@ -526,8 +546,9 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings, material.MaterialParam
     if (args.ends, args.fibers) != ("disks", "auto") and set(args.geometries) != {"idealized"}:
         raise InputError("--ends and --fibers original apply to the idealized shape only (--geometries idealized)")
     settings = build(GrowthSettings, {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings",
-                                      "growth_fields": "--growth-fields"},
-                     growth_dt=args.growth_dt, max_halvings=args.max_halvings, growth_fields=args.growth_fields)
+                                      "growth_fields": "--growth-fields", "csa_method": "--csa-method"},
+                     growth_dt=args.growth_dt, max_halvings=args.max_halvings, growth_fields=args.growth_fields,
+                     csa_method=args.csa_method)
     runs = plan(args.geometries, [p for text in args.protocols for p in protocols.from_option(text, "--protocols")])
     return runs, settings, material.load(args.material) if args.material else material.MaterialParams()
 

@@ -342,16 +342,19 @@ def available_memory_mb(comm) -> float:
 
 
 class Series:
-    """The time series of a run: one row per growth step, `SERIES` and any extra columns.
+    """The time series of a run: one row per growth step, `SERIES`, the model's
+    ``measures`` (names of `StepReport.extra`: both CSA measures of an anatomical mesh)
+    and any extra columns.
 
     ``extra`` is (names, function): the function of the model gives the values of all the
     extra columns at once (so a reduction over the communicator serves them all); every
     rank calls it.
     """
 
-    def __init__(self, extra: tuple[tuple[str, ...], Callable] | None = None):
+    def __init__(self, extra: tuple[tuple[str, ...], Callable] | None = None, measures: tuple[str, ...] = ()):
         self.extra_names, self.extra = extra if extra is not None else ((), None)
-        self.columns = (*SERIES, *self.extra_names)
+        self.measures = tuple(measures)
+        self.columns = (*SERIES, *self.measures, *self.extra_names)
         self.rows = {name: [] for name in self.columns}
 
     def append(self, report, model, wall_s: float) -> None:
@@ -364,6 +367,8 @@ class Series:
         self.rows["newton_iterations"].append(report.newton_iterations)
         self.rows["halvings"].append(report.halvings)
         self.rows["wall_s"].append(wall_s)
+        for name in self.measures:
+            self.rows[name].append(report.extra[name])
         if self.extra is not None:
             for name, value in zip(self.extra_names, self.extra(model), strict=True):
                 self.rows[name].append(value)
@@ -372,7 +377,10 @@ class Series:
         return {k: np.asarray(v) for k, v in self.rows.items()}
 
     def restore(self, saved: dict) -> None:
-        self.rows = {name: list(saved[name]) for name in self.columns}
+        # a checkpoint from before both CSA measures were kept lacks them: unknown there
+        missing = [float("nan")] * len(saved["t"])
+        self.rows = {name: list(saved[name]) if name in saved or name not in self.measures else list(missing)
+                     for name in self.columns}
 
     @property
     def wall_s(self) -> float:
@@ -516,7 +524,7 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAP
     run_digest = spec.digest()
     model, a0, solver, choice = build(comm, spec, monitor=monitor)
     snaps = Snapshots(model, a0)
-    series = Series(extra_series)
+    series = Series(extra_series, model.measures)
     segments = 1
     saved = None
     path = outputs.checkpoint
@@ -600,6 +608,7 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAP
         "surface_quadrature_degree": "estimated" if model.geometry.estimated_surface_degree
         else model.geometry.quadrature_degree,
         "csa0_m2": model.csa0,
+        **{f"csa0_{name}_m2": area for name, area in model.csa0_by_method.items()},
         "volume0_m3": model.volume0,
         "ranks": comm.size,
         "growth_steps": model.step,
