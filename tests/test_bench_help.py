@@ -28,3 +28,14 @@ def test_every_option_has_a_help_string_and_its_default(name):
     assert len(entries) > len(NO_DEFAULT)
     bare = [e for e in entries if not e.startswith(NO_DEFAULT) and "(default:" not in e]
     assert bare == []
+
+
+def test_the_readme_lists_every_benchmark():
+    import re
+    from pathlib import Path
+
+    from hyper import bench
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    listed = re.search(r"python -m hyper\.bench \{([a-z,]+)\}", readme).group(1).split(",")
+    assert listed == bench.available()

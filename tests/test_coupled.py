@@ -11,18 +11,22 @@ from hyper import fibers, growth, material, signaling
 from hyper import geometry as geo
 from hyper.coupled import CoupledModel, GrowthSettings
 from hyper.mechanics import MechanicsProblem
+from hyper.params import InputError
 from hyper.protocols import Protocol, Session
 
 
-def test_uniform_growth_of_a_cylinder_is_stress_free_and_exact():
+@pytest.mark.parametrize("fields", growth.GROWTH_FIELDS)
+def test_uniform_growth_of_a_cylinder_is_stress_free_and_exact(fields):
     """Axial fibres and uniform ϑ: growth is compatible, so the body grows without stress.
 
     The displacement is then u = (√Θ - 1)(x, y, 0) about the axis, CSA and volume grow by
-    Θ = ϑ1 ϑ2 exactly, and the pressure is the law's stress-free value c1 + 2 c2.
+    Θ = ϑ1 ϑ2 exactly, and the pressure is the law's stress-free value c1 + 2 c2, whether
+    the growth tensors live at the quadrature points or at the DG1 nodes.
     """
     g = geo.load("cylinder", MPI.COMM_SELF)
     a0 = fibers.fiber_field(g)
-    field = growth.GrowthField(g.mesh, a0, g.quadrature_degree)
+    field = growth.GrowthField(g.mesh, a0, g.quadrature_degree, fields)
+    assert field.Gbar.shape[1] == (4 if fields == "dg1" else 14)  # vertices, or degree-4 points
     problem = MechanicsProblem(g, a0, growth=field.function)
     field.set_deformation(problem.F)
     section = growth.FacetSection(g, problem.F)
@@ -70,6 +74,27 @@ def csa_series(comm) -> np.ndarray:
     a0 = fibers.fiber_field(g)
     model = CoupledModel(g, a0, short_protocol(), params=GROWING, settings=GrowthSettings(growth_dt=24.0))
     return np.array([[r.t, r.csa_ratio, r.volume_ratio, r.kM] for r in model.run()])
+
+
+def test_dg1_growth_fields_give_the_quadrature_answer_for_uniform_growth():
+    """The cylinder under a protocol: uniform ϑ, so both field choices are exact and agree."""
+    g = geo.load("cylinder", MPI.COMM_SELF)
+    a0 = fibers.fiber_field(g)
+    series = {}
+    for fields in growth.GROWTH_FIELDS:
+        model = CoupledModel(g, a0, short_protocol(), params=GROWING,
+                             settings=GrowthSettings(growth_dt=24.0, growth_fields=fields))
+        series[fields] = np.array([[r.csa_ratio, r.volume_ratio, r.kM] for r in model.run()])
+    assert series["quadrature"][-1, 0] > 1.0005  # it grew
+    np.testing.assert_allclose(series["dg1"], series["quadrature"], rtol=1e-10)
+    np.testing.assert_allclose(series["dg1"][:, 0], series["dg1"][:, 1], rtol=1e-8)  # CSA and V alike
+
+
+def test_growth_fields_setting_is_checked_and_kept_out_of_default_digests():
+    with pytest.raises(InputError, match="growth_fields: must be one of quadrature, dg1"):
+        GrowthSettings(growth_fields="p1")
+    assert "growth_fields" not in GrowthSettings().model_attributes()
+    assert GrowthSettings(growth_fields="dg1").model_attributes()["growth_fields"] == "dg1"
 
 
 def test_growth_lowers_synthesis_and_volume_follows_the_population():

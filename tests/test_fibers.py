@@ -182,3 +182,18 @@ def test_straight_cylinder_on_two_ranks(tmp_path):
     test_straight_cylinder_flows_along_its_axis((geometry, a0, speed))
     test_flux_in_equals_flux_out((geometry, a0, speed))
     test_store_and_load_roundtrip((geometry, a0, speed), tmp_path)
+
+
+def test_original_idealized_fibres_are_p2_unit_at_the_nodes_and_axial_near_the_axis():
+    g = geo.load("idealized", MPI.COMM_WORLD)
+    a0 = fibers.fiber_field(g, "original")
+    assert a0.function_space.ufl_element().degree == 2
+    values = a0.x.array.reshape(-1, 3)
+    np.testing.assert_allclose(np.linalg.norm(values, axis=1), 1.0, rtol=1e-14)
+    # points at r = 1e-5, 5e-5 m are axial; at r = 2e-4 m the formula's radial part (y'(0.05) = 0.045) shows
+    near = np.array([[1e-5, 5e-5, 2e-4], [0.0, 0.0, 0.0], [0.05, 0.05, 0.05]])
+    a = fibers.original_idealized_fiber(near)
+    np.testing.assert_array_equal(a[:, :2], [[0, 0], [0, 0], [1, 1]])
+    assert a[0, 2] == pytest.approx(0.045 / np.hypot(0.045, 0.2), rel=1e-12)
+    with pytest.raises(InputError, match="fibres are those of the idealized shape"):
+        fibers.fiber_field(geo.load("cylinder", MPI.COMM_WORLD), "original")

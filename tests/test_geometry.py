@@ -192,3 +192,22 @@ def test_measures_carry_the_quadrature_degree():
     for measure in (geometry.dx, geometry.ds, geometry.dS):
         assert measure.metadata() == {"quadrature_degree": 2}
     assert isinstance(geometry.dS(geometry.midsection), ufl.Measure)
+
+
+def test_idealized_xdmf_end_tags_add_the_lateral_band():
+    """ends="tags": the XDMF's 64 facets per end (7 disk facets and 57 of the side) on the
+    same mesh; the midsection stays, and the side loses the band (MODEL.md §9)."""
+    disks = g.load("idealized", MPI.COMM_WORLD)
+    tags = g.load("idealized", MPI.COMM_WORLD, ends="tags")
+    assert tags.num_cells() == disks.num_cells() == 1997
+    assert disks.area(1) == pytest.approx(1.3408e-4, rel=1e-4)
+    assert tags.area(1) == pytest.approx(1.2026e-3, rel=1e-4)
+    for shape in (disks, tags):
+        total = shape.area(1) + shape.area(2) + shape.area(shape.lateral)
+        assert total == pytest.approx(disks.area(1) + disks.area(2) + disks.area(disks.lateral), rel=1e-12)
+    assert tags.area(3) == pytest.approx(disks.area(3), rel=1e-12)
+    counts = [MPI.COMM_WORLD.allreduce(int(np.count_nonzero(tags.facet_tags.values[
+        tags.facet_tags.indices < tags.mesh.topology.index_map(2).size_local] == t)), op=MPI.SUM) for t in (1, 2)]
+    assert counts == [64, 64]
+    with pytest.raises(InputError, match="idealized shape only"):
+        g.load("cylinder", MPI.COMM_WORLD, ends="tags")

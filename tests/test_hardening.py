@@ -104,7 +104,7 @@ JOBS = {
         "max_halvings": (["--max-halvings", "40"], r"--max-halvings: must be an integer in \[0, 12\], got 40"),
         "geometry": (["--geometries", "biceps"], r"--geometries: unknown biceps"),
         "geometry_empty": (["--geometries", ""], r"--geometries: unknown"),
-        "plot_geometry": (["--plot-geometry", "nowhere"], r"--plot-geometry: unknown geometry 'nowhere'"),
+        "plot_geometry": (["--plot-geometry", "nowhere"], r"--plot-geometry nowhere: not one of --geometries"),
         "unknown_option": (["--bogus"], r"unrecognized arguments: --bogus"),
     }),
     "ensemble": (["--geometry", "cylinder", "--protocol", "mwf", "--output", "{out}"], "ensemble", {

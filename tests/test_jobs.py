@@ -103,7 +103,7 @@ def test_template_renders_to_a_valid_script(kind, tmp_path):
     if kind == "grow-array":
         assert options["array"] == "0-35"  # 12 geometries x 3 protocols
     if kind == "sobol":
-        assert "--samples 10000 --output results/sobol" in text
+        assert "--samples 8192 --output results/sobol" in text
 
 
 def test_array_index_selects_its_run(tmp_path, fake_slurm):
@@ -250,6 +250,45 @@ def test_render_checks_values(tmp_path, capsys):
     assert slurm.main(["cohort", "-o", str(tmp_path / "s.sbatch"), "--workdir", str(missing)]) == 2
     assert f"--workdir {missing}: no such folder" in capsys.readouterr().err and not missing.parent.exists()
     assert not (tmp_path / "s.sbatch").exists() and not (tmp_path / "results").exists()
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_site_options_and_prelude_go_into_a_valid_script(kind, tmp_path):
+    prelude = tmp_path / "site.sh"
+    prelude.write_text("module load openmpi/4.1 hdf5\nexport HDF5_USE_FILE_LOCKING=FALSE\nif true; then :; fi\n")
+    text = render(kind, tmp_path, "--partition", "compute", "--account", "proj42", "--qos", "normal",
+                  "--mem", "4G", "--prelude", str(prelude)).read_text()
+    subprocess.run(["bash", "-n", str(tmp_path / f"{kind}.sbatch")], check=True)
+    options = sbatch_options(text)
+    assert (options["partition"], options["account"], options["qos"], options["mem"]) == \
+        ("compute", "proj42", "normal", "4G")
+    lines = text.splitlines()
+    # every #SBATCH line comes before the first command, where sbatch reads them
+    first_command = next(i for i, line in enumerate(lines) if line and not line.startswith("#"))
+    assert max(i for i, line in enumerate(lines) if line.startswith("#SBATCH")) < first_command
+    # the prelude runs after the venv is active and before the run
+    order = [text.index(s) for s in ("source ", "module load openmpi/4.1 hdf5", "srun --mpi")]
+    assert order == sorted(order) and "export HDF5_USE_FILE_LOCKING=FALSE" in text
+    # without them: no such lines, and the script is valid all the same
+    plain = render(kind, tmp_path).read_text()
+    assert not {"partition", "account", "qos", "mem"} & set(sbatch_options(plain)) and "module load" not in plain
+
+
+def test_bad_site_options_are_refused(tmp_path, capsys):
+    bad_prelude = tmp_path / "bad.sh"
+    bad_prelude.write_text("if true; then\n")
+    base = ["-o", str(tmp_path / "s.sbatch"), "--workdir", str(tmp_path)]
+    for bad, message in [
+        (["cohort", "--mem", "lots"], "--mem: 'lots' is not a Slurm memory size"),
+        (["cohort", "--partition", "a b"], "--partition: 'a b' must be non-empty, without spaces"),
+        (["sobol", "--account", "x;rm"], "--account: 'x;rm' must be non-empty"),
+        (["grow-array", "--prelude", str(tmp_path / "none.sh")], "none.sh: no such file"),
+        (["cohort", "--prelude", str(bad_prelude)], "the rendered script is not valid bash"),
+    ]:
+        assert slurm.main([*bad[:1], *base, *bad[1:]]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "s.sbatch").exists()
 
 
 def test_a_single_protocol_run_names_its_figure(tmp_path):

@@ -165,10 +165,22 @@ def test_box_uniaxial_stretch_matches_analytic(lam, alpha):
 
 
 def test_parameters_are_validated():
-    with pytest.raises(InputError, match="c1 must be > 0"):
+    with pytest.raises(InputError, match="c1: expected a number > 0"):
         mat.MaterialParams(c1=-1.0)
-    with pytest.raises(InputError, match="sigma_act must be >= 0"):
+    with pytest.raises(InputError, match="sigma_act: expected a number >= 0"):
         mat.MaterialParams(sigma_act=-3.0)
     with pytest.raises(InputError, match="finite"):
         mat.MaterialParams(k_tendon=float("nan"))
     assert mat.MaterialParams(c2=0.0, sigma_pass=0.0).c2 == 0.0
+
+
+def test_material_file(tmp_path):
+    good = tmp_path / "m.toml"
+    good.write_text("c1 = 2e4\nsigma_act = 1.5e5\n")
+    m = mat.load(good)
+    assert (m.c1, m.sigma_act, m.c2) == (2e4, 1.5e5, mat.MaterialParams().c2)
+    for text, message in (("c3 = 1.0\n", "unknown parameter.*c3"), ("c1 = -1.0\n", "c1: expected a number > 0"),
+                          ("g1 = 'x'\n", "g1: expected a number")):
+        good.write_text(text)
+        with pytest.raises(InputError, match=message):
+            mat.load(good)

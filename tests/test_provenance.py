@@ -8,7 +8,7 @@ import hashlib
 import h5py
 import pytest
 
-from hyper import cli, geometry, io
+from hyper import cli, geometry, io, material, study
 
 SHORT = 'name = "short"\nend = 48.0\n[[session]]\nstart = 0.0\nduration = 1.0\nintensity = 0.8\n'
 
@@ -17,9 +17,10 @@ SHORT = 'name = "short"\nend = 48.0\n[[session]]\nstart = 0.0\nduration = 1.0\ni
 def grown(tmp_path_factory):
     d = tmp_path_factory.mktemp("provenance")
     (d / "short.toml").write_text(SHORT)
+    (d / "soft.toml").write_text("sigma_act = 2.5e5\nc1 = 1.2e4\n")
     out = d / "run.h5"
     argv = ["grow", "--geometry", "cylinder", "--protocol", str(d / "short.toml"), "--growth-dt", "24",
-            "--output", str(out), "--quiet"]
+            "--material", str(d / "soft.toml"), "--output", str(out), "--quiet"]
     assert cli.main(argv) == 0
     return out, argv
 
@@ -36,7 +37,7 @@ def test_a_result_carries_its_command_versions_and_mesh_hash(grown):
     assert len(attrs["version_git_commit"].split("-")[0]) == 40  # run from this checkout
     mesh = geometry.MESHES_DIR / geometry.GEOMETRIES["cylinder"]
     assert attrs["mesh_sha256"] == hashlib.sha256(mesh.read_bytes()).hexdigest()
-    assert attrs["quadrature_degree"] == 4
+    assert attrs["quadrature_degree"] == 4 and attrs["ranks"] == 1 and attrs["linear_solver"] == "lu"
     assert units["t"] == "h" and units["kM"] == "1/h" and units["wall_s"] == "s"
     assert "unspecified" not in units.values(), units
 
@@ -61,3 +62,59 @@ def test_every_series_name_the_jobs_write_has_a_unit():
 
     names = [*run.SERIES, *ensemble.STD, "final_x", "final_u", "final_N", "final_detGbar", *signaling.STATES]
     assert all(io.unit(name) != "unspecified" for name in names)
+
+
+def test_a_result_records_its_material_and_the_study_that_reruns_it(grown, tmp_path):
+    out, _ = grown
+    with h5py.File(out) as f:
+        groups = {name: dict(f[name].attrs) for name in f if isinstance(f[name], h5py.Group)}
+        text, digest = f.attrs["study"], f.attrs["run_digest"]
+    assert {"signaling", "material", "protocol", "settings"} <= set(groups)
+    assert groups["material"]["sigma_act"] == 2.5e5 and groups["material"]["c1"] == 1.2e4
+    assert groups["material"]["c2"] == material.MaterialParams().c2
+    # the recorded study, loaded as a study file, is the same run: the same digest
+    (tmp_path / "again.toml").write_text(text)
+    loaded = study.load(tmp_path / "again.toml")
+    assert loaded.material == material.MaterialParams(sigma_act=2.5e5, c1=1.2e4)
+    settings, choice = study.steps(loaded)
+    assert study.first_spec(loaded, settings, choice).digest() == digest
+    assert [p.name for p in loaded.protocols] == ["short"] and loaded.protocols[0].end == 48.0
+
+
+def test_material_parameters_change_the_run(grown):
+    from hyper import protocols, run
+
+    out, _ = grown
+    plain = run.RunSpec("cylinder", protocols.load(out.parent / "short.toml"))
+    assert plain.digest() != h5py.File(out).attrs["run_digest"]
+    # the defaults leave the digest of a run as it was before material parameters could be set
+    assert "material" not in plain.describe()
+
+
+def test_a_bad_material_file_is_refused_before_anything_is_written(tmp_path, capsys):
+    (tmp_path / "bad.toml").write_text("lambda0 = -1.4\n")
+    for job, out in ((["grow", "--geometry", "cylinder"], "out"), (["contraction", "--geometry", "cylinder"], "c.h5"),
+                     (["cohort", "--geometries", "cylinder"], "out")):
+        code = cli.main([*job, "--material", str(tmp_path / "bad.toml"), "--output", str(tmp_path / out)])
+        assert code == cli.EXIT_INPUT, job
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and "lambda0: expected a number > 0" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml"]
+
+
+def test_signaling_results_use_the_same_group_names(tmp_path):
+    out = tmp_path / "s.h5"
+    assert cli.main(["signaling", "--protocol", "weekly", "--output", str(out)]) == 0
+    with h5py.File(out) as f:
+        assert f["signaling"].attrs["kM"] == 0.01 and f["settings"].attrs["signaling_dt"] == 0.05
+        assert f["protocol"].attrs["name"] == "weekly"
+        assert "unspecified" not in {f[n].attrs["units"] for n in f if isinstance(f[n], h5py.Dataset)}
+
+
+def test_inspect_shows_the_groups_and_the_study(grown, capsys):
+    out, _ = grown
+    assert cli.main(["inspect", str(out)]) == 0
+    text = capsys.readouterr().out
+    order = [text.index(f"[{g}]") for g in ("signaling", "material", "protocol", "settings")]
+    assert order == sorted(order) and "  sigma_act = 250000.0" in text
+    assert "study (the study file that reruns this result):" in text and '  geometries = ["cylinder"]' in text

@@ -379,7 +379,7 @@ def test_cli_protocol_file_and_bad_input(tmp_path, capsys):
     assert S.main(["--protocol", str(spec), "--output", str(path), "--signaling-dt", "0.1"]) == 0
     with h5py.File(path) as f:
         assert f.attrs["dt"] == 0.1 and f["protocol"].attrs["name"] == "mine"
-        assert f["parameters"].attrs["kM"] == 0.01 and "version_hyper" in f.attrs
+        assert f["signaling"].attrs["kM"] == 0.01 and "version_hyper" in f.attrs
     bad = tmp_path / "bad.toml"
     bad.write_text("end = 100.0\n[[session]]\nstart = 10\nduration = -2\nintensity = 0.5\n")
     out = tmp_path / "none"

@@ -199,7 +199,7 @@ def test_cli_signaling_small(tmp_path, capsys):
     with h5py.File(out / "sobol.h5") as f:
         assert f.attrs["evaluations"] == 480 and f.attrs["dt"] == 0.05 and f.attrs["protocol"] == "daily15"
         assert f.attrs["failures"] == 0 and f["failed_rows"].shape == (0,)
-        assert f["protocol"].attrs["end"] == 480.0 and f["baseline"].attrs["kM"] == 0.01
+        assert f["protocol"].attrs["end"] == 480.0 and f["signaling"].attrs["kM"] == 0.01
         X, Y = f["X"][()], f["Y"][()]
     assert np.array_equal(Y[:30], sobol.final_N(X[:30]))
 
@@ -270,3 +270,84 @@ def test_a_sigterm_lets_the_chunk_in_progress_finish_and_starts_no_other(tmp_pat
     Y, results = sobol.run_chunks(MPI.COMM_SELF, X, sobol.ishigami, tmp_path / "run", "k", chunk=100)
     assert sum(r.status == "skipped" for r in results) == 2
     np.testing.assert_array_equal(Y, reference)
+
+
+def test_the_default_base_sample_count_is_a_power_of_two():
+    args = sobol.parser().parse_args([])
+    sobol._check(args)
+    assert args.samples == sobol.SAMPLES and args.samples & (args.samples - 1) == 0
+
+
+def test_the_problem_from_options_and_from_a_file(tmp_path):
+    from hyper import protocols
+
+    args = sobol.parser().parse_args(["--parameters", "kM", "kF", "--range", "0.8", "1.25", "--protocol", "weekly",
+                                      "--at", "200"])
+    protocol, prob = sobol._check(args)
+    assert prob == {"num_vars": 2, "names": ["kM", "kF"], "bounds": [[0.008, 0.0125], [0.8 * 0.019, 1.25 * 0.019]]}
+    assert protocol.name == "weekly" and args.at == 200.0
+    # a study file's [sobol] table in SALib's form; options override it
+    path = tmp_path / "study.toml"
+    path.write_text('geometries = ["cylinder"]\nprotocols = ["weekly"]\n[sobol]\nfunction = "csa-gain"\n'
+                    'protocol = "every3days"\nnames = ["kM", "hill_n"]\nbounds = [[0.005, 0.02], [2, 8]]\n'
+                    'num_vars = 2\nsamples = 64\nat = 336\n')
+    args = sobol.parser().parse_args(["--problem", str(path)])
+    protocol, prob = sobol._check(args)
+    assert (args.function, args.samples, args.at, protocol.name) == ("csa-gain", 64, 336.0, "every3days")
+    assert prob["names"] == ["kM", "hill_n"] and prob["bounds"] == [[0.005, 0.02], [2.0, 8.0]]
+    args = sobol.parser().parse_args(["--problem", str(path), "--samples", "32", "--parameters", "kF"])
+    protocol, prob = sobol._check(args)
+    assert args.samples == 32 and prob["names"] == ["kF"] and prob["bounds"] == [[0.5 * 0.019, 2 * 0.019]]
+    # N at a time is N of the run that ends there
+    X = np.array([[0.01, 0.019]])
+    early = sobol.final_N(X, names=["kM", "kF"], protocol=protocols.named("mwf"), at=336.0)
+    mwf = protocols.named("mwf")
+    short = protocols.Protocol(tuple(s for s in mwf.sessions if s.end <= 336.0), 336.0, "two-weeks")
+    assert 0 < len(short.sessions) < len(mwf.sessions)
+    assert early == pytest.approx(sobol.final_N(X, names=["kM", "kF"], protocol=short), rel=1e-14)
+
+
+@pytest.mark.parametrize("text, message", [
+    ('names = ["kM"]\nbounds = [[0.02, 0.01]]\n', "bounds: kM: expected 0 < lower < upper"),
+    ('names = ["kX"]\n', "expected distinct parameters of"),
+    ('names = ["kM", "kF"]\nbounds = [[0.01, 0.02]]\n', "one [lower, upper] pair per parameter (2), got 1"),
+    ('names = ["kM"]\nnum_vars = 3\n', "num_vars: 3 does not count names (1)"),
+    ('bounds = [[1, 2]]\n', "bounds: give the names they belong to"),
+    ('function = "n-at-noon"\n', "function: expected one of signaling, csa-gain, ishigami"),
+    ('samples = 1\n', "samples: expected an integer in [2, 10000000]"),
+    ('at = 2000\n', "--at: 2000 h is after the end of daily15 (480 h)"),
+    ('[sobol]\nsigma = 1\n', "sobol: unknown key(s) sigma; known: function"),
+])
+def test_bad_problems_are_refused_and_write_nothing(tmp_path, capsys, text, message):
+    path = tmp_path / "p.toml"
+    path.write_text(text)
+    assert sobol.main(["--problem", str(path), "--output", str(tmp_path / "out")], comm=MPI.COMM_SELF) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_analysis_of_two_parameters_at_a_time(tmp_path):
+    out = tmp_path / "o"
+    argv = ["--parameters", "kM", "a10", "--protocol", "mwf", "--at", "168", "--samples", "8", "--output", str(out)]
+    assert sobol.main(argv, comm=MPI.COMM_SELF) == 0
+    with h5py.File(out / "sobol.h5") as f:
+        assert [n.decode() for n in f["parameters"][()]] == ["kM", "a10"] and f["X"].shape == (48, 2)
+        assert f.attrs["at_h"] == 168.0 and f["settings"].attrs["at_h"] == 168.0
+        assert list(f["bounds"].attrs["kM"]) == [0.005, 0.02]
+        X, Y = f["X"][()], f["Y"][()]
+    assert np.array_equal(Y, sobol.final_N(X, names=["kM", "a10"], protocol=sobol.named("mwf"), at=168.0))
+
+
+def test_spread_labels_overlap_neither_each_other_nor_a_point():
+    rng = np.random.default_rng(3)
+    points = np.vstack([rng.normal(100.0, 6.0, (12, 2)), [[400.0, 300.0], [404.0, 302.0]]])  # a cluster, a pair
+    sizes = [(20.0 + 3 * k, 13.0) for k in range(len(points))]
+    offsets = sobol.label_offsets(points, sizes, 8.0)
+    boxes = [(x + dx, y + dy, x + dx + w, y + dy + h) for (x, y), (dx, dy), (w, h) in zip(points, offsets, sizes)]
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1:]:
+            assert not (a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]), (a, b)
+        inside = (points[:, 0] > a[0] - 8) & (points[:, 0] < a[2] + 8) & (points[:, 1] > a[1] - 8) & \
+            (points[:, 1] < a[3] + 8)
+        assert not inside.any()

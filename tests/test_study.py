@@ -136,6 +136,16 @@ def test_numerics_growth_step_and_accuracy(tmp_path):
     assert study.spec_options(s, choice)["linear_solver"] == "auto"
 
 
+def test_material_and_model_switches(tmp_path):
+    s = study.load(write(tmp_path, GOOD + "[material]\nsigma_act = 2.5e5\nk_tendon = 2e5\n[numerics]\n"
+                                   'feedback = "linear"\ngrow_during_sessions = false\nconsistent_stress = false\n'))
+    assert (s.material.sigma_act, s.material.k_tendon, s.material.c1) == (2.5e5, 2e5, 1e4)
+    settings, _ = study.steps(s)
+    assert (settings.feedback, settings.grow_during_sessions, settings.consistent_stress) == ("linear", False, False)
+    spec = study.first_spec(s, settings, None)
+    assert spec.material == s.material and spec.describe()["material"]["sigma_act"] == 2.5e5
+
+
 def test_output_section(tmp_path):
     s = study.load(write(tmp_path, f'geometries = ["cylinder"]\nprotocols = ["weekly"]\n[output]\n'
                                    f'folder = "{tmp_path}/out"\nfigures = false\n'))
@@ -201,6 +211,13 @@ MALFORMED = {
     "signaling_unknown": (GOOD + "[signaling]\nk = 1\n", r"signaling: unknown key\(s\) k; known: a10"),
     "signaling_value": (GOOD + "[signaling]\na10 = -1\n", r"signaling: a10"),
     "signaling_not_table": (GOOD + "signaling = 3\n", r"signaling: expected a table"),
+    "material_unknown": (GOOD + "[material]\nc3 = 1\n", r"material: unknown key\(s\) c3; known: c1"),
+    "material_value": (GOOD + "[material]\nlambda0 = 0\n", r"material: lambda0: expected a number > 0"),
+    "material_not_number": (GOOD + "[material]\nc1 = 'soft'\n", r"material: c1: expected a number"),
+    "sobol_key": (GOOD + "[sobol]\nnames = ['kM']\nspread = 2\n", r"sobol: unknown key\(s\) spread; known: function"),
+    "feedback": (GOOD + '[numerics]\nfeedback = "cubic"\n', r"numerics.feedback: expected one of hill"),
+    "consistent_stress": (GOOD + "[numerics]\nconsistent_stress = 1\n",
+                          r"numerics.consistent_stress: expected true or false"),
     "heterogeneity_seed": (GOOD + "[heterogeneity]\nepsilon = 0.1\n", r"heterogeneity: seed: expected an integer"),
     "heterogeneity_model": (GOOD + '[heterogeneity]\nmodel = "spots"\nseed = 1\n',
                             r"heterogeneity: heterogeneity model must be one of uniform-noise, matern"),
@@ -282,3 +299,12 @@ def test_one_run_study_writes_what_grow_writes(tmp_path):
     assert io.is_complete(tmp_path / "one" / "cylinder_short.h5")
     assert (tmp_path / "one" / "cylinder_short_fields.xdmf").is_file()
     assert (tmp_path / "one" / "cylinder_growth.png").is_file()
+
+
+def test_a_study_carries_the_sobol_problem(tmp_path):
+    from hyper import sobol
+
+    path = write(tmp_path, GOOD + '[sobol]\nnames = ["kM"]\nbounds = [[0.005, 0.02]]\nprotocol = "weekly"\n')
+    assert study.load(path).names == ["cylinder"]
+    protocol, prob = sobol._check(sobol.parser().parse_args(["--problem", str(path)]))
+    assert protocol.name == "weekly" and prob == {"num_vars": 1, "names": ["kM"], "bounds": [[0.005, 0.02]]}

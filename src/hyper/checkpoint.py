@@ -243,6 +243,7 @@ def model_state(model: CoupledModel) -> tuple[np.ndarray, dict, dict]:
         "jacobian_count": jacobian.count,
         "csa0": model.csa0,
         "volume0": model.volume0,
+        **{name: value for name, value in zip(model.measures, model.csa_ratios.values())},
     }
     if jacobian.point is not None:
         w_j, g_j = jacobian.point
@@ -306,6 +307,9 @@ def restore_model(model: CoupledModel, rows: Callable[[str], np.ndarray | None],
     model.kM = np.array(kM[:nowned]) if kM is not None else float(glob["kM"])
     model.csa_ratio = float(glob["csa_ratio"])
     model.volume_ratio = float(glob["volume_ratio"])
+    # a checkpoint from before both CSA measures were kept has neither: unknown until measured
+    model.csa_ratios = {method: float(glob[name]) if name in glob else float("nan")
+                        for method, name in zip(model.csa_ratios, model.measures)}
     model.t = float(glob["t"])
     model.step = int(glob["step"])
     model.period = int(glob["period"])

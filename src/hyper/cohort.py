@@ -11,7 +11,8 @@ communicator. Per run, under OUTPUT/runs/:
     GEOMETRY_PROTOCOL.h5            the time series (as hyper.grow writes it) with the
                                     attributes geometry, muscle, subject, side, protocol,
                                     csa0_m2, volume0_m3, wall_s, ranks, run_digest and
-                                    the groups signaling, protocol, settings
+                                    the groups signaling, material, protocol, settings
+                                    and the equivalent study file (hyper.provenance)
     GEOMETRY_PROTOCOL_fields.xdmf   snapshots of u, det Ḡ and a0 for ParaView
     GEOMETRY_PROTOCOL.log           the run's own progress lines
 
@@ -19,11 +20,14 @@ and for the cohort, written by rank 0 from the complete .h5 files (so a rerun th
 nothing left to do writes the same summary):
 
     summary.csv     geometry,muscle,subject,side,protocol,csa0_cm2,volume0_cm3,
-                    final_csa_ratio,final_volume_ratio,wall_s,status
+                    final_csa_ratio,final_csa_ratio_cut,final_csa_ratio_box,
+                    final_volume_ratio,wall_s,status (final_csa_ratio is the one
+                    --csa-method feeds back; cut and box are blank on meshes with a
+                    tagged mid-section)
     failures.txt    the error of every failed run (only when some failed)
     ratios.png      final CSA and volume change by muscle and protocol, mean ± standard
                     error over the four members of each muscle (Fig. 6C–D analog)
-    shape.png       the grown --plot-geometry geometry (default BFLH_VHF_Left) per protocol,
+    shape.png       the grown --plot-geometry geometry (BFLH_VHF_Left, or the first) per protocol,
                     displacement amplified 10× (Fig. 6A analog)
     table.md        the results against the paper (MODEL.md §8)
 
@@ -59,19 +63,24 @@ import numpy as np
 from mpi4py import MPI
 
 from hyper import checkpoint as ckpt
-from hyper import cli, farm, io, plot, protocols, run, signaling
+from hyper import cli, farm, io, material, plot, protocols, run, signaling
 from hyper import geometry as geo
-from hyper.coupled import GrowthSettings, step_times
+from hyper.coupled import CSA_METHODS, GrowthSettings, step_times
+from hyper.growth import GROWTH_FIELDS
 from hyper.log import hms, info
 from hyper.params import InputError, build
 from hyper.protocols import Protocol
 
 COLUMNS = ("geometry", "muscle", "subject", "side", "protocol", "csa0_cm2", "volume0_cm3",
-           "final_csa_ratio", "final_volume_ratio", "wall_s", "status")
+           "final_csa_ratio", "final_csa_ratio_cut", "final_csa_ratio_box", "final_volume_ratio", "wall_s", "status")
+# the summary's numbers: CSA by the feedback's method and by each method (blank without them)
+NUMBERS = ("csa0_cm2", "volume0_cm3", "final_csa_ratio", "final_csa_ratio_cut", "final_csa_ratio_box",
+           "final_volume_ratio", "wall_s")
 PAPER_PROTOCOLS = protocols.PAPER  # in the paper's order of growth: mwf > every3days > weekly
 # MODEL.md §8, anatomical cohort under mwf: increases in percent (low, high)
 PAPER_MWF_INCREASE = {"volume": (8.0, 9.0), "csa": (3.0, 6.0)}
 PICTURE_SCALE = 10.0  # displacement amplification of the shape picture (the paper's Fig. 6A)
+SHAPE_GEOMETRY = "BFLH_VHF_Left"  # the paper's Fig. 6A
 
 
 @dataclasses.dataclass(frozen=True)
@@ -232,8 +241,10 @@ def summary_row(path: Path) -> dict:
             "geometry": str(a["geometry"]), "muscle": str(a["muscle"]), "subject": str(a["subject"]),
             "side": str(a["side"]), "protocol": str(a["protocol"]),
             "csa0_cm2": float(a["csa0_m2"]) * 1e4, "volume0_cm3": float(a["volume0_m3"]) * 1e6,
-            "final_csa_ratio": float(f["csa_ratio"][-1]), "final_volume_ratio": float(f["volume_ratio"][-1]),
-            "wall_s": float(a["wall_s"]), "status": "done",
+            "final_csa_ratio": float(f["csa_ratio"][-1]),
+            **{f"final_csa_ratio_{m}": float(f[f"csa_ratio_{m}"][-1]) if f"csa_ratio_{m}" in f else float("nan")
+               for m in CSA_METHODS},
+            "final_volume_ratio": float(f["volume_ratio"][-1]), "wall_s": float(a["wall_s"]), "status": "done",
         }
 
 
@@ -266,7 +277,7 @@ def read_csv(path: Path) -> list[dict]:
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
     for row in rows:
-        for key in ("csa0_cm2", "volume0_cm3", "final_csa_ratio", "final_volume_ratio", "wall_s"):
+        for key in NUMBERS:
             row[key] = float(row[key]) if row[key] else float("nan")
     return rows
 
@@ -284,9 +295,15 @@ def group(row: dict) -> str:
     return row["muscle"] or row["geometry"]
 
 
+def ratio_column(quantity: str) -> str:
+    """The summary column of ``quantity``: 'csa', 'volume', or 'csa_cut', 'csa_box' (one CSA measure)."""
+    name, _, method = quantity.partition("_")
+    return f"final_{name}_ratio" + (f"_{method}" if method else "")
+
+
 def percent(row: dict, quantity: str) -> float:
-    """The final relative increase of ``quantity`` ('csa' or 'volume') in percent."""
-    return 100.0 * (row[f"final_{quantity}_ratio"] - 1.0)
+    """The final relative increase of ``quantity`` (`ratio_column`) in percent."""
+    return 100.0 * (row[ratio_column(quantity)] - 1.0)
 
 
 def group_statistics(rows: list[dict], quantity: str) -> dict[tuple[str, str], dict]:
@@ -355,9 +372,12 @@ def markdown(rows: list[dict], settings: GrowthSettings) -> str:
         lines.append(f"- relative volume increase > relative CSA increase under mwf: {vol_ok} of {len(geometries)}.")
         lines += ["", "mwf across the geometries against the paper:", "",
                   "| quantity | mean | min | max | paper |", "|---|---|---|---|---|"]
-        for quantity, label in (("volume", "volume increase"), ("csa", "mid-belly CSA increase")):
+        done = [r for r in rows if r["status"] == "done"]
+        measured = [(f"csa_{m}", f"mid-belly CSA increase, {m}") for m in CSA_METHODS
+                    if done and all(math.isfinite(r.get(ratio_column(f"csa_{m}"), math.nan)) for r in done)]
+        for quantity, label in (("volume", "volume increase"), ("csa", "mid-belly CSA increase"), *measured):
             s = mwf_statistics(rows, quantity)
-            lo, hi = PAPER_MWF_INCREASE[quantity]
+            lo, hi = PAPER_MWF_INCREASE[quantity.split("_")[0]]
             if s is not None:
                 lines.append(f"| {label} (n = {s['n']}) | {s['mean']:+.2f} % | {s['min']:+.2f} % | "
                              f"{s['max']:+.2f} % | +{lo:g}–{hi:g} % |")
@@ -389,14 +409,17 @@ def ratio_figure(rows: list[dict], path: Path) -> None:
             x = np.arange(len(groups)) + (j - (len(names) - 1) / 2) * width
             cells = [stats.get((g, name), {"mean": np.nan, "se": np.nan}) for g in groups]
             ax.bar(x, [c["mean"] for c in cells], width * 0.9, yerr=[np.nan_to_num(c["se"]) for c in cells],
-                   capsize=3, label=name, zorder=2)
+                   capsize=3, label=name, zorder=2, color=plot.protocol_colour(name))
             for xi, g in zip(x, groups):
                 values = [percent(r, quantity) for r in rows
                           if group(r) == g and r["protocol"] == name and r["status"] == "done"]
                 ax.plot([xi] * len(values), values, "k.", ms=3, zorder=3)
         ax.set_xticks(range(len(groups)), groups)
         ax.set_ylabel(f"{title} change (%)")
-        ax.set_title(f"final {title}: mean ± standard error, dots: members")
+        members = max((sum(group(r) == g and r["protocol"] == n for r in rows) for g in groups for n in names),
+                      default=0)
+        ax.set_title(f"final {title}: mean ± standard error, dots: members" if members > 1
+                     else f"final {title} (one member per bar: no spread)")
         ax.grid(axis="y", alpha=0.3)
     axes[0].legend(fontsize=8)
     plot.save(fig, path, dpi=140)
@@ -481,17 +504,32 @@ def parser() -> cli.Parser:
     p.add_argument("--ranks-per-job", type=cli.integer(1), default=1,
                    help="MPI ranks per run; must divide the number of ranks")
     p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step Δtg (h)")
+    p.add_argument("--material", type=Path, metavar="F.toml",
+                   help="TOML file overriding the muscle law's parameters (hyper.material.MaterialParams)")
+    p.add_argument("--csa-method", choices=CSA_METHODS, default=GrowthSettings.csa_method,
+                   help="the CSA the feedback sees: the exact plane cut, or the original code's box staircase "
+                        "(MODEL.md §9); summary.csv has both (final_csa_ratio_cut, final_csa_ratio_box)")
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run fails; a failed run "
                         "resumes from its checkpoint with a larger value")
+    p.add_argument("--growth-fields", choices=GROWTH_FIELDS, default=GrowthSettings.growth_fields,
+                   help="where G, Ḡ and A live: at the quadrature points, or at the nodes of DG1 fields "
+                        "(the original code)")
+    p.add_argument("--ends", choices=geo.IDEALIZED_ENDS, default="disks",
+                   help="the idealized shape's spring ends: the flat end disks, or the XDMF's end tags with "
+                        "their lateral band (the original code; --geometries idealized only)")
+    p.add_argument("--fibers", choices=("auto", "original"), default="auto",
+                   help="the geometries' fibres, or the original code's on the idealized shape (P2 used as they "
+                        "are, surface integrals at UFL's estimated degree; --geometries idealized only)")
     p.add_argument("--snapshot-every", type=cli.integer(1), default=run.SNAPSHOT_EVERY,
                    help="XDMF snapshot every K growth steps")
-    p.add_argument("--plot-geometry", default="BFLH_VHF_Left", metavar="ID",
-                   help="geometry of the shape plot (the paper's Fig. 6A)")
+    p.add_argument("--plot-geometry", metavar="ID",
+                   help=f"geometry of the shape plot (the paper's Fig. 6A), one of --geometries; {SHAPE_GEOMETRY} "
+                        "when it is one of them, else the first")
     return p
 
 
-def check(args, comm) -> tuple[list[Run], GrowthSettings]:
+def check(args, comm) -> tuple[list[Run], GrowthSettings, material.MaterialParams]:
     unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
     if unknown:
         raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")
@@ -500,11 +538,19 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings]:
                          f"got {args.ranks_per_job}")
     for name in args.geometries:
         run.check_geometry(comm, name, "--geometries")
-    run.check_geometry(comm, args.plot_geometry, "--plot-geometry")
-    settings = build(GrowthSettings, {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings"},
-                     growth_dt=args.growth_dt, max_halvings=args.max_halvings)
+    if args.plot_geometry is None:
+        args.plot_geometry = SHAPE_GEOMETRY if SHAPE_GEOMETRY in args.geometries else args.geometries[0]
+    elif args.plot_geometry not in args.geometries:
+        raise InputError(f"--plot-geometry {args.plot_geometry}: not one of --geometries "
+                         f"({', '.join(args.geometries)}); its shape could not be drawn")
+    if (args.ends, args.fibers) != ("disks", "auto") and set(args.geometries) != {"idealized"}:
+        raise InputError("--ends and --fibers original apply to the idealized shape only (--geometries idealized)")
+    settings = build(GrowthSettings, {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings",
+                                      "growth_fields": "--growth-fields", "csa_method": "--csa-method"},
+                     growth_dt=args.growth_dt, max_halvings=args.max_halvings, growth_fields=args.growth_fields,
+                     csa_method=args.csa_method)
     runs = plan(args.geometries, [p for text in args.protocols for p in protocols.from_option(text, "--protocols")])
-    return runs, settings
+    return runs, settings, material.load(args.material) if args.material else material.MaterialParams()
 
 
 def idle_barrier(comm) -> None:
@@ -539,6 +585,8 @@ def finish(output: Path, runs: list[Run], results, settings: GrowthSettings, ela
     if pictured and figures:
         shape_figure({name: final_fields(p) for name, p in pictured.items()}, output / "shape.png", plot_geometry)
         written.append(output / "shape.png")
+    elif figures:
+        info(None, f"shape.png not written: {plot_geometry}, its geometry, has no finished run")
     table = markdown(rows, settings)
     with io.atomic_path(output / "table.md") as tmp:
         tmp.write_text(table)
@@ -564,14 +612,15 @@ def finish(output: Path, runs: list[Run], results, settings: GrowthSettings, ela
 
 def cohort(comm, args) -> int:
     start = time.perf_counter()
-    runs, settings = check(args, comm)
+    runs, settings, muscle = check(args, comm)
     with cli.hold(comm, [args.output]):
         info(comm, f"cohort: {len(runs)} runs ({len(args.geometries)} geometries × {len(args.protocols)} "
                    f"protocols) on {comm.size} rank(s) in groups of {args.ranks_per_job}, growth step "
                    f"{settings.growth_dt:g} h, output {args.output}")
         with run.StopOnTerm() as stop:
             results = run_cohort(comm, runs, args.output, settings=settings, snapshot_every=args.snapshot_every,
-                                 ranks_per_job=args.ranks_per_job, stop=stop)
+                                 ranks_per_job=args.ranks_per_job, stop=stop,
+                                 options={"ends": args.ends, "fibers": args.fibers, "material": muscle})
         code = 0
         if comm.rank == 0:
             try:

@@ -1,9 +1,19 @@
 """hyper contraction: ramp the activation α from 0 to 1 on one geometry.
 
-Writes <output>.h5 (series alpha, reaction_force, reaction_force_current,
-newton_iterations, volume_ratio, stretch_min, stretch_max; parameters as attributes),
+Writes <output>.h5 (series alpha, end_force, spring_force, reaction_force_original,
+reaction_force_current, newton_iterations, volume_ratio, stretch_min, stretch_max; the
+groups material and settings),
 <output>_fields.xdmf (displacement u and pressure p on P1, fibre stretch λ per cell, one
 time step per activation level) and <output>.png (force against activation).
+The forces on the end Γ1 (N, positive in tension), along its mean outward normal d:
+end_force, the resultant d·∫ P N dA (the headline: converged to about 3 % on the
+idealized mesh, python -m hyper.bench refinement), equal by equilibrium to
+spring_force, the tendon spring's resultant; reaction_force_original, the original
+code's ∫ (σN)·N dA, Cauchy stress over reference area, which converges slowly and
+depends on the fibres in the end cells (MODEL.md §9); reaction_force_current, ∫ (PN)·n dA.
+The original code's idealized shape: --ends tags --fibers original (P2 fibres as they
+are, surface integrals at UFL's estimated degree) gives its reaction_force_original at
+α = 1, 0.9291244 N.
 A step whose Newton solve fails is retried as two half steps, down to --max-halvings.
 Options after the known ones go to PETSc under the prefix mechanics_ (for example
 -mechanics_snes_monitor).
@@ -20,8 +30,11 @@ import numpy as np
 from hyper import cli
 from hyper.params import InputError, as_attributes
 
-SERIES = ("alpha", "reaction_force", "reaction_force_current", "newton_iterations",
-          "volume_ratio", "stretch_min", "stretch_max", "wall_s")
+SERIES = ("alpha", "end_force", "spring_force", "reaction_force_original", "reaction_force_current",
+          "newton_iterations", "volume_ratio", "stretch_min", "stretch_max", "wall_s")
+UNITS = {"alpha": "1", "end_force": "N", "spring_force": "N", "reaction_force_original": "N",
+         "reaction_force_current": "N", "newton_iterations": "count",
+         "volume_ratio": "1", "stretch_min": "1", "stretch_max": "1", "wall_s": "s"}
 
 
 class _Parser(cli.Parser):
@@ -38,14 +51,21 @@ class _Parser(cli.Parser):
 
 def parser() -> cli.Parser:
     from hyper import fibers
+    from hyper import geometry as geo
 
     p = _Parser("contraction", description=__doc__)
     p.add_argument("--geometry", default="idealized", help="geometry identifier")
+    p.add_argument("--ends", choices=geo.IDEALIZED_ENDS, default="disks",
+                   help="the idealized shape's spring ends: the flat end disks, or the XDMF's end tags with "
+                        "their lateral band (the original code)")
     p.add_argument("--steps", type=cli.integer(1, 10**4), default=10, help="equal activation steps from 0 to 1")
     p.add_argument("--output", type=cli.output(folder=False, suffixes=(".h5",)),
                    help="HDF5 series file; results/contraction/GEOMETRY.h5 by default")
     p.add_argument("--fibers", default="auto", metavar="KIND",
-                   help=f"fibre field kind: {', '.join(fibers.FIBER_KINDS)} (see hyper.fibers.fiber_field)")
+                   help=f"fibre field kind: {', '.join(fibers.FIBER_KINDS)} (see hyper.fibers.fiber_field); "
+                        "original: the original code's idealized fibres, with its surface quadrature")
+    p.add_argument("--material", type=Path, metavar="F.toml",
+                   help="TOML file overriding the muscle law's parameters (hyper.material.MaterialParams)")
     p.add_argument("--quadrature-degree", type=cli.integer(1, 12), default=4, help="quadrature degree of the forms")
     p.add_argument("--max-halvings", type=cli.integer(0, 12), default=6, help="step cuts allowed per step")
     return p
@@ -105,12 +125,13 @@ def plot(path: Path, series: dict, title: str) -> None:
     from hyper import plot as figures
 
     fig, (ax, ax2) = figures.pyplot().subplots(1, 2, figsize=(10, 4))
-    ax.plot(series["alpha"], series["reaction_force"], "o-",
+    ax.plot(series["alpha"], series["end_force"], "o-", label=r"$d\cdot\int_{\Gamma_1} P N\,dA$ (resultant)")
+    ax.plot(series["alpha"], series["reaction_force_original"], "^--",
             label=r"$\int_{\Gamma_1} (\sigma N)\cdot N\,dA$ (original)")
-    ax.plot(series["alpha"], series["reaction_force_current"], "s-",
+    ax.plot(series["alpha"], series["reaction_force_current"], "s:",
             label=r"$\int_{\Gamma_1} (PN)\cdot n\,dA$ (current)")
     ax.set_xlabel("activation α")
-    ax.set_ylabel("reaction force on Γ1 (N)")
+    ax.set_ylabel("force on Γ1 (N)")
     ax.legend()
     ax.grid(alpha=0.3)
     ax2.fill_between(series["alpha"], series["stretch_min"], series["stretch_max"], alpha=0.3, label="cell range")
@@ -128,13 +149,14 @@ def contract(comm, args) -> dict:
     from hyper import fibers, io
     from hyper import geometry as geo
     from hyper.log import Progress, info
-    from hyper.material import MaterialParams
     from hyper.mechanics import MechanicsProblem
 
-    geometry = geo.load(args.geometry, comm, quadrature_degree=args.quadrature_degree)
+    original = args.fibers in fibers.UNNORMALISED_KINDS
+    geometry = geo.load(args.geometry, comm, quadrature_degree=args.quadrature_degree, ends=args.ends,
+                        estimated_surface_degree=original)
     a0 = fibers.fiber_field(geometry, args.fibers)
-    material = MaterialParams()
-    problem = MechanicsProblem(geometry, a0, material)
+    material = args.material
+    problem = MechanicsProblem(geometry, a0, material, normalize_fibres=not original)
     info(comm, f"{args.geometry}: {geometry.num_cells()} cells, {problem.num_dofs} unknowns, "
                f"{comm.size} rank(s); rigid motions: {problem.rigid.description}")
     fields = Fields(problem)
@@ -151,28 +173,43 @@ def contract(comm, args) -> dict:
             for f in fields.update():
                 xdmf.write_function(f, float(alpha))
             lo, hi = fields.stretch_range()
-            values = (float(alpha), problem.reaction_force(), problem.reaction_force_current(), iterations,
-                      problem.volume() / volume0, lo, hi, time.perf_counter() - start)
+            values = (float(alpha), problem.end_force(), problem.spring_force(), problem.reaction_force_original(),
+                      problem.reaction_force_current(), iterations, problem.volume() / volume0, lo, hi,
+                      time.perf_counter() - start)
             for name, value in zip(SERIES, values):
                 series[name].append(value)
-            progress.update(k, f"α = {alpha:.3f}: R = {values[1]:.4e} N, R_current = {values[2]:.4e} N, "
+            progress.update(k, f"α = {alpha:.3f}: end force {values[1]:.4e} N, original R {values[3]:.4e} N, "
                                f"λ in [{lo:.4f}, {hi:.4f}], {iterations} Newton its"
                                + (f" ({halvings} halvings)" if halvings else ""), force=True)
+    from hyper import checkpoint, run
+
     attrs = {
         "geometry": args.geometry,
         "steps": args.steps,
         "fibers": args.fibers,
+        "fibres_normalised": not original,
+        "ends": args.ends,
+        "end_areas_m2": [geometry.area(tag) for tag in geometry.ends],
+        "end_axis": problem.end_axis,
+        "surface_quadrature_degree": "estimated" if geometry.estimated_surface_degree else geometry.quadrature_degree,
+        "mesh_sha256": checkpoint.on_rank0(comm, lambda: checkpoint.file_digest(
+            *run.mesh_files(geo.MESHES_DIR / geo.GEOMETRIES[args.geometry]))),
         "cells": geometry.num_cells(),
         "unknowns": problem.num_dofs,
         "ranks": comm.size,
         "quadrature_degree": geometry.quadrature_degree,
+        "linear_solver": "lu",
         "rigid_motions": problem.rigid.description,
         "fields_xdmf": xdmf_path.name,
-        "petsc_prefix": problem.snes.getOptionsPrefix(),
-        "snes_tolerances_rtol_atol": [problem.snes.getTolerances()[0], problem.snes.getTolerances()[1]],
     }
+    settings = {"steps": args.steps, "fibers": args.fibers, "ends": args.ends,
+                "quadrature_degree": geometry.quadrature_degree,
+                "max_halvings": args.max_halvings, "petsc_prefix": problem.snes.getOptionsPrefix(),
+                "petsc_options": " ".join(args.petsc),
+                "snes_rtol": problem.snes.getTolerances()[0], "snes_atol": problem.snes.getTolerances()[1]}
     if comm.rank == 0:
-        io.write_series(output, series, attrs=attrs, groups={"material": as_attributes(material)})
+        io.write_series(output, series, attrs=attrs, units=UNITS,
+                        groups={"material": as_attributes(material), "settings": settings})
         plot(output.with_suffix(".png"), series, f"{args.geometry}: {geometry.num_cells()} cells, "
                                                   f"{problem.num_dofs} unknowns")
     comm.barrier()
@@ -183,9 +220,11 @@ def run(comm, args) -> int:
     import dolfinx_solver  # noqa: F401  (before petsc4py)
     from petsc4py import PETSc
 
+    from hyper import material
     from hyper.log import info
     from hyper.mechanics import SolverError
 
+    args.material = material.load(args.material) if args.material is not None else material.MaterialParams()
     if args.output is None:
         args.output = Path("results/contraction") / f"{Path(args.geometry).name}.h5"
         problem = cli.unwritable(args.output, folder=False)
@@ -199,9 +238,10 @@ def run(comm, args) -> int:
     except SolverError as err:
         cli.error(comm, f"{err} (after {args.max_halvings} step halvings)")
         return cli.EXIT_SOME_FAILED
-    info(comm, f"peak reaction force {max(series['reaction_force']):.4e} N (current normal: "
-               f"{max(series['reaction_force_current']):.4e} N); fibre stretch range at α = 1: "
-               f"[{series['stretch_min'][-1]:.4f}, {series['stretch_max'][-1]:.4f}]; wrote {args.output}")
+    info(comm, f"end force at α = 1: {series['end_force'][-1]:.6f} N (spring {series['spring_force'][-1]:.6f} N; "
+               f"the original's ∫(σN)·N dA {series['reaction_force_original'][-1]:.7f} N); "
+               f"fibre stretch range at α = 1: [{series['stretch_min'][-1]:.4f}, {series['stretch_max'][-1]:.4f}]; "
+               f"wrote {args.output}")
     return cli.EXIT_OK
 
 

@@ -23,11 +23,13 @@ from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from hyper import growth, newton, section, signaling
+from hyper import box, growth, newton, section, signaling
 from hyper.mechanics import MechanicsProblem, SolverError
 from hyper.params import InputError, positive_hours
 from hyper.protocols import Protocol
 from hyper.signaling import SignalingError
+
+CSA_METHODS = ("cut", "box")
 
 
 @dataclass(frozen=True)
@@ -40,6 +42,12 @@ class GrowthSettings:
     grow_during_sessions: bool = True  # False reproduces the original code
     consistent_stress: bool = True  # P = det(Fg) Fe S Fg⁻ᵀ; False: the original Fe S
     max_halvings: int = 4  # growth-step cuts tried before a failed solve stops the run
+    # where G, Ḡ and A live: "quadrature" points, or "dg1" nodes (the original code)
+    growth_fields: str = "quadrature"
+    # CSA of a mesh without a tagged mid-section, the one the feedback sees: "cut" (the
+    # exact plane cut) or "box" (the original code's staircase, MODEL §9). Both are
+    # recorded either way; a tagged section (idealized, cylinder) is measured on its facets.
+    csa_method: str = "cut"
     # How each step's equilibrium is solved: "kept" (factors kept across steps,
     # hyper.newton) or "lagged" (SNES Newton with a lagged Jacobian, before issue 17).
     # Both stop at the same Newton tolerances, so this is not part of the answer.
@@ -59,6 +67,12 @@ class GrowthSettings:
                              field="feedback")
         if self.newton not in NEWTON_METHODS:
             raise InputError(f"must be one of {', '.join(NEWTON_METHODS)}, got {self.newton!r}", field="newton")
+        if self.growth_fields not in growth.GROWTH_FIELDS:
+            raise InputError(f"must be one of {', '.join(growth.GROWTH_FIELDS)}, got {self.growth_fields!r}",
+                             field="growth_fields")
+        if self.csa_method not in CSA_METHODS:
+            raise InputError(f"must be one of {', '.join(CSA_METHODS)}, got {self.csa_method!r}",
+                             field="csa_method")
         if isinstance(self.max_halvings, bool) or not (
             isinstance(self.max_halvings, int) and 0 <= self.max_halvings <= self.MAX_HALVINGS
         ):
@@ -71,6 +85,10 @@ class GrowthSettings:
         newton how the same equilibrium is found."""
         out = dataclasses.asdict(self)
         del out["max_halvings"], out["newton"]
+        if self.growth_fields == "quadrature":
+            del out["growth_fields"]  # the default: digests of earlier runs stay valid
+        if out["csa_method"] == "cut":  # the digests of runs from before the switch stay
+            del out["csa_method"]
         return out
 
 
@@ -193,23 +211,27 @@ def step_times(t0: float, t1: float, dt: float) -> np.ndarray:
 
 
 class PlaneSection:
-    """The mid-belly cross-section of a mesh without a tagged one (MODEL §4): the plane
-    through the mean of all vertices, normal to their first principal axis, cut exactly
-    through the tetrahedra; the deformed area is Nanson's integral on the cut."""
+    """The mid-belly cross-section of a mesh without a tagged one (MODEL §4), measured
+    both ways: "cut", the plane through the mean of all vertices, normal to their first
+    principal axis, cut exactly through the tetrahedra; "box", the original code's
+    staircase (`hyper.box`, MODEL §9). The deformed area is Nanson's integral on each."""
 
     def __init__(self, problem: MechanicsProblem):
         mesh = problem.geometry.mesh
         origin, normal = section.principal_plane(section.global_vertices(mesh, mesh.comm))
         self._cut = section.CutSection(mesh, origin, normal, degree=problem.geometry.quadrature_degree)
-        # The cut evaluates ∇u from a plain vector function: keep a collapsed copy of u.
+        # Both evaluate u from a plain vector function: keep a collapsed copy of u.
         self._w = problem.w
         self.u, self._map = problem.w.function_space.sub(0).collapse()
         self.u = fem.Function(self.u)
-        self.area0 = self._cut.area0()
+        self.box = box.BoxSection(mesh, self.u)
+        self.areas0 = {"cut": self._cut.area0(), "box": self.box.area0()}
 
-    def area(self) -> float:
+    def ratios(self) -> dict[str, float]:
+        """CSA/CSA0 by each method."""
         self.u.x.array[:] = self._w.x.array[self._map]
-        return self._cut.deformed_area(self.u)
+        return {"cut": self._cut.deformed_area(self.u) / self.areas0["cut"],
+                "box": self.box.deformed_area() / self.areas0["box"]}
 
 
 class CoupledModel:
@@ -217,7 +239,7 @@ class CoupledModel:
 
     ``integrator`` advances the signaling ODEs, with the signature of
     `signaling.integrate` (the default); ``monitor`` times the `PHASES` of the run
-    (default `NoTiming`).
+    (default `NoTiming`); ``normalize_fibres`` goes to `MechanicsProblem`.
     """
 
     def __init__(
@@ -233,6 +255,7 @@ class CoupledModel:
         linear_solver: str = "lu",
         integrator: Callable | None = None,
         monitor=None,
+        normalize_fibres: bool = True,
     ):
         self.geometry = geometry
         self.comm = geometry.mesh.comm
@@ -241,7 +264,7 @@ class CoupledModel:
         self.settings = settings
         self.integrator = integrator if integrator is not None else signaling.integrate
         self.monitor = monitor if monitor is not None else NoTiming()
-        self.growth = growth.GrowthField(geometry.mesh, a0, geometry.quadrature_degree)
+        self.growth = growth.GrowthField(geometry.mesh, a0, geometry.quadrature_degree, settings.growth_fields)
         kwargs = {} if material is None else {"material": material}
         options = dict(petsc_options or {})
         lag = jacobian_lag(options.pop(LAG_OPTION, JACOBIAN_LAG))
@@ -256,6 +279,7 @@ class CoupledModel:
                 petsc_options=options,
                 options_prefix=MECHANICS_PREFIX,
                 linear_solver=linear_solver,
+                normalize_fibres=normalize_fibres,
                 **kwargs,
             )
         self.growth.set_deformation(self.problem.F)
@@ -265,9 +289,13 @@ class CoupledModel:
             self.jacobian = LaggedJacobian(self.problem, self.growth.function, lag, self.monitor)
         if geometry.midsection is not None:
             self.section = growth.FacetSection(geometry, self.problem.F)
+            self.csa0 = self.section.area0
         else:
             self.section = PlaneSection(self.problem)
-        self.csa0 = self.section.area0
+            self.csa0 = self.section.areas0[settings.csa_method]
+        # CSA0 (m²) and CSA/CSA0 by every method of a plane section (none for a tagged one)
+        self.csa0_by_method = dict(self.section.areas0) if isinstance(self.section, PlaneSection) else {}
+        self.csa_ratios = dict.fromkeys(self.csa0_by_method, 1.0)
         self.volume0 = self.problem.volume()
 
         # Every run starts from the rest state of the baseline parameters (MODEL §1).
@@ -315,7 +343,20 @@ class CoupledModel:
             states=self._mean_states(self.y),
             newton_iterations=iterations,
             halvings=halvings,
+            extra={f"csa_ratio_{name}": value for name, value in self.csa_ratios.items()},
         )
+
+    @property
+    def measures(self) -> tuple[str, ...]:
+        """The names of the measures each `StepReport.extra` carries."""
+        return tuple(f"csa_ratio_{name}" for name in self.csa_ratios)
+
+    def _measure_csa(self) -> None:
+        if self.csa_ratios:
+            self.csa_ratios = self.section.ratios()
+            self.csa_ratio = self.csa_ratios[self.settings.csa_method]
+        else:
+            self.csa_ratio = self.section.area() / self.csa0
 
     def _solve(self) -> int:
         """Newton from the previous state; a failure with a lagged Jacobian is retried
@@ -410,7 +451,7 @@ class CoupledModel:
                 if self.comm.allreduce(bool(np.any(theta != 1.0)), op=MPI.LOR):
                     iterations, halvings = self._step(theta, float(times[k - 1]), float(times[k]))
                     with self.monitor.track("measures"):
-                        self.csa_ratio = self.section.area() / self.csa0
+                        self._measure_csa()
                         self.volume_ratio = self.problem.volume() / self.volume0
                     self.kM = self.kM0 * growth.feedback(self.csa_ratio, s.feedback)
                 self.y = ys[k]

@@ -383,6 +383,18 @@ def idealized_fiber(x: np.ndarray) -> np.ndarray:
     return a / np.linalg.norm(a, axis=0)
 
 
+# Inside this radius (m) the original code set a0 = e_z (MODEL.md §9).
+ORIGINAL_AXIS_RADIUS = 1e-4
+
+
+def original_idealized_fiber(x: np.ndarray) -> np.ndarray:
+    """The idealized fibres as the original code wrote them: `idealized_fiber`, but e_z
+    wherever r < `ORIGINAL_AXIS_RADIUS`; x has shape (3, n)."""
+    a = idealized_fiber(x)
+    a[:, np.hypot(x[0], x[1]) < ORIGINAL_AXIS_RADIUS] = np.array([[0.0], [0.0], [1.0]])
+    return a
+
+
 def uniform_fiber_field(mesh, direction) -> fem.Function:
     """A constant unit fibre direction as a P1 vector function."""
     d = np.asarray(direction, dtype=float)
@@ -392,7 +404,10 @@ def uniform_fiber_field(mesh, direction) -> fem.Function:
     return a0
 
 
-FIBER_KINDS = ("auto", "idealized", "axial", "principal", "stokes")
+FIBER_KINDS = ("auto", "idealized", "axial", "principal", "stokes", "original")
+# The kinds whose field the mechanics and the growth field must use as it is, not
+# normalised at their points.
+UNNORMALISED_KINDS = ("original",)
 
 
 def fiber_field(geometry: geo.Geometry, kind: str = "auto") -> fem.Function:
@@ -403,7 +418,9 @@ def fiber_field(geometry: geo.Geometry, kind: str = "auto") -> fem.Function:
     vertex coordinates, oriented from end Γ1 to Γ2 (a stand-in for tests); "stokes" the
     Stokes-flow fibres stored next to an anatomical mesh (`load`, MODEL.md §5);
     "auto" picks the first for `idealized`, the second for `cylinder` and "stokes"
-    otherwise.
+    otherwise. "original" (idealized shape only): the original code's field
+    (`original_idealized_fiber`) interpolated into vector P2, which the original used as
+    it is, unit at the nodes only (MODEL.md §9; see `UNNORMALISED_KINDS`).
 
     Why P1: every fibre source (analytic, Stokes flow) can be written at vertices, XDMF
     stores and ParaView shows it as is, and any quadrature or DG space the forms or the
@@ -417,6 +434,12 @@ def fiber_field(geometry: geo.Geometry, kind: str = "auto") -> fem.Function:
         kind = {"idealized": "idealized", "cylinder": "axial"}.get(geometry.name, "stokes")
     if kind == "stokes":
         return load(geometry)
+    if kind == "original":
+        if geometry.name != "idealized":
+            raise InputError(f"the original fibres are those of the idealized shape, not of {geometry.name!r}")
+        a0 = fem.Function(fem.functionspace(geometry.mesh, ("Lagrange", 2, (3,))), name="a0")
+        a0.interpolate(original_idealized_fiber)
+        return a0
     if kind == "axial":
         return uniform_fiber_field(geometry.mesh, (0.0, 0.0, 1.0))
     if kind == "principal":

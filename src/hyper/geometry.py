@@ -20,7 +20,8 @@ The two Gmsh meshes carry no lateral tag; the exterior facets that are neither e
 `LATERAL_TAG` (4) on load. The idealized shape is read from its .msh, not from the XDMF
 next to it: the XDMF's tags 1 and 2 also cover a 2 cm band of the lateral surface at
 each end (57 of their 64 facets), whereas MODEL.md §5 and the .msh make them the flat
-end disks.
+end disks. ``ends="tags"`` takes the XDMF's end tags instead, band included, on the same
+mesh (the original code's choice, MODEL.md §9).
 """
 
 from __future__ import annotations
@@ -42,9 +43,10 @@ from dolfinx.io import XDMFFile
 from dolfinx.io.utils import distribute_entity_data
 from mpi4py import MPI
 
+from hyper import resources
 from hyper.params import InputError
 
-MESHES_DIR = Path(__file__).resolve().parents[2] / "meshes"
+MESHES_DIR = resources.folder("meshes")
 LATERAL_TAG = 4
 MM = 1.0e-3  # m per mm: the anatomical meshes are stored in millimetres
 
@@ -116,6 +118,9 @@ class Geometry:
     lateral: int
     midsection: int | None = None
     quadrature_degree: int = 4
+    # Surface integrals (ds, dS) at the degree UFL estimates for each integrand instead
+    # of quadrature_degree: the original code's choice (MODEL.md §9), slow to compile.
+    estimated_surface_degree: bool = False
 
     @property
     def comm(self):
@@ -126,16 +131,20 @@ class Geometry:
         return {"quadrature_degree": self.quadrature_degree}
 
     @property
+    def surface_metadata(self) -> dict:
+        return {} if self.estimated_surface_degree else self.metadata
+
+    @property
     def dx(self) -> ufl.Measure:
         return ufl.Measure("dx", domain=self.mesh, metadata=self.metadata)
 
     @property
     def ds(self) -> ufl.Measure:
-        return ufl.Measure("ds", domain=self.mesh, subdomain_data=self.facet_tags, metadata=self.metadata)
+        return ufl.Measure("ds", domain=self.mesh, subdomain_data=self.facet_tags, metadata=self.surface_metadata)
 
     @property
     def dS(self) -> ufl.Measure:
-        return ufl.Measure("dS", domain=self.mesh, subdomain_data=self.facet_tags, metadata=self.metadata)
+        return ufl.Measure("dS", domain=self.mesh, subdomain_data=self.facet_tags, metadata=self.surface_metadata)
 
     def num_cells(self) -> int:
         return self.mesh.topology.index_map(self.mesh.topology.dim).size_global
@@ -156,16 +165,33 @@ def _sum(comm, value):
 # ---------------------------------------------------------------------------- loading
 
 
-def load(name: str, comm, *, meshes_dir: str | Path | None = None, quadrature_degree: int = 4) -> Geometry:
-    """The geometry with clean identifier ``name``, distributed over ``comm``, in metres."""
+# The idealized shape's ends: the flat end disks of the .msh (MODEL.md §5), or the end
+# tags of the XDMF next to it, which add a lateral band at each end (MODEL.md §9).
+IDEALIZED_ENDS = ("disks", "tags")
+
+
+def load(name: str, comm, *, meshes_dir: str | Path | None = None, quadrature_degree: int = 4,
+         ends: str = "disks", estimated_surface_degree: bool = False) -> Geometry:
+    """The geometry with clean identifier ``name``, distributed over ``comm``, in metres.
+
+    ``ends`` (`IDEALIZED_ENDS`) and ``estimated_surface_degree`` (`Geometry`) are the
+    original code's choices for the idealized shape; the other geometries take the defaults.
+    """
     if name not in GEOMETRIES:
         raise InputError(f"unknown geometry {name!r}; known: {', '.join(GEOMETRIES)}")
+    if ends not in IDEALIZED_ENDS:
+        raise InputError(f"ends must be one of {', '.join(IDEALIZED_ENDS)}, got {ends!r}")
+    if name != "idealized" and (ends != "disks" or estimated_surface_degree):
+        raise InputError(f"the original's end tags and surface quadrature apply to the idealized shape only, "
+                         f"not {name!r}")
     path = Path(meshes_dir if meshes_dir is not None else MESHES_DIR) / GEOMETRIES[name]
     if name in ("idealized", "cylinder"):
         mesh, tags = _read_msh(path, comm)
+        if ends == "tags":
+            tags = _xdmf_end_tags(mesh, tags, path.with_suffix(".h5"), ends=(1, 2))
         tags = _with_lateral(mesh, tags, ends=(1, 2), lateral=LATERAL_TAG)
         geometry = Geometry(name, mesh, tags, ends=(1, 2), lateral=LATERAL_TAG, midsection=3,
-                            quadrature_degree=quadrature_degree)
+                            quadrature_degree=quadrature_degree, estimated_surface_degree=estimated_surface_degree)
         _check_tags(geometry, path)
         _check_cells(geometry, path)
         return geometry
@@ -341,6 +367,34 @@ def _msh_arrays(path: Path):
     return cells, np.ascontiguousarray(msh.points[:, :3], dtype=np.float64), facets, values
 
 
+def _xdmf_end_tags(mesh: dmesh.Mesh, tags: dmesh.MeshTags, data: Path, ends) -> dmesh.MeshTags:
+    """``tags`` with the end tags replaced by those stored in the XDMF's HDF5 ``data``
+    (the same vertices as the .msh): its end facets are found by their centroids."""
+    import h5py
+    from scipy.spatial import cKDTree
+
+    found = None
+    if mesh.comm.rank == 0:
+        with h5py.File(data, "r") as f:
+            x = f["/Mesh/Grid/geometry"][()]
+            triangles = f["/MeshTags/ft/topology"][()]
+            values = f["/MeshTags/ft/Values"][()].ravel()
+        keep = np.isin(values, ends)
+        found = x[triangles[keep]].mean(axis=1), values[keep].astype(np.int32)
+    centroids, values = mesh.comm.bcast(found, root=0)
+    exterior = dmesh.exterior_facet_indices(mesh.topology)
+    local = mesh.geometry.x[dmesh.entities_to_geometry(mesh, 2, exterior)].mean(axis=1)
+    distance, index = cKDTree(centroids).query(local)
+    # A centroid of the same facet agrees to round-off; the nearest other one is a
+    # facet's size away (about 1e-3 m).
+    match = distance < 1e-9
+    others = ~np.isin(tags.values, ends)
+    indices = np.concatenate([tags.indices[others], exterior[match]]).astype(np.int32)
+    new_values = np.concatenate([tags.values[others], values[index[match]]]).astype(np.int32)
+    order = np.argsort(indices)
+    return dmesh.meshtags(mesh, 2, indices[order], new_values[order])
+
+
 def _with_lateral(mesh: dmesh.Mesh, tags: dmesh.MeshTags, ends, lateral: int) -> dmesh.MeshTags:
     """``tags`` plus ``lateral`` on every exterior facet that carries no end tag."""
     mesh.topology.create_connectivity(2, 3)
@@ -452,6 +506,7 @@ __all__ = [
     "ANATOMICAL",
     "GEOMETRIES",
     "Geometry",
+    "IDEALIZED_ENDS",
     "MESHED",
     "MUSCLES",
     "load",

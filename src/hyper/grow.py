@@ -9,6 +9,10 @@
 Writes per run an HDF5 time series (t, CSA and volume ratios, kM, the signaling states,
 Newton iterations, step cuts) with its provenance as attributes, an XDMF file of
 snapshots (u, det Ḡ, fibres) for ParaView and the paper's Fig. 4C–E analog (--plot).
+On a mesh without a tagged mid-section (the anatomical ones) both CSA measures are
+recorded, csa_ratio_cut (the exact plane cut) and csa_ratio_box (the original code's
+box staircase, MODEL.md §9); csa_ratio is the one --csa-method feeds back. --plot-box
+draws the box's inner and rim facets at the end of each run, with the exact cut.
 
 --accuracy A (hyper.fidelity): the cheapest model, the longest steps whose tabulated
 error stays within A of the growth, and the linear solver that fits the memory; the
@@ -29,7 +33,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from hyper import cli, fidelity, io, protocols, run, sequence, signaling
+from hyper import cli, fidelity, io, material, protocols, run, sequence, signaling
 from hyper.checkpoint import on_rank0
 from hyper.log import info
 from hyper.params import InputError, build
@@ -38,7 +42,8 @@ from hyper.signaling.cli import answer
 SIGNALING_SAMPLE_EVERY = 0.5  # h, the series of --ask signaling, as hyper signaling samples it
 # the options that set GrowthSettings' fields, for errors that name what the user typed
 SETTING_OPTIONS = {"growth_dt": "--growth-dt", "signaling_dt": "--signaling-dt", "feedback": "--feedback",
-                   "max_halvings": "--max-halvings"}
+                   "max_halvings": "--max-halvings", "growth_fields": "--growth-fields",
+                   "csa_method": "--csa-method"}
 
 
 def scene_options(p: cli.Parser) -> None:
@@ -64,20 +69,36 @@ def parser(ask: str = "growth") -> cli.Parser:
         scene_options(p)
         p.add_argument("--output", type=cli.output(), default="results/signaling", help="an .h5 file or a folder")
         return p
-    from hyper.coupled import GrowthSettings
-    from hyper.growth import FEEDBACK_LAWS
+    from hyper.coupled import CSA_METHODS, GrowthSettings
+    from hyper.geometry import IDEALIZED_ENDS
+    from hyper.growth import FEEDBACK_LAWS, GROWTH_FIELDS
 
     p = cli.Parser("grow", __doc__)
     p.add_argument("--geometry", help="geometry id (idealized, cylinder, BFLH_VHF_Left, …); idealized by default")
     p.add_argument("--mesh", type=Path, help="your own tetrahedral XDMF mesh instead of --geometry (facet tags "
                    "'ft_small': 1, 2 the ends, 3 the side; fibres along its principal axis)")
     p.add_argument("--mesh-unit", help=f"length unit of --mesh ({' or '.join(run.MESH_UNITS)}); m by default")
+    p.add_argument("--ends", choices=IDEALIZED_ENDS, default="disks",
+                   help="the idealized shape's spring ends: the flat end disks, or the XDMF's end tags with "
+                        "their lateral band (the original code)")
+    p.add_argument("--fibers", choices=("auto", "original"), default="auto",
+                   help="the geometry's fibres, or on the idealized shape the original code's (P2 used as they "
+                        "are, surface integrals at UFL's estimated degree)")
     scene_options(p)
     p.add_argument("--output", type=cli.output(), default="results/grow", help="an .h5 file (one protocol) or a folder")
+    p.add_argument("--material", type=Path, metavar="F.toml",
+                   help="TOML file overriding the muscle law's parameters (hyper.material.MaterialParams)")
     p.add_argument("--growth-dt", type=float,
                    help=f"growth step Δtg (h); {GrowthSettings.growth_dt:g} unless --accuracy chooses one")
     p.add_argument("--feedback", choices=FEEDBACK_LAWS, default="hill", help="feedback of CSA on protein synthesis")
+    p.add_argument("--csa-method", choices=CSA_METHODS, default=GrowthSettings.csa_method,
+                   help="the CSA the feedback sees on a mesh without a tagged mid-section: the exact plane cut, or "
+                        "the original code's box staircase (MODEL.md §9); both are recorded (csa_ratio_cut, "
+                        "csa_ratio_box)")
     p.add_argument("--skip-sessions", action="store_true", help="no growth during sessions (the original code)")
+    p.add_argument("--growth-fields", choices=GROWTH_FIELDS, default=GrowthSettings.growth_fields,
+                   help="where G, Ḡ and A live: at the quadrature points, or at the nodes of DG1 fields "
+                        "(the original code)")
     p.add_argument("--fe-stress", action="store_true",
                    help="P = Fe S (the original code) instead of the consistent det(Fg) Fe S Fg⁻ᵀ")
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
@@ -93,7 +114,18 @@ def parser(ask: str = "growth") -> cli.Parser:
     p.add_argument("--restart", action="store_true", help="ignore and delete an existing checkpoint")
     p.add_argument("--plot", type=cli.output(folder=False, suffixes=(".png",)), help="figure; beside the output: "
                    "RESULT.png, or in a folder GEOMETRY_PROTOCOL_growth.png (one protocol), GEOMETRY_growth.png")
+    p.add_argument("--plot-box", type=cli.output(folder=False, suffixes=(".png",)), metavar="PNG",
+                   help="the box measure's staircase at the end of the run: inner and rim facets, each one's area "
+                        "change and the exact cut (meshes without a tagged mid-section); with several protocols "
+                        "PNG's stem gets _PROTOCOL")
     return p
+
+
+def box_plots(path, runs) -> list:
+    """Where --plot-box draws each run: ``path``, or one per protocol."""
+    if path is None:
+        return [None] * len(runs)
+    return [path] if len(runs) == 1 else [path.with_name(f"{path.stem}_{p.name}.png") for p in runs]
 
 
 def choose(scene: fidelity.Scene, args, growth_dt=None) -> fidelity.Choice | None:
@@ -122,6 +154,7 @@ def plan_from(comm, args) -> sequence.Plan:
         run.check_geometry(comm, name)
     runs = protocols.from_option(args.protocol)
     params = signaling.load_params(args.params) if args.params else signaling.SignalingParams()
+    muscle = material.load(args.material) if args.material else material.MaterialParams()
     # hyper grow takes uniform parameters only (per-cell ones are hyper ensemble's)
     scene = fidelity.Scene(name, ",".join(p.name for p in runs), heterogeneous=False, ask="growth")
     choice = choose(scene, args, args.growth_dt)
@@ -132,7 +165,8 @@ def plan_from(comm, args) -> sequence.Plan:
         signaling_dt = GrowthSettings.signaling_dt if args.signaling_dt is None else args.signaling_dt
     settings = build(GrowthSettings, SETTING_OPTIONS, growth_dt=growth_dt, signaling_dt=signaling_dt,
                      feedback=args.feedback, grow_during_sessions=not args.skip_sessions,
-                     consistent_stress=not args.fe_stress, max_halvings=args.max_halvings)
+                     consistent_stress=not args.fe_stress, max_halvings=args.max_halvings,
+                     growth_fields=args.growth_fields, csa_method=args.csa_method)
     petsc_options = dict(cli.petsc_option(text) for text in args.petsc_option)
     if LAG_OPTION in petsc_options:
         jacobian_lag(petsc_options[LAG_OPTION])
@@ -148,15 +182,26 @@ def plan_from(comm, args) -> sequence.Plan:
     problem = cli.unwritable(plot, folder=False)
     if problem is not None:
         raise InputError(f"--plot: {problem}")
+    from hyper import geometry as geo
+
+    if args.plot_box is not None:
+        if mesh is None and name not in geo.ANATOMICAL + geo.MESHED:
+            raise InputError(f"--plot-box: {name} has a tagged mid-section, measured on its facets; the box "
+                             "measure is that of the meshes without one")
+        problem = cli.unwritable(args.plot_box, folder=False)
+        if problem is not None:
+            raise InputError(f"--plot-box: {problem}")
     if mesh is not None:
         mesh.load(comm)  # units and tags, before anything is written
     solver = args.linear_solver or ("auto" if args.accuracy is not None else "lu")
-    specs = [run.RunSpec(name, p, params, settings, petsc_options, mesh=mesh, linear_solver=solver, choice=choice)
-             for p in runs]
+    if (args.ends, args.fibers) != ("disks", "auto") and name != "idealized":
+        raise InputError("--ends and --fibers original apply to the idealized shape only")
+    specs = [run.RunSpec(name, p, params, settings, petsc_options, mesh=mesh, linear_solver=solver, choice=choice,
+                         ends=args.ends, fibers=args.fibers, material=muscle) for p in runs]
     if not args.restart:
         sequence.refuse_foreign_checkpoints(comm, specs, [run.Outputs(h5) for h5 in results])
     return sequence.Plan(specs, [run.Outputs(h5) for h5 in results], plot, args.snapshot_every, args.checkpoint_every,
-                args.restart, choice)
+                args.restart, choice, box_plots(args.plot_box, runs))
 
 
 def answer_signaling(comm, args) -> int:

@@ -25,6 +25,9 @@ import ufl
 from dolfinx import fem
 
 FEEDBACK_LAWS = ("hill", "linear", "none")
+# Where G, Ḡ and A live: at the quadrature points of the forms, or at the nodes of
+# cell-wise linear (DG1) fields, which the forms interpolate (the original code).
+GROWTH_FIELDS = ("quadrature", "dg1")
 
 
 def feedback(x, law: str = "hill", n: float = 4.0, K: float = 1.0):
@@ -102,14 +105,26 @@ class GrowthField:
     mechanics sees exactly the tensors computed here; A is only needed here and stays
     a numpy array. Both are kept for the owned cells; ghost values of Ḡ come from a
     scatter. Arrays are laid out (owned cell, quadrature point, 3, 3).
+
+    ``fields="dg1"`` (`GROWTH_FIELDS`): the same tensors at the four vertices of each
+    cell instead, Ḡ a cell-wise linear (DG1) function that the forms interpolate (the
+    original code's choice, MODEL.md §9); "quadrature point" then reads "vertex".
     """
 
-    def __init__(self, mesh, a0, degree: int):
+    def __init__(self, mesh, a0, degree: int, fields: str = "quadrature"):
+        if fields not in GROWTH_FIELDS:
+            raise ValueError(f"fields must be one of {', '.join(GROWTH_FIELDS)}, got {fields!r}")
         self.mesh = mesh
         cell = mesh.basix_cell()
-        element = basix.ufl.quadrature_element(cell, value_shape=(3, 3), degree=degree)
-        self.space = fem.functionspace(mesh, element)
-        self.points, self.weights = basix.make_quadrature(cell, degree)
+        if fields == "dg1":
+            element = basix.ufl.element("DG", cell, 1, shape=(3, 3))
+            self.space = fem.functionspace(mesh, element)
+            self.points = self.space.element.interpolation_points
+            self.weights = np.full(self.points.shape[0], 1.0 / self.points.shape[0])
+        else:
+            element = basix.ufl.quadrature_element(cell, value_shape=(3, 3), degree=degree)
+            self.space = fem.functionspace(mesh, element)
+            self.points, self.weights = basix.make_quadrature(cell, degree)
         self.cells = np.arange(mesh.topology.index_map(mesh.topology.dim).size_local, dtype=np.int32)
         self.dofs = self.space.dofmap.list[self.cells]  # (owned cell, quadrature point)
         nq = self.points.shape[0]
@@ -163,7 +178,8 @@ class GrowthField:
         self._previous = self.Gbar
 
     def cell_det(self) -> np.ndarray:
-        """det Ḡ averaged over each owned cell (the volume growth per cell)."""
+        """det Ḡ averaged over each owned cell (the volume growth per cell; with DG1
+        fields, the mean of its vertex values)."""
         G = self.Gbar
         det = (G[..., 0, 0] * (G[..., 1, 1] * G[..., 2, 2] - G[..., 1, 2] * G[..., 2, 1])
                - G[..., 0, 1] * (G[..., 1, 0] * G[..., 2, 2] - G[..., 1, 2] * G[..., 2, 0])

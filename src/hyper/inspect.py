@@ -2,9 +2,11 @@
 
     hyper inspect results/grow/idealized_mwf.h5
 
-Prints the provenance (command, versions, git commit, run digest, mesh hash), the
-attribute groups (parameters, protocol, settings, fidelity), and each series with its
-unit, length and first and last values. Works on every HDF5 result the jobs write.
+Prints the provenance (command, versions, git commit, run digest, mesh hash, ranks,
+quadrature degree, linear solver), the attribute groups (signaling, material, protocol,
+settings, heterogeneity, fidelity: the names every job uses), the study file that reruns
+a growth result, and each series with its unit, length and first and last values.
+Works on every HDF5 result the jobs write.
 """
 
 from __future__ import annotations
@@ -16,6 +18,9 @@ import numpy as np
 
 from hyper import cli
 from hyper.params import InputError
+
+# the groups every job names alike, shown first
+GROUPS = ("signaling", "material", "protocol", "settings", "heterogeneity", "fidelity")
 
 
 def parser() -> cli.Parser:
@@ -43,13 +48,17 @@ def describe(path: Path) -> list[str]:
         raise InputError(f"{path}: not a readable HDF5 file ({err})") from None
     lines = [f"{path}: {'complete' if f.attrs.get('complete') else 'INCOMPLETE (its writer did not finish)'}"]
     with f:
-        provenance = {k: v for k, v in f.attrs.items() if k != "complete"}
+        provenance = {k: v for k, v in f.attrs.items() if k not in ("complete", "study")}
         lines.append("provenance:")
         lines += [f"  {k} = {shown(v)}" for k, v in sorted(provenance.items())]
-        for name, item in sorted(f.items()):
-            if isinstance(item, h5py.Group):
-                lines.append(f"[{name}]")
-                lines += [f"  {k} = {shown(v)}" for k, v in sorted(item.attrs.items())]
+        groups = sorted((name for name, item in f.items() if isinstance(item, h5py.Group)),
+                        key=lambda name: (GROUPS.index(name) if name in GROUPS else len(GROUPS), name))
+        for name in groups:
+            lines.append(f"[{name}]")
+            lines += [f"  {k} = {shown(v)}" for k, v in sorted(f[name].attrs.items())]
+        if "study" in f.attrs:
+            lines.append("study (the study file that reruns this result):")
+            lines += [f"  {line}" for line in shown(f.attrs["study"]).splitlines()]
         lines.append("series:")
         for name, item in sorted(f.items()):
             if isinstance(item, h5py.Dataset):

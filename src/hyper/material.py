@@ -17,12 +17,13 @@ import math
 
 import ufl
 
-from hyper.params import InputError
+from hyper.params import InputError, read_toml, replace_from_mapping
 
 
 @dataclasses.dataclass(frozen=True)
 class MaterialParams:
-    """Table 1 of the paper (Röhrle et al. 2012)."""
+    """Table 1 of the paper (Röhrle et al. 2012). A TOML file (`load`) or a study's
+    [material] table overrides fields by name."""
 
     c1: float = 1.0e4  # Pa, Mooney–Rivlin
     c2: float = 1.0e4  # Pa, Mooney–Rivlin
@@ -37,13 +38,23 @@ class MaterialParams:
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise InputError(f"{f.name} must be a finite number, got {value!r}")
+                raise InputError(f"expected a finite number, got {value!r}", field=f.name)
         for name in ("c1", "lambda0", "g2", "k_tendon"):
             if getattr(self, name) <= 0:
-                raise InputError(f"{name} must be > 0, got {getattr(self, name)!r}")
+                raise InputError(f"expected a number > 0, got {getattr(self, name)!r}", field=name)
         for name in ("c2", "sigma_pass", "sigma_act", "g1"):
             if getattr(self, name) < 0:
-                raise InputError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+                raise InputError(f"expected a number >= 0, got {getattr(self, name)!r}", field=name)
+
+
+def from_mapping(values, source: str) -> MaterialParams:
+    """Table 1 with the fields named in ``values`` replaced; errors start with ``source``."""
+    return replace_from_mapping(MaterialParams(), values, source)
+
+
+def load(path) -> MaterialParams:
+    """Table 1 overridden by a TOML file whose keys are `MaterialParams` fields (--material)."""
+    return from_mapping(read_toml(path), str(path))
 
 
 def reference_pressure(params: MaterialParams) -> float:

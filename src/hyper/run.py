@@ -34,8 +34,9 @@ import numpy as np
 from mpi4py import MPI
 
 from hyper import checkpoint as ckpt
-from hyper import fidelity, io, signaling
+from hyper import fidelity, io, provenance, signaling
 from hyper.log import Progress, info
+from hyper.material import MaterialParams
 from hyper.params import InputError, as_attributes
 from hyper.protocols import Protocol
 
@@ -153,6 +154,11 @@ class RunSpec:
     # (None: the geometry's own, 4)
     refine: int = 0
     quadrature_degree: int | None = None
+    # the original code's idealized shape (MODEL.md §9): its end tags ("tags") and its
+    # fibres ("original": P2 used as they are, surface integrals at UFL's estimated degree)
+    ends: str = "disks"
+    fibers: str = "auto"
+    material: MaterialParams = MaterialParams()  # the muscle law's parameters (--material)
 
     def __post_init__(self):
         if self.settings is None:
@@ -192,6 +198,12 @@ class RunSpec:
             out["refine"] = self.refine
         if self.quadrature_degree is not None:
             out["quadrature_degree"] = self.quadrature_degree
+        if self.ends != "disks":
+            out["ends"] = self.ends
+        if self.fibers != "auto":
+            out["fibers"] = self.fibers
+        if self.material != MaterialParams():
+            out["material"] = as_attributes(self.material)
         return out
 
     def digest(self) -> str:
@@ -209,11 +221,12 @@ class RunSpec:
         from hyper import geometry as geo
 
         if self.mesh is not None:
-            if self.refine or self.quadrature_degree is not None:
-                raise InputError("refinement and quadrature degree apply to the built-in geometries only")
+            if self.refine or self.quadrature_degree is not None or (self.ends, self.fibers) != ("disks", "auto"):
+                raise InputError("refinement, quadrature degree, ends and fibres apply to the built-in geometries only")
             return self.mesh.load(comm)
         kwargs = {} if self.quadrature_degree is None else {"quadrature_degree": self.quadrature_degree}
-        geometry = geo.load(self.geometry, comm, **kwargs)
+        geometry = geo.load(self.geometry, comm, ends=self.ends, estimated_surface_degree=not self.unit_fibres,
+                            **kwargs)
         for _ in range(self.refine):
             geometry = geo.refine(geometry)
         return geometry
@@ -221,7 +234,14 @@ class RunSpec:
     def fiber_field(self, geometry):
         from hyper import fibers
 
-        return fibers.fiber_field(geometry, "principal" if self.mesh is not None else "auto")
+        return fibers.fiber_field(geometry, "principal" if self.mesh is not None else self.fibers)
+
+    @property
+    def unit_fibres(self) -> bool:
+        """Whether the mechanics normalises the fibres at its points (all but the original's)."""
+        from hyper import fibers
+
+        return self.fibers not in fibers.UNNORMALISED_KINDS
 
     def cell_params(self, geometry):
         """The signaling parameters of this run on this rank's cells."""
@@ -269,8 +289,8 @@ class Outputs:
 def result_groups(spec: RunSpec, choice: fidelity.Choice | None = None) -> dict:
     """The attribute groups every run's result carries; ``choice`` the run's fidelity
     choice (`Result.choice`)."""
-    groups = {"signaling": as_attributes(spec.params), "protocol": spec.protocol.to_attributes(),
-              "settings": dataclasses.asdict(spec.settings)}
+    groups = {"signaling": as_attributes(spec.params), "material": as_attributes(spec.material),
+              "protocol": spec.protocol.to_attributes(), "settings": dataclasses.asdict(spec.settings)}
     if spec.heterogeneity is not None:
         groups["heterogeneity"] = {**spec.heterogeneity.attributes(), "seed": spec.seed}
     if choice is not None:
@@ -322,16 +342,19 @@ def available_memory_mb(comm) -> float:
 
 
 class Series:
-    """The time series of a run: one row per growth step, `SERIES` and any extra columns.
+    """The time series of a run: one row per growth step, `SERIES`, the model's
+    ``measures`` (names of `StepReport.extra`: both CSA measures of an anatomical mesh)
+    and any extra columns.
 
     ``extra`` is (names, function): the function of the model gives the values of all the
     extra columns at once (so a reduction over the communicator serves them all); every
     rank calls it.
     """
 
-    def __init__(self, extra: tuple[tuple[str, ...], Callable] | None = None):
+    def __init__(self, extra: tuple[tuple[str, ...], Callable] | None = None, measures: tuple[str, ...] = ()):
         self.extra_names, self.extra = extra if extra is not None else ((), None)
-        self.columns = (*SERIES, *self.extra_names)
+        self.measures = tuple(measures)
+        self.columns = (*SERIES, *self.measures, *self.extra_names)
         self.rows = {name: [] for name in self.columns}
 
     def append(self, report, model, wall_s: float) -> None:
@@ -344,6 +367,8 @@ class Series:
         self.rows["newton_iterations"].append(report.newton_iterations)
         self.rows["halvings"].append(report.halvings)
         self.rows["wall_s"].append(wall_s)
+        for name in self.measures:
+            self.rows[name].append(report.extra[name])
         if self.extra is not None:
             for name, value in zip(self.extra_names, self.extra(model), strict=True):
                 self.rows[name].append(value)
@@ -352,7 +377,10 @@ class Series:
         return {k: np.asarray(v) for k, v in self.rows.items()}
 
     def restore(self, saved: dict) -> None:
-        self.rows = {name: list(saved[name]) for name in self.columns}
+        # a checkpoint from before both CSA measures were kept lacks them: unknown there
+        missing = [float("nan")] * len(saved["t"])
+        self.rows = {name: list(saved[name]) if name in saved or name not in self.measures else list(missing)
+                     for name in self.columns}
 
     @property
     def wall_s(self) -> float:
@@ -471,8 +499,9 @@ def build(comm, spec: RunSpec, *, monitor=None, integrator=None):
             solver, reason = choice.linear_solver, choice.linear_solver_reason
         info(comm, f"fidelity: {reason}")
     kwargs = {name: value for name, value in (("monitor", monitor), ("integrator", integrator)) if value is not None}
-    model = CoupledModel(geometry, a0, spec.protocol, params=spec.cell_params(geometry), settings=spec.settings,
-                         petsc_options=dict(spec.petsc_options), linear_solver=solver, **kwargs)
+    model = CoupledModel(geometry, a0, spec.protocol, params=spec.cell_params(geometry), material=spec.material,
+                         settings=spec.settings, petsc_options=dict(spec.petsc_options), linear_solver=solver,
+                         normalize_fibres=spec.unit_fibres, **kwargs)
     return model, a0, {"linear_solver": solver, "linear_solver_reason": reason}, choice
 
 
@@ -495,7 +524,7 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAP
     run_digest = spec.digest()
     model, a0, solver, choice = build(comm, spec, monitor=monitor)
     snaps = Snapshots(model, a0)
-    series = Series(extra_series)
+    series = Series(extra_series, model.measures)
     segments = 1
     saved = None
     path = outputs.checkpoint
@@ -574,7 +603,12 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAP
         "geometry": spec.geometry,
         "mesh_sha256": ckpt.on_rank0(comm, lambda: ckpt.file_digest(*spec.mesh_files())),
         "quadrature_degree": model.geometry.quadrature_degree,
+        "ends": spec.ends,
+        "fibers": spec.fibers,
+        "surface_quadrature_degree": "estimated" if model.geometry.estimated_surface_degree
+        else model.geometry.quadrature_degree,
         "csa0_m2": model.csa0,
+        **{f"csa0_{name}_m2": area for name, area in model.csa0_by_method.items()},
         "volume0_m3": model.volume0,
         "ranks": comm.size,
         "growth_steps": model.step,
@@ -582,6 +616,7 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAP
         "segments": segments,
         "run_digest": run_digest,
         "unknowns": model.problem.num_dofs,
+        "study": provenance.study_text(spec),
         **solver,
     }
     return Result(series.arrays(), meta, model, choice)

@@ -8,11 +8,11 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from hyper import cli, fidelity, run
+from hyper import cli, fidelity, resources, run
 from hyper.checkpoint import inspect, on_rank0
 from hyper.log import hms, info
 
-DATA = Path(__file__).resolve().parents[2] / "data" / "defreitas.csv"
+DATA = resources.folder("data") / "defreitas.csv"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -26,6 +26,7 @@ class Plan:
     checkpoint_every: int
     restart: bool
     choice: fidelity.Choice | None  # from --accuracy; None: the fixed steps
+    box_plots: list[Path | None] | None = None  # per run, the box measure's picture at its end (--plot-box)
 
     # what every run of the command shares
     geometry = property(lambda self: self.specs[0].geometry)
@@ -41,6 +42,15 @@ def refuse_foreign_checkpoints(comm, specs: list[run.RunSpec], outputs: list[run
         on_rank0(comm, lambda: out.checkpoint.is_file() and inspect(out.checkpoint, spec.digest()))
 
 
+def draw_box(comm, model, path: Path, title: str) -> None:
+    """The box measure's staircase of ``model`` as it is (`hyper.plot.box_section`). Collective."""
+    from hyper.plot import box_section
+
+    picture = model.section.box.picture()
+    if comm.rank == 0:
+        info(comm, f"box figure: {box_section(picture, path, title)}")
+
+
 def carry_out(comm, work: Plan, stop, command: list[str], figure: bool = True) -> int:
     """Run a checked plan: every run in turn, its result stored, then the figure (unless
     ``figure`` is false). Returns the exit status; ``command`` goes into the checkpoints."""
@@ -50,7 +60,7 @@ def carry_out(comm, work: Plan, stop, command: list[str], figure: bool = True) -
         if work.choice is not None:
             info(comm, f"fidelity: {work.choice.describe()}")
         results = {}
-        for spec, out in zip(work.specs, work.outputs):
+        for spec, out, box_plot in zip(work.specs, work.outputs, work.box_plots or [None] * len(work.specs)):
             if work.restart:
                 on_rank0(comm, lambda: out.checkpoint.unlink(missing_ok=True))
             try:
@@ -67,6 +77,8 @@ def carry_out(comm, work: Plan, stop, command: list[str], figure: bool = True) -
                        f"{done.series['volume_ratio'][-1]:.5f} in {hms(done.meta['wall_s'])}; wrote {out.h5} "
                        f"and {out.fields}")
             results[spec.protocol.name] = done.series
+            if box_plot is not None:
+                draw_box(comm, done.model, box_plot, f"{spec.label}, day {done.model.t / 24:g}")
             done = None  # the model goes before the next run builds its own
         if comm.rank == 0 and figure:
             from hyper.plot import growth_series

@@ -2,7 +2,9 @@
 
     hyper slurm cohort --ntasks 36 --time 2:00:00 -o cohort.sbatch
     hyper slurm grow-array --protocols mwf weekly -o array.sbatch
-    hyper slurm sobol --ntasks 64 --samples 10000 -o sobol.sbatch
+    hyper slurm sobol --ntasks 64 --samples 8192 -o sobol.sbatch
+    hyper slurm cohort --partition compute --account proj42 --qos normal --mem 4G \
+        --prelude site.sh -o cohort.sbatch     # site.sh: module loads, exports
     sbatch cohort.sbatch
 
 A placeholder is ``{name}`` with a lower-case name; shell variables in the templates are
@@ -22,20 +24,24 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from hyper import cli, log, protocols
+from hyper import cli, log, protocols, resources
 from hyper.params import InputError
 
-ROOT = Path(__file__).resolve().parents[2]
+# the folder a job runs in by default: the checkout, or (installed) the current folder
+ROOT = resources.checkout() or Path.cwd()
 # Slurm keeps the warning time of --signal=SIG@TIME in 16 bits
 MAX_WARN_S = 65535
 TEMPLATES = {
-    "cohort": ROOT / "jobs" / "cohort.sbatch.in",
-    "grow-array": ROOT / "jobs" / "grow-array.sbatch.in",
-    "sobol": ROOT / "jobs" / "sobol.sbatch.in",
+    "cohort": resources.folder("jobs") / "cohort.sbatch.in",
+    "grow-array": resources.folder("jobs") / "grow-array.sbatch.in",
+    "sobol": resources.folder("jobs") / "sobol.sbatch.in",
 }
 PLACEHOLDER = re.compile(r"\{([a-z][a-z0-9_]*)\}")
 # Slurm's time formats: M, M:S, H:M:S, D-H, D-H:M, D-H:M:S
 TIME = re.compile(r"\d+(:\d{1,2}){0,2}|\d+-\d{1,2}(:\d{1,2}){0,2}")
+# Slurm's memory per node: a number with an optional unit (K, M, G, T; M by default)
+MEMORY = re.compile(r"[1-9]\d*[KMGT]?")
+SITE_OPTIONS = ("partition", "account", "qos", "mem")  # the #SBATCH lines a site asks for
 
 
 def placeholders(text: str) -> set[str]:
@@ -97,11 +103,33 @@ def _folder(path: Path, option: str) -> str:
 
 
 def check_syntax(script: str, source: str) -> None:
-    """``bash -n`` on a rendered script: what an --args value can still break."""
+    """``bash -n`` on a rendered script: what an --args value or a --prelude can still break."""
     done = subprocess.run(["bash", "-n"], input=script, capture_output=True, text=True, timeout=30)
     if done.returncode != 0:
         last = (done.stderr.strip().splitlines() or ["no message"])[-1]
-        raise InputError(f"{source}: the rendered script is not valid bash ({last}); check --args")
+        raise InputError(f"{source}: the rendered script is not valid bash ({last}); check --args and --prelude")
+
+
+def site_lines(args: argparse.Namespace) -> str:
+    """The #SBATCH lines of --partition, --account, --qos and --mem (a comment without any)."""
+    if args.mem is not None and not MEMORY.fullmatch(args.mem):
+        raise InputError(f"--mem: {args.mem!r} is not a Slurm memory size (a number with K, M, G or T, e.g. 4G)")
+    lines = [f"#SBATCH --{name}={_word(getattr(args, name), '--' + name)}" for name in SITE_OPTIONS
+             if getattr(args, name) is not None]
+    return "\n".join(lines) if lines else "# (no --partition, --account, --qos or --mem: the site's defaults)"
+
+
+def prelude_lines(path: Path | None) -> str:
+    """The lines of --prelude (module loads, exports), put after the venv's activation."""
+    if path is None:
+        return "# (no --prelude)"
+    if not path.is_file():
+        raise InputError(f"--prelude {path}: no such file")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"--prelude {path}: cannot read: {err}") from None
+    return f"# from --prelude {path}:\n{text.rstrip()}"
 
 
 def values_for(kind: str, args: argparse.Namespace) -> dict[str, Any]:
@@ -129,6 +157,8 @@ def values_for(kind: str, args: argparse.Namespace) -> dict[str, Any]:
         "max_requeue": args.max_requeue,
         "srun_mpi": _word(args.srun_mpi, "--srun-mpi"),
         "args": args.args,
+        "site": site_lines(args),
+        "prelude": prelude_lines(args.prelude),
     }
     if kind == "cohort":
         values["ranks_per_job"] = args.ranks_per_job
@@ -179,6 +209,12 @@ def parser() -> cli.Parser:
         k.add_argument("--max-requeue", type=cli.integer(0), default=3, help="requeue at most this many times")
         k.add_argument("--srun-mpi", default="pmi2", help="srun --mpi plugin")
         k.add_argument("--args", default="", help="extra options for the python command, as one string")
+        k.add_argument("--prelude", type=Path, metavar="FILE",
+                       help="shell lines put into the script after the venv's activation (module loads, exports)")
+        k.add_argument("--partition", help="#SBATCH --partition (the site's default if not given)")
+        k.add_argument("--account", help="#SBATCH --account, the allocation charged")
+        k.add_argument("--qos", help="#SBATCH --qos")
+        k.add_argument("--mem", help="#SBATCH --mem, memory per node (e.g. 4G)")
         if kind == "cohort":
             k.add_argument("--ranks-per-job", type=cli.integer(1), default=1, help="ranks per run")
         elif kind == "grow-array":
@@ -187,7 +223,7 @@ def parser() -> cli.Parser:
             k.add_argument("--protocols", nargs="+", metavar="NAME", default=list(protocols.PAPER), help="protocols")
             k.add_argument("--max-parallel", type=cli.integer(1), help="at most this many array tasks at once")
         else:
-            k.add_argument("--samples", type=cli.integer(2, sobol.MAX_SAMPLES), default=10000,
+            k.add_argument("--samples", type=cli.integer(2, sobol.MAX_SAMPLES), default=sobol.SAMPLES,
                            help="Sobol base samples (hyper.sobol's bounds)")
     return p
 

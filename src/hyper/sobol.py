@@ -2,7 +2,20 @@
 
 What is analysed: N(480 h) under ``daily15`` from the *baseline* rest state (MODEL.md §1),
 as a function of the 14 parameters in ``PARAMETERS``, each uniform on [0.5, 2] x its
-baseline value. SALib draws a Saltelli/Sobol design with second-order terms,
+baseline value. All of it can be changed, in SALib's problem form: ``--parameters``
+and ``--range LOW HIGH`` (multiples of the baselines), ``--protocol``, ``--at H`` (N, or
+the CSA gain, at H hours instead of the protocol's end), or a TOML file (``--problem``)
+with the keys of `CONFIG_KEYS`, at its top level or in a study file's [sobol] table:
+
+    [sobol]
+    function = "signaling"            # or csa-gain
+    protocol = "mwf"
+    at = 336.0                        # h; the protocol's end by default
+    names = ["kM", "kF", "a10"]       # SALib's problem: names and absolute bounds
+    bounds = [[0.005, 0.02], [0.01, 0.04], [0.045, 0.18]]
+    samples = 4096
+
+Options win over the file. SALib draws a Saltelli/Sobol design with second-order terms,
 N (2D + 2) rows for N base samples, and estimates first-order, total and second-order
 indices with bootstrap confidence intervals.
 
@@ -84,6 +97,8 @@ LOW, HIGH = 0.5, 2.0  # bounds as multiples of the baseline value
 ISHIGAMI_AB = (7.0, 0.1)
 # base samples: N (2D + 2) rows of D parameters are drawn at once; 1e7 is about 25 GB
 MAX_SAMPLES = 10**7
+# the default: a power of two, where the Sobol sequence is balanced, near the paper's 10,000
+SAMPLES = 2**13
 
 
 # --------------------------------------------------------------------------------------
@@ -107,6 +122,80 @@ def gain_problem(base: S.SignalingParams | None = None, low: float = LOW, high: 
     value = {n: HILL_N if n == "hill_n" else float(getattr(base, n)) for n in GAIN_PARAMETERS}
     return {"num_vars": len(GAIN_PARAMETERS), "names": list(GAIN_PARAMETERS),
             "bounds": [[low * value[n], high * value[n]] for n in GAIN_PARAMETERS]}
+
+
+def design(function: str, names=None, bounds=None, low: float = LOW, high: float = HIGH) -> dict:
+    """SALib's problem of ``function``: the parameters ``names`` (the function's own set by
+    default), each on its ``bounds`` (absolute) or on [low, high] x its baseline. InputError
+    for an unknown parameter or a bound that is not 0 < lower < upper."""
+    if function == "ishigami":
+        if names is not None or bounds is not None:
+            raise InputError("the Ishigami function has its own three parameters", field="names")
+        return ishigami_problem()
+    if not (math.isfinite(low) and math.isfinite(high) and 0 < low < high):
+        raise InputError(f"expected 0 < LOW < HIGH, multiples of the baselines, got {low:g} {high:g}", field="range")
+    default = GAIN_PARAMETERS if function == "csa-gain" else PARAMETERS
+    names = list(default if names is None else names)
+    known = [f.name for f in dataclasses.fields(S.SignalingParams)] + (["hill_n"] if function == "csa-gain" else [])
+    unknown = [n for n in names if n not in known]
+    if unknown or not names or len(set(names)) != len(names):
+        raise InputError(f"expected distinct parameters of {', '.join(known)}; got {', '.join(names) or 'none'}",
+                         field="names")
+    if bounds is None:
+        base = S.SignalingParams()
+        value = {n: HILL_N if n == "hill_n" else float(getattr(base, n)) for n in names}
+        bounds = [[low * value[n], high * value[n]] for n in names]
+    bounds = [list(map(float, b)) for b in bounds]
+    if len(bounds) != len(names):
+        raise InputError(f"expected one [lower, upper] pair per parameter ({len(names)}), got {len(bounds)}",
+                         field="bounds")
+    for name, (lo, hi) in zip(names, bounds):
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):
+            raise InputError(f"{name}: expected 0 < lower < upper, got [{lo:g}, {hi:g}]", field="bounds")
+    return {"num_vars": len(names), "names": names, "bounds": bounds}
+
+
+CONFIG_KEYS = ("function", "protocol", "at", "names", "bounds", "num_vars", "samples")
+
+
+def read_config(path) -> dict:
+    """The analysis a TOML file describes (keys `CONFIG_KEYS`; SALib's ``num_vars``, when
+    given, must count ``names``): its top level, or a study file's [sobol] table."""
+    from hyper.params import read_toml
+
+    data, where = read_toml(path), str(path)
+    if "sobol" in data:
+        data, where = data["sobol"], f"{path}: sobol"
+        if not isinstance(data, dict):
+            raise InputError(f"{where}: expected a table ([sobol])")
+    unknown = sorted(set(data) - set(CONFIG_KEYS))
+    if unknown:
+        raise InputError(f"{where}: unknown key(s) {', '.join(unknown)}; known: {', '.join(CONFIG_KEYS)}")
+    checks = {
+        "function": lambda v: v in FUNCTIONS, "protocol": lambda v: isinstance(v, str),
+        "at": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+        "names": lambda v: isinstance(v, list) and all(isinstance(n, str) for n in v),
+        "bounds": lambda v: isinstance(v, list) and all(
+            isinstance(b, list) and len(b) == 2 and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                        for x in b) for b in v),
+        "num_vars": lambda v: isinstance(v, int) and not isinstance(v, bool),
+        "samples": lambda v: isinstance(v, int) and not isinstance(v, bool) and 2 <= v <= MAX_SAMPLES,
+    }
+    expected = {"function": f"one of {', '.join(FUNCTIONS)}", "protocol": "a protocol name or file",
+                "at": "a number of hours", "names": "an array of parameter names",
+                "bounds": "an array of [lower, upper] pairs", "num_vars": "an integer",
+                "samples": f"an integer in [2, {MAX_SAMPLES}]"}
+    for key, value in data.items():
+        if not checks[key](value):
+            raise InputError(f"{where}: {key}: expected {expected[key]}, got {value!r}")
+    if "num_vars" in data and data["num_vars"] != len(data.get("names", ())):
+        raise InputError(f"{where}: num_vars: {data['num_vars']} does not count names ({len(data.get('names', ()))})")
+    if "bounds" in data and "names" not in data:
+        raise InputError(f"{where}: bounds: give the names they belong to")
+    text = data.get("protocol")
+    if text is not None and text not in (*protocols.NAMES, "all") and not Path(text).is_absolute():
+        data["protocol"] = str(Path(path).parent / data["protocol"])  # a file beside the config
+    return data
 
 
 def ishigami_problem() -> dict:
@@ -155,24 +244,25 @@ def sample_params(X: np.ndarray, names=PARAMETERS, base: S.SignalingParams | Non
 
 
 def final_N(X: np.ndarray, *, names=PARAMETERS, protocol: Protocol | None = None, dt: float = 0.05,
-            base: S.SignalingParams | None = None, backend: str = "c") -> np.ndarray:
-    """N at the end of ``protocol`` (default daily15) for every row of X, from the baseline rest
-    state, by RK4 with steps of at most dt. NaN marks a member whose trajectory failed (c
-    backend); the numpy backend raises ``SignalingError`` instead."""
+            base: S.SignalingParams | None = None, backend: str = "c", at: float | None = None) -> np.ndarray:
+    """N at ``at`` h (default: the end) of ``protocol`` (default daily15) for every row of X,
+    from the baseline rest state, by RK4 with steps of at most dt. NaN marks a member whose
+    trajectory failed (c backend); the numpy backend raises ``SignalingError`` instead."""
     protocol = named("daily15") if protocol is None else protocol
+    end = protocol.end if at is None else at
     p = sample_params(np.atleast_2d(X), names, base)
     y0 = S.rest_state(base)
     if backend == "numpy":
-        return S.integrate(p, protocol, y0, 0.0, protocol.end, dt, backend="numpy")[1][-1, 4]
+        return S.integrate(p, protocol, y0, 0.0, end, dt, backend="numpy")[1][-1, 4]
     if backend != "c":
         raise InputError(f"backend must be 'c' or 'numpy', got {backend!r}")
-    return S.integrate(p, protocol, y0, 0.0, protocol.end, dt, backend="c", failures="mask")[1][-1, 4]
+    return S.integrate(p, protocol, y0, 0.0, end, dt, backend="c", failures="mask")[1][-1, 4]
 
 
 def csa_gain(X: np.ndarray, *, names=GAIN_PARAMETERS, protocol: Protocol | None = None, dt: float = 0.05,
              geometry: str = GAIN_GEOMETRY, base: S.SignalingParams | None = None,
-             backend: str = "c") -> np.ndarray:
-    """CSA/CSA0 - 1 at the end of ``protocol`` (default mwf, 1512 h) for every row of X, on
+             backend: str = "c", at: float | None = None) -> np.ndarray:
+    """CSA/CSA0 - 1 at ``at`` h (default: the end) of ``protocol`` (default mwf, 1512 h) for every row of X, on
     the fast growth model (`surrogate.grow`, Hill feedback). A column named ``hill_n`` is the
     feedback's exponent; the others replace SignalingParams fields. NaN marks a member whose
     trajectory failed (c backend); the numpy backend raises ``SignalingError`` instead."""
@@ -188,7 +278,8 @@ def csa_gain(X: np.ndarray, *, names=GAIN_PARAMETERS, protocol: Protocol | None 
     p = sample_params(X[:, fields], [names[k] for k in fields], base)
     if p.size is None:  # only the Hill exponent varies: a batch all the same
         p = dataclasses.replace(p, kM=np.full(X.shape[0], float(p.kM)))
-    g = surrogate.grow(p, protocol, [protocol.end], signaling_dt=dt, factor=surrogate.section_factor(geometry),
+    end = protocol.end if at is None else at
+    g = surrogate.grow(p, protocol, [end], signaling_dt=dt, factor=surrogate.section_factor(geometry),
                        hill_n=hill_n, backend=backend, failures="mask" if backend == "c" else "raise")
     return g.csa_ratio[-1] - 1.0
 
@@ -273,12 +364,53 @@ def species_of(name: str) -> str:
     return next((s for s, names in SPECIES.items() if name in names), "other")
 
 
+# label placement in figure_spread, in pixels of the figure as drawn (100 dpi): a
+# character of an 8 pt label, the room around a label, its height, a marker's radius
+LABEL_CHAR_PX, LABEL_PAD_PX, LABEL_HEIGHT_PX, MARKER_PX = 6.0, 6.0, 13.0, 8.0
+
+
+def label_offsets(points: np.ndarray, sizes, marker: float) -> list[tuple[float, float]]:
+    """Offsets (pixels, from its point to its box's lower left corner) of one label per
+    point such that no two label boxes overlap and no box covers a point: each label in
+    turn takes the first free place on rings of growing radius around its point."""
+    points = np.asarray(points, dtype=float)
+    boxes: list[tuple[float, float, float, float]] = []
+
+    def free(x0, y0, w, h) -> bool:
+        if any(x0 < b[2] and b[0] < x0 + w and y0 < b[3] and b[1] < y0 + h for b in boxes):
+            return False
+        return not np.any((points[:, 0] > x0 - marker) & (points[:, 0] < x0 + w + marker)
+                          & (points[:, 1] > y0 - marker) & (points[:, 1] < y0 + h + marker))
+
+    out = []
+    for (x, y), (w, h) in zip(points, sizes):
+        choice = None
+        for radius in marker * (1.2 + 0.8 * np.arange(15)):
+            for angle in np.deg2rad([30, -30, 150, -150, 90, -90, 0, 180, 60, -60, 120, -120]):
+                dx, dy = radius * math.cos(angle), radius * math.sin(angle)
+                # the box extends from the point's side away from it
+                x0 = x + dx - (w if dx < 0 else 0.0)
+                y0 = y + dy - (h if dy < 0 else 0.0)
+                if free(x0, y0, w, h):
+                    choice = (x0 - x, y0 - y, w, h)
+                    break
+            if choice is not None:
+                break
+        if choice is None:  # nowhere free: the first place, overlapping
+            choice = (marker, marker, w, h)
+        boxes.append((x + choice[0], y + choice[1], x + choice[0] + w, y + choice[1] + h))
+        out.append(choice[:2])
+    return out
+
+
 def figure_spread(ind: Indices, output: str = "N(480 h)"):
     """The Fig. 3F analog: for each parameter the bootstrap mean of its index against the bootstrap
     standard deviation, first-order and total side by side. Colour: species; a coupling
-    parameter is split between its own species and the one it comes from."""
+    parameter is split between its own species and the one it comes from. Labels are
+    placed where they overlap no other label and no point (`label_offsets`)."""
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.6))
+    boots = []
     for ax, (label, boot) in zip(axes, (("first-order $S_1$", ind.S1_boot), ("total $S_T$", ind.ST_boot))):
         mean, std = boot.mean(axis=0), boot.std(axis=0, ddof=1)
         for k, name in enumerate(ind.names):
@@ -286,16 +418,27 @@ def figure_spread(ind: Indices, output: str = "N(480 h)"):
             alt = SOURCE.get(name)
             ax.plot(mean[k], std[k], "o", ms=10, color=COLOURS[species], markeredgecolor="k",
                     fillstyle="left" if alt else "full", markerfacecoloralt=COLOURS[alt] if alt else "none")
-            ax.annotate(name, (mean[k], std[k]), xytext=(6, 4), textcoords="offset points", fontsize=8)
+        ax.margins(0.12)  # room for the labels of the outer points
         ax.set_xlabel(f"mean of {label} over the bootstrap")
         ax.set_ylabel("standard deviation over the bootstrap")
         ax.grid(alpha=0.3)
+        boots.append((ax, mean, std))
     present = {species_of(n) for n in ind.names}
     handles = [plt.Line2D([], [], marker="o", ls="", color=COLOURS[s], markeredgecolor="k", label=s)
                for s in SPECIES if s in present]
     axes[1].legend(handles=handles, loc="best", fontsize=8, title="species (split: coupling)")
     fig.suptitle(f"Sobol indices of {output}, {ind.base_samples} base samples")
     fig.tight_layout()
+    fig.canvas.draw()  # the final limits and layout, so that points map to their pixels
+    pt = 72.0 / fig.dpi
+    for ax, mean, std in boots:
+        points = ax.transData.transform(np.column_stack([mean, std]))
+        sizes = [(LABEL_CHAR_PX * len(n) + LABEL_PAD_PX, LABEL_HEIGHT_PX) for n in ind.names]
+        for k, (dx, dy) in enumerate(label_offsets(points, sizes, MARKER_PX)):
+            far = math.hypot(dx, dy) > 3 * MARKER_PX
+            ax.annotate(ind.names[k], (mean[k], std[k]), xytext=(dx * pt, dy * pt),
+                        textcoords="offset points", fontsize=8, ha="left", va="bottom",
+                        arrowprops={"arrowstyle": "-", "lw": 0.5, "color": "0.4"} if far else None)
     return fig
 
 
@@ -405,6 +548,11 @@ def remove_stale(folder: Path, key: str) -> list[str]:
 # --------------------------------------------------------------------------------------
 # The job
 
+# the units of sobol.h5's datasets: the indices are fractions of the output's variance
+INDEX_UNITS = {"parameters": "name", "X": "the parameters' own (see the bounds group)", "Y": "the output's own",
+               "failed_rows": "index", **{k: "1" for k in ("S1", "S1_conf", "ST", "ST_conf", "S2", "S2_conf",
+                                                          "S1_bootstrap", "ST_bootstrap")}}
+
 
 FUNCTIONS = ("signaling", "csa-gain", "ishigami")
 SECTION_GEOMETRIES = ("idealized", "cylinder")
@@ -416,8 +564,19 @@ def parser() -> cli.Parser:
                    "(--function csa-gain) of the 9-week CSA gain under mwf on the fast growth model,\n"
                    "farmed over MPI ranks (run under mpirun -n K). Writes sobol.h5, indices.csv and two\n"
                    "figures to --output.")
-    p.add_argument("--samples", type=cli.integer(2, MAX_SAMPLES), default=10000,
-                   help="base samples N; N (2D + 2) evaluations")
+    p.add_argument("--samples", type=cli.integer(2, MAX_SAMPLES),
+                   help=f"base samples N (a power of two balances the design); N (2D + 2) evaluations. "
+                        f"Default: the --problem file's, else {SAMPLES}")
+    p.add_argument("--problem", type=Path, metavar="F.toml",
+                   help="the analysis in SALib's problem form (names, bounds) with function, protocol, at, "
+                        "samples: a TOML file, or a study file's [sobol] table; options override it")
+    p.add_argument("--parameters", nargs="+", metavar="NAME",
+                   help="the parameters varied (SignalingParams fields; csa-gain also hill_n); the function's "
+                        "own set by default")
+    p.add_argument("--range", nargs=2, type=float, metavar=("LOW", "HIGH"), default=(LOW, HIGH),
+                   help="each parameter uniform on [LOW, HIGH] x its baseline (unless the file gives bounds)")
+    p.add_argument("--at", type=float, metavar="H",
+                   help="the output's time (h): N, or the CSA gain, at H hours; the protocol's end by default")
     p.add_argument("--output", type=cli.output(folder=True), default="results/sobol", help="output folder")
     p.add_argument("--signaling-dt", type=float, default=0.05, metavar="H", help="largest RK4 step (h)")
     p.add_argument("--chunk", type=cli.integer(1, MAX_SAMPLES), default=10000, help="rows per job and per chunk file")
@@ -431,19 +590,23 @@ def parser() -> cli.Parser:
                    help="failed members: compute no indices (abort), or drop their base samples")
     p.add_argument("--backend", choices=("c", "numpy"), default="c",
                    help="RK4 backend: compiled (c) or signaling.integrate (numpy); same numbers")
-    p.add_argument("--function", choices=FUNCTIONS, default="signaling",
+    p.add_argument("--function", choices=FUNCTIONS,
                    help="the model: N(end) of the signaling model, CSA/CSA0 - 1 at the end on the fast "
                    "growth model (17 parameters: the rates, kM, kF, thetaM, thetaF, the Hill exponent), "
-                   "or the Ishigami test function")
+                   "or the Ishigami test function; signaling unless the --problem file says")
     p.add_argument("--geometry", choices=tuple(SECTION_GEOMETRIES), default=GAIN_GEOMETRY,
                    help="csa-gain: whose section factor turns N into CSA (surrogate.SECTION_FACTOR)")
     return p
 
 
-def _settings(args, protocol: Protocol | None) -> dict:
+def _settings(args, protocol: Protocol | None, prob: dict) -> dict:
     """Everything a chunk's outputs depend on besides the sample matrix."""
     if args.function == "ishigami":
         return {"function": "ishigami", "a_b": ISHIGAMI_AB}
+    return {**_model_settings(args, protocol), "problem": prob, "at": args.at}
+
+
+def _model_settings(args, protocol: Protocol) -> dict:
     if args.function == "csa-gain":
         from hyper import surrogate
 
@@ -455,25 +618,47 @@ def _settings(args, protocol: Protocol | None) -> dict:
             "baseline": dataclasses.asdict(S.SignalingParams()), "start": "baseline rest state"}
 
 
-def _check(args) -> Protocol | None:
+def _check(args) -> tuple[Protocol | None, dict]:
+    """The protocol and SALib's problem of the options and the --problem file (options win);
+    completes ``args`` with the file's function, samples and time."""
     positive_hours(args.signaling_dt, "--signaling-dt", S.SMALLEST_DT)
+    config = read_config(args.problem) if args.problem is not None else {}
+    source = f"--problem {args.problem}: " if args.problem is not None else ""
+    args.function = args.function or config.get("function", "signaling")
+    args.samples = args.samples or config.get("samples", SAMPLES)
+    names = args.parameters or config.get("names")
+    bounds = config.get("bounds") if args.parameters is None else None
+    try:
+        prob = design(args.function, names, bounds, *args.range)
+    except InputError as err:
+        from_file = err.field == "bounds" or (err.field == "names" and not args.parameters)
+        where = f"{source}{err.field}" if from_file else {"names": "--parameters", "range": "--range"}[err.field]
+        raise InputError(f"{where}: {err.reason}") from None
     if args.function == "ishigami":
-        return None
+        if args.at is not None or args.protocol is not None:
+            raise InputError("--at and --protocol: the Ishigami function has no time and no protocol")
+        return None, prob
     default = GAIN_PROTOCOL if args.function == "csa-gain" else "daily15"
-    found = protocols.from_option(default if args.protocol is None else args.protocol)
+    text = args.protocol or config.get("protocol", default)
+    found = protocols.from_option(text)
     if len(found) > 1:
-        raise InputError(f"--protocol {args.protocol}: the analysis takes one protocol")
-    return found[0]
+        raise InputError(f"--protocol {text}: the analysis takes one protocol")
+    args.at = args.at if args.at is not None else config.get("at")
+    if args.at is not None:
+        positive_hours(args.at, "--at")
+        if args.at > found[0].end:
+            raise InputError(f"--at: {args.at:g} h is after the end of {found[0].name} ({found[0].end:g} h)")
+    return found[0], prob
 
 
 def run(comm, args) -> int:
-    protocol = _check(args)
+    protocol, prob = _check(args)
     # a second analysis writing the same folder would take the first one's chunks for stale
     with cli.hold(comm, [args.output]):
-        return analyse(comm, args, protocol)
+        return analyse(comm, args, protocol, prob)
 
 
-def analyse(comm, args, protocol) -> int:
+def analyse(comm, args, protocol, prob) -> int:
     from hyper import io
     from hyper.farm import summary_line
 
@@ -482,12 +667,11 @@ def analyse(comm, args, protocol) -> int:
     # done by rank 0 alone (when it writes the results) it would meet the other ranks' next
     # collective call and hang. All ranks import it here, together.
     io.versions()
-    prob = {"ishigami": ishigami_problem, "csa-gain": gain_problem, "signaling": problem}[args.function]()
     D = prob["num_vars"]
     X = sample(prob, args.samples, args.seed) if comm.rank == 0 else np.empty((args.samples * (2 * D + 2), D))
     _idle_barrier(comm)
     comm.Bcast(X, root=0)
-    settings = _settings(args, protocol)
+    settings = _settings(args, protocol, prob)
     key = digest(X, settings)
     if args.function == "ishigami":
         evaluate = ishigami
@@ -500,10 +684,11 @@ def analyse(comm, args, protocol) -> int:
                 return cli.EXIT_SOME_FAILED
             S.c_backend_error()
         if args.function == "csa-gain":
-            evaluate = functools.partial(csa_gain, protocol=protocol, dt=args.signaling_dt,
-                                         geometry=args.geometry, backend=args.backend)
+            evaluate = functools.partial(csa_gain, names=prob["names"], protocol=protocol, dt=args.signaling_dt,
+                                         geometry=args.geometry, backend=args.backend, at=args.at)
         else:
-            evaluate = functools.partial(final_N, protocol=protocol, dt=args.signaling_dt, backend=args.backend)
+            evaluate = functools.partial(final_N, names=prob["names"], protocol=protocol, dt=args.signaling_dt,
+                                         backend=args.backend, at=args.at)
     chunks = args.output / "chunks"
     if comm.rank == 0:
         stale = remove_stale(chunks, key)
@@ -587,6 +772,7 @@ def _finish(args, prob, X, Y, results, protocol, key, timing, start, ranks) -> i
         "evaluation_cpu_s": eval_cpu, "cpu_share": share,
         "evaluations_computed": evaluated_rows, "evaluations_per_s": rate, "version_SALib": version("SALib"),
         "protocol": protocol.name if protocol else "", "start_state": "baseline rest state (MODEL.md §1)",
+        "at_h": (protocol.end if args.at is None else args.at) if protocol else float("nan"),
     }
     if args.function == "csa-gain":
         from hyper import surrogate
@@ -595,22 +781,26 @@ def _finish(args, prob, X, Y, results, protocol, key, timing, start, ranks) -> i
                      geometry=args.geometry, section_factor=surrogate.section_factor(args.geometry),
                      hill_n_baseline=HILL_N)
     groups = {"bounds": {n: np.asarray(b, dtype=float) for n, b in zip(prob["names"], prob["bounds"])}}
+    groups["settings"] = {"function": args.function, "signaling_dt": args.signaling_dt, "backend": args.backend,
+                          "samples": args.samples, "seed": args.seed, "chunk": args.chunk,
+                          "at_h": attrs["at_h"], "problem": args.problem.name if args.problem else ""}
     if protocol is not None:
         groups["protocol"] = protocol.to_attributes()
-        groups["baseline"] = dataclasses.asdict(S.SignalingParams())
+        groups["signaling"] = dataclasses.asdict(S.SignalingParams())
     out = args.output
     io.write_series(out / "sobol.h5", {
         "parameters": np.array(prob["names"], dtype="S"), "X": X, "Y": Y, "failed_rows": failed,
         "S1": ind.S1, "S1_conf": ind.S1_conf, "ST": ind.ST, "ST_conf": ind.ST_conf, "S2": ind.S2,
         "S2_conf": ind.S2_conf, "S1_bootstrap": ind.S1_boot, "ST_bootstrap": ind.ST_boot,
-    }, attrs=attrs, groups=groups)
+    }, attrs=attrs, groups=groups, units=INDEX_UNITS)
     with io.atomic_path(out / "indices.csv") as tmp:
         with open(tmp, "w") as f:
             f.write("parameter,S1,S1_conf,ST,ST_conf\n")
             for k, name in enumerate(ind.names):
                 f.write(f"{name},{ind.S1[k]:.6g},{ind.S1_conf[k]:.6g},{ind.ST[k]:.6g},{ind.ST_conf[k]:.6g}\n")
-    label = {"signaling": f"N({protocol.end:g} h)" if protocol else "",
-             "csa-gain": f"the CSA gain at {protocol.end:g} h ({protocol.name})" if protocol else "",
+    at = (protocol.end if args.at is None else args.at) if protocol else None
+    label = {"signaling": f"N({at:g} h, {protocol.name})" if protocol else "",
+             "csa-gain": f"the CSA gain at {at:g} h ({protocol.name})" if protocol else "",
              "ishigami": "the Ishigami function"}[args.function]
     for name, make in (("spread.png", figure_spread), ("indices.png", figure_bars)):
         plot.save(make(ind, label), out / name, dpi=130)

@@ -32,6 +32,9 @@ of inputs are relative to the study file's folder (the output folder to the curr
     [signaling]                # signaling parameters (fields of hyper.signaling.SignalingParams)
     a10 = 0.09
 
+    [material]                 # the muscle law's parameters (fields of hyper.material.MaterialParams)
+    sigma_act = 2.5e5          # Pa
+
     [heterogeneity]            # per-cell signaling parameters (hyper.heterogeneity), optional
     model = "uniform-noise"    # or "matern", with length (m) and nu
     epsilon = 0.01
@@ -43,10 +46,17 @@ of inputs are relative to the study file's folder (the output folder to the curr
     quadrature_degree = 4      # built-in geometries only
     linear_solver = "lu"       # lu, iterative or auto (lu; auto with accuracy)
     max_halvings = 4
+    feedback = "hill"          # of CSA on protein synthesis: hill, linear or none
+    grow_during_sessions = true   # false: the original code's
+    consistent_stress = true      # false: the original code's P = Fe S
 
     [output]
     folder = "results/study"   # (the default)
     figures = true
+
+    [sobol]                    # the sensitivity analysis of `hyper sobol --problem STUDY.toml`
+    names = ["kM", "kF"]       # (checked here, run there; see hyper.sobol)
+    bounds = [[0.005, 0.02], [0.0095, 0.038]]
 
 Precedence: a command-line option wins over the study file, and the file over the
 defaults (--output over [output] folder, --growth-dt over [numerics] growth_dt, and so on
@@ -69,13 +79,15 @@ from pathlib import Path
 
 from hyper import cli, cohort, fidelity, protocols, run, sequence, signaling
 from hyper import geometry as geo
+from hyper import material as mat
 from hyper.coupled import GrowthSettings
 from hyper.heterogeneity import Heterogeneity
 from hyper.log import info
 from hyper.params import InputError, as_attributes, build, positive_hours, read_toml, replace_from_mapping
 from hyper.protocols import Protocol
 
-KEYS = ("geometries", "protocols", "mesh", "protocol", "signaling", "heterogeneity", "numerics", "output")
+KEYS = ("geometries", "protocols", "mesh", "protocol", "signaling", "material", "heterogeneity", "numerics",
+        "output", "sobol")
 MESH_KEYS = ("file", "unit")
 HETEROGENEITY_KEYS = ("model", "epsilon", "length", "nu", "seed")
 OUTPUT_KEYS = ("folder", "figures")
@@ -95,6 +107,9 @@ class Numerics:
     quadrature_degree: int | None = None  # of the built-in geometries; None: theirs (4)
     linear_solver: str | None = None  # lu, iterative or auto; None: lu, or auto with accuracy
     max_halvings: int = GrowthSettings.max_halvings  # cuts of a failing growth step
+    feedback: str = GrowthSettings.feedback  # hill, linear or none
+    grow_during_sessions: bool = GrowthSettings.grow_during_sessions  # False: the original code's
+    consistent_stress: bool = GrowthSettings.consistent_stress  # False: the original code's P = Fe S
 
     def __post_init__(self):
         for name in ("growth_dt", "signaling_dt"):
@@ -118,6 +133,13 @@ class Numerics:
         if isinstance(m, bool) or not isinstance(m, int) or not 0 <= m <= GrowthSettings.MAX_HALVINGS:
             raise InputError(f"expected an integer in [0, {GrowthSettings.MAX_HALVINGS}], got {m!r}",
                              field="max_halvings")
+        from hyper.growth import FEEDBACK_LAWS
+
+        if self.feedback not in FEEDBACK_LAWS:
+            raise InputError(f"expected one of {', '.join(FEEDBACK_LAWS)}, got {self.feedback!r}", field="feedback")
+        for name in ("grow_during_sessions", "consistent_stress"):
+            if not isinstance(getattr(self, name), bool):
+                raise InputError(f"expected true or false, got {getattr(self, name)!r}", field=name)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -143,6 +165,7 @@ class Study:
     meshes: tuple[run.MeshFile, ...]  # the user's mesh files
     protocols: tuple[Protocol, ...]
     signaling: signaling.SignalingParams = signaling.SignalingParams()
+    material: mat.MaterialParams = mat.MaterialParams()
     heterogeneity: Heterogeneity | None = None
     seed: int | None = None  # of the per-cell parameters
     numerics: Numerics = Numerics()
@@ -256,6 +279,10 @@ def load(path: str | Path, overrides: dict | None = None) -> Study:
     base = path.parent
     data = read_toml(path)
     keys_of(data, where, KEYS)
+    if "sobol" in data:
+        from hyper import sobol
+
+        sobol.read_config(path)
     overrides = overrides or {}
     protocol_list = [p for text in strings(data, "protocols", where)
                      for p in named_protocol(text, base, f"{where}: protocols")]
@@ -265,6 +292,8 @@ def load(path: str | Path, overrides: dict | None = None) -> Study:
     params = replace_from_mapping(signaling.SignalingParams(), table(data, "signaling", where,
                                                                      tuple(as_attributes(signaling.SignalingParams()))),
                                   f"{where}: signaling")
+    muscle = mat.from_mapping(table(data, "material", where, tuple(as_attributes(mat.MaterialParams()))),
+                              f"{where}: material")
     het, seed = heterogeneity_of(table(data, "heterogeneity", where, HETEROGENEITY_KEYS), f"{where}: heterogeneity")
     sections = {}
     for name, cls in (("numerics", Numerics), ("output", Output)):
@@ -282,8 +311,8 @@ def load(path: str | Path, overrides: dict | None = None) -> Study:
         # an error names where its key was set: the file, or the option that overrode it
         sections[name] = build(cls, sources, **values)
     try:
-        return Study(tuple(strings(data, "geometries", where)), meshes, tuple(protocol_list), params, het, seed,
-                     **sections)
+        return Study(tuple(strings(data, "geometries", where)), meshes, tuple(protocol_list), params, muscle, het,
+                     seed, **sections)
     except InputError as err:
         raise InputError(f"{where}: {err}") from None
 
@@ -335,7 +364,8 @@ def steps(study: Study) -> tuple[GrowthSettings, fidelity.Choice | None]:
     settings = build(GrowthSettings, {k: f"numerics.{k}" for k in ("growth_dt", "signaling_dt", "max_halvings")},
                      growth_dt=GrowthSettings.growth_dt if growth_dt is None else growth_dt,
                      signaling_dt=GrowthSettings.signaling_dt if signaling_dt is None else signaling_dt,
-                     max_halvings=n.max_halvings)
+                     max_halvings=n.max_halvings, feedback=n.feedback, grow_during_sessions=n.grow_during_sessions,
+                     consistent_stress=n.consistent_stress)
     return settings, choice
 
 
@@ -343,7 +373,7 @@ def spec_options(study: Study, choice) -> dict:
     """The `RunSpec` fields a study sets beyond geometry, protocol, parameters and settings."""
     solver = study.numerics.linear_solver or ("auto" if choice is not None else "lu")
     return {"heterogeneity": study.heterogeneity, "seed": study.seed, "linear_solver": solver, "choice": choice,
-            "quadrature_degree": study.numerics.quadrature_degree}
+            "quadrature_degree": study.numerics.quadrature_degree, "material": study.material}
 
 
 def check_inputs(comm, study: Study) -> None:
@@ -354,12 +384,17 @@ def check_inputs(comm, study: Study) -> None:
         mesh.load(comm)
 
 
+def first_spec(study: Study, settings, choice) -> run.RunSpec:
+    """The run of the first geometry with the first protocol."""
+    return run.RunSpec(study.names[0], study.protocols[0], study.signaling, settings, {},
+                       mesh=study.meshes[0] if study.meshes else None, **spec_options(study, choice))
+
+
 def one_run(comm, study: Study, settings, choice, stop, command) -> int:
     """One geometry × one protocol: `hyper grow`'s plan and its execution."""
     name, protocol = study.names[0], study.protocols[0]
     folder = study.output.folder
-    spec = run.RunSpec(name, protocol, study.signaling, settings, {}, mesh=study.meshes[0] if study.meshes else None,
-                       **spec_options(study, choice))
+    spec = first_spec(study, settings, choice)
     outputs = [run.Outputs(folder / f"{name}_{protocol.name}.h5")]
     sequence.refuse_foreign_checkpoints(comm, [spec], outputs)
     work = sequence.Plan([spec], outputs, folder / f"{name}_growth.png", run.SNAPSHOT_EVERY, run.CHECKPOINT_EVERY,

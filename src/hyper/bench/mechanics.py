@@ -121,7 +121,7 @@ def _worker_newton(geometry_name: str) -> dict:
             "unknowns": problem.num_dofs, "setup_s": setup_s, "solves": solves,
             "newton_iterations": iterations, "solve_s_total": solve_s,
             "s_per_solve": solve_s / len(solves), "s_per_newton_iteration": solve_s / iterations,
-            "reaction_force": problem.reaction_force()}
+            "reaction_force_original": problem.reaction_force_original()}
 
 
 # ------------------------------------------------------------------------------- main

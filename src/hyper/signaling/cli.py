@@ -44,7 +44,8 @@ def write(path: Path, series: dict, params, protocol, dt: float, sample_every: f
         path, series,
         attrs={"model": "signaling (MODEL.md §1)", "integrator": "RK4", "dt": dt, "sample_every": sample_every,
                "N_final": float(series["N"][-1])},
-        groups={"parameters": as_attributes(params), "protocol": protocol.to_attributes(), **(groups or {})},
+        groups={"signaling": as_attributes(params), "protocol": protocol.to_attributes(),
+                "settings": {"integrator": "RK4", "signaling_dt": dt, "sample_every": sample_every}, **(groups or {})},
     )
 
 

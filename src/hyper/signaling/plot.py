@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from hyper.plot import pyplot
+from hyper.plot import protocol_colour, pyplot
 from hyper.protocols import WEEK, Protocol
 
 STYLES = {"weekly": (0, (4, 2))}  # dashed: weekly and mwf coincide until the second session
-COLORS = {"mwf": "#c0392b", "every3days": "#2471a3", "weekly": "#229954", "daily15": "#8e44ad", "rest": "#555555"}
 LABELS = {
     "mwf": "MWF: 3×/week, 1 h, I = 0.8",
     "every3days": "every 3 days: 4 h, I = 0.2",
@@ -25,10 +24,6 @@ PANELS = (
 )
 
 
-def _color(name: str, k: int) -> str:
-    return COLORS.get(name, f"C{k}")
-
-
 def figure_protocols(runs: dict, protocols: dict[str, Protocol], params, insets: dict | None = None):
     """Five panels (IGF1, AKT, FOXO, mTOR, N) over the protocols' time span, one line per
     protocol, with 24-hour insets of IGF1 and AKT after the first session start, and a
@@ -43,8 +38,8 @@ def figure_protocols(runs: dict, protocols: dict[str, Protocol], params, insets:
     fig, axes = plt.subplots(3, 2, figsize=(12, 10.5), constrained_layout=True)
     panels = axes.ravel()
     for (key, letter, label), ax in zip(PANELS, panels):
-        for k, (name, series) in enumerate(runs.items()):
-            ax.plot(series["t"] / WEEK, series[key], color=_color(name, k), ls=STYLES.get(name, "-"), lw=0.9,
+        for name, series in runs.items():
+            ax.plot(series["t"] / WEEK, series[key], color=protocol_colour(name), ls=STYLES.get(name, "-"), lw=0.9,
                     label=LABELS.get(name, name))
         ax.set_title(f"{letter}   {label}", loc="left", fontweight="bold")
         ax.set_xlim(0, weeks)
@@ -59,9 +54,9 @@ def figure_protocols(runs: dict, protocols: dict[str, Protocol], params, insets:
                         xytext=(0, -11 if key == "foxo" else 3), textcoords="offset points", ha="right", fontsize=8)
     nax = panels[4]
     nax.axhline(1.0, color="k", ls=":", lw=0.8)
-    for k, (name, series) in enumerate(runs.items()):
+    for name, series in runs.items():
         nax.annotate(f"{series['N'][-1]:.4f}", (series["t"][-1] / WEEK, series["N"][-1]), xytext=(-4, 4),
-                     textcoords="offset points", ha="right", fontsize=8, color=_color(name, k))
+                     textcoords="offset points", ha="right", fontsize=8, color=protocol_colour(name))
     # IGF1 and AKT spike for about a day after each session: show the first one up close
     if insets:
         for key, ax in (("igf1", panels[0]), ("akt", panels[1])):
@@ -71,26 +66,33 @@ def figure_protocols(runs: dict, protocols: dict[str, Protocol], params, insets:
             ax.set_ylim(lo, lo + (hi - lo) / 0.45)
             ax.set_yticks(ticks)
             inset = ax.inset_axes([0.52, 0.5, 0.46, 0.46])
-            for k, (name, series) in enumerate(insets.items()):
+            for name, series in insets.items():
                 if series is not None:
-                    inset.plot(series["t"], series[key], color=_color(name, k), ls=STYLES.get(name, "-"), lw=1.0)
+                    inset.plot(series["t"], series[key], color=protocol_colour(name), ls=STYLES.get(name, "-"),
+                               lw=1.0)
             inset.set_xlim(0, 24)
             inset.set_xticks([0, 6, 12, 18, 24])
             inset.tick_params(labelsize=7)
             inset.set_xlabel("hours after the first session start", fontsize=7, labelpad=1)
             inset.grid(alpha=0.25)
-            # the stimulus reaches IGF1 tau_d after the session start
-            for k, (name, protocol) in enumerate(protocols.items()):
-                if protocol.sessions:
-                    tau_d = float(np.mean(params.tau_d))
-                    inset.axvspan(tau_d, tau_d + protocol.sessions[0].duration, ymax=0.06, color=_color(name, k),
-                                  alpha=0.5, lw=0)
+            # the first session itself (what the axis counts from), one band a protocol, and
+            # the delay tau_d after which its stimulus reaches IGF1
+            sessions = [(name, p.sessions[0].duration) for name, p in protocols.items() if p.sessions]
+            for j, (name, duration) in enumerate(sessions):
+                inset.axvspan(0.0, duration, ymin=0.06 * j, ymax=0.06 * (j + 1), color=protocol_colour(name), alpha=0.6,
+                              lw=0)
+            if sessions:
+                tau_d = float(np.mean(params.tau_d))
+                inset.axvline(tau_d, color="k", ls=":", lw=0.8)
+                inset.annotate("bands: session\ndotted: +τd, the\nstimulus at IGF1", (tau_d, 0.97),
+                               xycoords=("data", "axes fraction"), xytext=(-3, 0), textcoords="offset points",
+                               ha="right", va="top", fontsize=6)
     sax = panels[5]
     for k, (name, protocol) in enumerate(protocols.items()):
         bars = [(s.start / WEEK, s.duration / WEEK) for s in protocol.sessions]
-        sax.broken_barh(bars, (k - 0.35, 0.7), color=_color(name, k))
+        sax.broken_barh(bars, (k - 0.35, 0.7), color=protocol_colour(name))
         for s in protocol.sessions:
-            sax.plot([s.start / WEEK] * 2, [k - 0.35, k + 0.35], color=_color(name, k), lw=1.2)
+            sax.plot([s.start / WEEK] * 2, [k - 0.35, k + 0.35], color=protocol_colour(name), lw=1.2)
     sax.set_yticks(range(len(protocols)), [LABELS.get(n, n) for n in protocols], fontsize=8)
     sax.set_ylim(-0.7, len(protocols) - 0.3)
     sax.invert_yaxis()

@@ -1,0 +1,245 @@
+"""The original code's box measure of a cross-section (hyper.box, MODEL.md §9)."""
+
+import math
+from pathlib import Path
+
+import dolfinx
+import dolfinx_solver  # noqa: F401  (must precede dolfinx)
+import numpy as np
+import pytest
+from dolfinx import fem
+from mpi4py import MPI
+
+from hyper import box, cohort, grow, io, section
+from hyper import geometry as geo
+
+# A prism [-A, A] × [-B, B] × [-L, L] (m), long along z: the box is 2.4 A × 2.4 B in 30 × 30
+# squares of 0.08 A × 0.08 B, and the prism's sides cross the middle of columns and rows
+# 2 and 27 (0.2 A = 2.5 squares in from the box's edge).
+A, B, L = 0.01, 0.015, 0.05
+SQUARE = 0.08 * A * 0.08 * B  # m², two staircase facets
+
+
+def prism(comm):
+    return dolfinx.mesh.create_box(comm, [[-A, -B, -L], [A, B, L]], [4, 6, 20])
+
+
+def displacement(mesh, f):
+    u = fem.Function(fem.functionspace(mesh, ("Lagrange", 2, (3,))))
+    u.interpolate(f)
+    return u
+
+
+def uniform_growth(theta):
+    """The stress-free answer of a uniform transverse growth ϑ about the z axis."""
+    s = math.sqrt(theta) - 1.0
+    return lambda x: np.array([s * x[0], s * x[1], 0.0 * x[2]])
+
+
+def test_prism_staircase_is_the_faces_of_the_touching_cells():
+    mesh = prism(MPI.COMM_SELF)
+    u = displacement(mesh, lambda x: np.zeros_like(x))
+    measure = box.BoxSection(mesh, u)
+    assert np.allclose(measure.half, [0.5e-3, 1.2 * B, 1.2 * A], rtol=1e-12)  # by decreasing variance
+    # every cell of the 26 × 26 columns that reach into the prism touches it (each of a
+    # column's 6 tetrahedra holds the column's diagonal, which crosses the side); the
+    # 24 × 24 columns of those wholly inside are the inner part
+    inner, rim = measure.areas0
+    assert inner == pytest.approx(24**2 * SQUARE, rel=1e-12)
+    assert inner + rim == pytest.approx(26**2 * SQUARE, rel=1e-12)
+    assert measure.area0() / (4 * A * B) == pytest.approx(1.0816, rel=1e-12)
+    # at rest the staircase reads its own area
+    assert measure.deformed_areas() == pytest.approx(measure.areas0, rel=1e-13)
+
+
+def test_prism_inner_faces_read_theta_rim_faces_read_less():
+    theta = 1.1
+    mesh = prism(MPI.COMM_SELF)
+    measure = box.BoxSection(mesh, displacement(mesh, uniform_growth(theta)))
+    inner, rim = measure.deformed_areas() / measure.areas0
+    assert inner == pytest.approx(theta, rel=1e-12)
+    assert rim < 1.0  # the displacement falls to zero across the rim: it reads as shrinking
+
+
+def cylinder():
+    return geo.load("cylinder", MPI.COMM_SELF).mesh
+
+
+def axis_distance(tets) -> np.ndarray:
+    """The distance of each tetrahedron (n, 4, 3) from the z axis: of the convex hull of
+    its corners' projections (x, y) from the origin."""
+    p = tets[:, :, :2]
+    inside = np.zeros(len(p), dtype=bool)
+    for i, j, k in ((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3)):
+        a, b, c = p[:, i], p[:, j], p[:, k]
+        signs = [(q1 - q0)[:, 0] * -q0[:, 1] + (q1 - q0)[:, 1] * q0[:, 0] for q0, q1 in ((a, b), (b, c), (c, a))]
+        inside |= np.all(np.stack(signs) >= 0, axis=0) | np.all(np.stack(signs) <= 0, axis=0)
+    dist = np.full(len(p), np.inf)
+    for i, j in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)):
+        a, d = p[:, i], p[:, j] - p[:, i]
+        t = np.clip(-np.einsum("ij,ij->i", a, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-300), 0, 1)
+        dist = np.minimum(dist, np.linalg.norm(a + t[:, None] * d, axis=1))
+    return np.where(inside, 0.0, dist)
+
+
+def test_cylinder_staircase_is_the_faces_of_the_touching_cells():
+    mesh = cylinder()
+    u = displacement(mesh, lambda x: np.zeros_like(x))
+    measure = box.BoxSection(mesh, u)
+    r = np.linalg.norm(mesh.geometry.x[:, :2], axis=1).max()  # the corners of the meshed circle
+
+    # the kept cells: every one that reaches well into the circle, none outside it
+    serial, _ = box.box_mesh(MPI.COMM_SELF, measure.centre, measure.axes, measure.half)
+    n = serial.topology.index_map(3).size_local
+    by_original = box.touching(serial, mesh)
+    kept = by_original[np.asarray(serial.topology.original_cell_index)[:n]]
+    distance = axis_distance(box.cell_coordinates(serial, np.arange(n)) - [measure.centre[0], measure.centre[1], 0])
+    assert np.all(kept[distance < 0.95 * r]) and not np.any(kept[distance > r])
+    assert np.count_nonzero(distance < 0.95 * r) > 1000
+
+    # the staircase: the box faces of the kept cells on the face at -0.5 mm, one triangle each
+    facets = measure.tags.indices
+    face = 0.5 * (2 * measure.half[1] / 30) * (2 * measure.half[2] / 30)
+    assert measure.area0() == pytest.approx(len(facets) * face, rel=1e-12)
+    cells = [measure.mesh.topology.connectivity(2, 3).links(f)[0] for f in facets]
+    original = np.asarray(measure.mesh.topology.original_cell_index)
+    assert np.all(by_original[original[cells]])
+    # it covers the section at its plane, and overhangs it
+    cut = section.CutSection(mesh, *measure.plane()).area0()
+    assert 1.05 < measure.area0() / cut < 1.15
+
+
+def test_cylinder_inner_faces_read_theta_rim_faces_read_less():
+    theta = 1.08
+    mesh = cylinder()
+    measure = box.BoxSection(mesh, displacement(mesh, uniform_growth(theta)))
+    inner, rim = measure.deformed_areas() / measure.areas0
+    # the meshed cylinder's first principal axis is e_z to a few 1e-3: the box face tilts
+    # by as much, and F = G reads |cof(G) N| = ϑ (1 - 2e-7) on it
+    s = math.sqrt(theta)
+    exact = section.nanson_density(np.diag([s, s, 1.0]), measure.axes[:, 0])
+    assert abs(exact / theta - 1) < 1e-6
+    assert inner == pytest.approx(exact, rel=1e-12)
+    assert rim < 1.0
+    total = measure.deformed_area() / measure.area0()
+    assert 1.0 < total < theta
+    picture = measure.picture()
+    assert len(picture["triangles"]) == len(measure.tags.indices)
+    assert np.allclose(picture["ratio"][picture["inner"]], exact, rtol=1e-12)
+    assert np.all(picture["ratio"][~picture["inner"]] < exact)
+    # the outline of the exact cut: the meshed circle, cut by a plane tilted a few 1e-3
+    points = measure.centre + picture["outline"].reshape(-1, 2) @ measure.axes[:, 1:].T
+    radius = np.linalg.norm(points[:, :2], axis=1)
+    r = np.linalg.norm(mesh.geometry.x[:, :2], axis=1).max()
+    assert 0.99 * r < radius.min() and radius.max() < 1.001 * r
+
+
+def nonlinear(x):
+    return np.array([0.05 * x[0] + 3 * x[1] ** 2, 0.04 * x[1] * (1 + 10 * x[0]), 0.01 * x[2] + x[0] * x[1]])
+
+
+@pytest.mark.mpi
+def test_parallel_equals_serial():
+    comm = MPI.COMM_WORLD
+    assert comm.size == 2
+    values = {}
+    for c in (MPI.COMM_SELF, comm):
+        mesh = geo.load("cylinder", c).mesh
+        measure = box.BoxSection(mesh, displacement(mesh, nonlinear))
+        picture = measure.picture()
+        values[c.size] = (measure.centre, measure.axes, measure.areas0, measure.deformed_areas(),
+                          None if picture is None else np.sort(picture["ratio"]))
+    (c1, x1, a1, d1, p1), (c2, x2, a2, d2, p2) = values[1], values[2]
+    assert np.array_equal(c1, c2) and np.array_equal(x1, x2)  # the frame: the file's order on any ranks
+    assert a2 == pytest.approx(a1, rel=1e-12)
+    assert abs(d1.sum() / a1.sum() - 1) > 1e-3 and d2 == pytest.approx(d1, rel=1e-11)
+    if comm.rank == 0:
+        assert p2 == pytest.approx(p1, rel=1e-11)
+
+
+def write_prism(path: Path):
+    """A prism muscle 2 × 3 × 10 cm as an XDMF file with the anatomical meshes' tags."""
+    mesh = dolfinx.mesh.create_box(MPI.COMM_SELF, [[0, 0, 0], [0.02, 0.03, 0.1]], [2, 2, 5])
+    mesh.name = "Grid"
+    mesh.topology.create_connectivity(2, 3)
+    facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)
+    z = dolfinx.mesh.compute_midpoints(mesh, 2, facets)[:, 2]
+    values = np.where(np.isclose(z, 0), 1, np.where(np.isclose(z, 0.1), 2, 3)).astype(np.int32)
+    tags = dolfinx.mesh.meshtags(mesh, 2, facets, values)
+    tags.name = "ft_small"
+    with dolfinx.io.XDMFFile(MPI.COMM_SELF, str(path), "w") as xdmf:
+        xdmf.write_mesh(mesh)
+        xdmf.write_meshtags(tags, mesh.geometry)
+
+
+PROTOCOL = """name = "one"
+end = 48.0
+[[session]]
+start = 0.0
+duration = 1.0
+intensity = 0.8
+"""
+
+
+def test_grow_records_both_measures_and_feeds_back_the_chosen_one(tmp_path):
+    write_prism(tmp_path / "prism.xdmf")
+    (tmp_path / "one.toml").write_text(PROTOCOL)
+    series = {}
+    for method in ("cut", "box"):
+        out = tmp_path / f"{method}.h5"
+        picture = ["--plot-box", str(tmp_path / "box.png")] if method == "box" else []
+        assert grow.main(["--mesh", str(tmp_path / "prism.xdmf"), "--protocol", str(tmp_path / "one.toml"),
+                          "--growth-dt", "24", "--csa-method", method, "--output", str(out), *picture],
+                         MPI.COMM_SELF) == 0
+        series[method] = io.read_series(out)
+    assert (tmp_path / "box.png").stat().st_size > 10_000
+    for method, s in series.items():
+        assert np.array_equal(s["csa_ratio"], s[f"csa_ratio_{method}"])
+        assert s["csa_ratio_cut"][-1] > 1.0005 and s["csa_ratio_box"][-1] < s["csa_ratio_cut"][-1]
+    # the box reads less, so the feedback lowers synthesis less and the muscle grows more
+    assert series["box"]["kM"][-1] > series["cut"]["kM"][-1]
+
+
+def test_cohort_summary_has_both_measures(tmp_path):
+    attrs = {"geometry": "BFLH_VHF_Left", "muscle": "BFLH", "subject": "VHF", "side": "Left", "protocol": "mwf",
+             "csa0_m2": 1e-3, "volume0_m3": 2e-4, "wall_s": 1.0}
+    ratios = {"csa_ratio": [1.0, 1.04], "csa_ratio_cut": [1.0, 1.08], "csa_ratio_box": [1.0, 1.04],
+              "volume_ratio": [1.0, 1.09]}
+    io.write_series(tmp_path / "r.h5", {k: np.array(v) for k, v in ratios.items()}, attrs=attrs)
+    rows = [cohort.summary_row(tmp_path / "r.h5")]
+    assert (rows[0]["final_csa_ratio"], rows[0]["final_csa_ratio_cut"], rows[0]["final_csa_ratio_box"]) == \
+        (1.04, 1.08, 1.04)
+    cohort.write_csv(rows, tmp_path / "s.csv")
+    assert cohort.read_csv(tmp_path / "s.csv")[0]["final_csa_ratio_cut"] == 1.08
+    table = cohort.markdown(rows, cohort.GrowthSettings())
+    assert "| mid-belly CSA increase, cut (n = 1) | +8.00 % |" in table
+    assert "| mid-belly CSA increase, box (n = 1) | +4.00 % |" in table
+
+
+def test_plot_box_needs_a_mesh_without_a_tagged_section(tmp_path, capsys):
+    assert grow.main(["--geometry", "idealized", "--plot-box", str(tmp_path / "b.png"),
+                      "--output", str(tmp_path / "r.h5")], MPI.COMM_SELF) == 2
+    assert "--plot-box: idealized has a tagged mid-section" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_resumed_run_records_both_measures_as_an_uninterrupted_one(tmp_path):
+    from hyper import protocols, run, signaling
+    from hyper.coupled import GrowthSettings
+
+    write_prism(tmp_path / "prism.xdmf")
+    (tmp_path / "one.toml").write_text(PROTOCOL)
+    spec = run.RunSpec("prism", protocols.from_option(str(tmp_path / "one.toml"))[0],
+                       signaling.SignalingParams(thetaM=0.46), GrowthSettings(growth_dt=8.0, csa_method="box"),
+                       mesh=run.MeshFile(tmp_path / "prism.xdmf"))
+    comm = MPI.COMM_SELF
+    whole = run.execute(comm, spec, run.Outputs(tmp_path / "whole.h5"), checkpoints=False).series
+    out = run.Outputs(tmp_path / "parts.h5")
+    reports = iter(range(100))
+    with pytest.raises(run.Interrupted):
+        run.execute(comm, spec, out, stop=lambda: next(reports) >= 2)
+    parts = run.execute(comm, spec, out).series
+    assert len(parts["t"]) == len(whole["t"]) > 4
+    for name in ("csa_ratio", "csa_ratio_cut", "csa_ratio_box", "volume_ratio", "kM"):
+        np.testing.assert_array_equal(parts[name], whole[name], err_msg=name)
+    assert whole["csa_ratio_box"][-1] < whole["csa_ratio_cut"][-1]
