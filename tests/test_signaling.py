@@ -293,6 +293,32 @@ def test_auto_falls_back_to_numpy_without_a_compiler(monkeypatch, tmp_path, mixe
     assert list(tmp_path.iterdir()) == []  # the failed builds left nothing behind
 
 
+# --- N at the ends of its range -----------------------------------------------------------
+
+
+def test_N_stops_at_the_bounds_it_reaches_and_leaves_them_when_f_turns():
+    """FOXO above a lowered threshold drives N down to Nmin (about 100 h, held while f < 0);
+    a raised mTOR growth rate turns f positive near 190 h and N climbs to Nmax (about 700 h).
+    Without sessions RK4 is accurate to 1e-9 here: what is left is the bounds' handling."""
+    p = dataclasses.replace(P0, a4=1.1 * P0.a4, thetaF=0.42, Nmin=0.985, Nmax=1.05)
+    t = np.array([150.0, 400.0, 900.0, 1000.0])
+    # a third member starts below its range, where f = 0: it keeps its N
+    y0 = np.stack([Y0, Y0, [*Y0[:4], 0.9]], axis=1)
+    _, ref = S.reference(p, named("rest"), Y0, 0.0, 1000.0, out_times=t)
+    np.testing.assert_array_equal(ref[[0, 2, 3], 4], [0.985, 1.05, 1.05])  # the events stop N there
+    runs = [S.integrate(p, named("rest"), Y0, 0.0, 1000.0, out_times=t)[1]]
+    for backend in ("numpy", "c"):
+        _, batch = S.integrate(p, named("rest"), y0, 0.0, 1000.0, out_times=t, backend=backend)
+        np.testing.assert_array_equal(batch[:, 4, 2], 0.9)
+        runs += [batch[:, :, 0], batch[:, :, 1]]
+    for y in runs:
+        np.testing.assert_array_equal(y, runs[0])  # every backend, the same bits
+    N = runs[0][:, 4]
+    np.testing.assert_allclose(N[[0, 2, 3]], [0.985, 1.05, 1.05], rtol=0, atol=1e-12)
+    assert 1.0 < N[1] < 1.05  # released from Nmin, not yet at Nmax
+    assert abs((N[1] - 1.0) - (ref[1, 4] - 1.0)) < 1e-7
+
+
 # --- the paper's results -----------------------------------------------------------------
 
 
