@@ -319,6 +319,48 @@ def test_N_stops_at_the_bounds_it_reaches_and_leaves_them_when_f_turns():
     assert abs((N[1] - 1.0) - (ref[1, 4] - 1.0)) < 1e-7
 
 
+# --- the original code's integration (MODEL.md §9) ----------------------------------------
+
+
+def test_the_original_rk45_gives_the_original_code_s_delta_N(monkeypatch):
+    """RK45 at rtol 1e-3 restarted only at session starts and ends: ΔN over nine weeks of
+    mwf is the original code's 0.091496, 0.27 % above the converged 0.091245."""
+    import scipy.integrate
+
+    spans = []
+    solve_ivp = scipy.integrate.solve_ivp
+
+    def recording(fun, span, y0, **kw):
+        spans.append(tuple(span))
+        assert (kw["method"], kw["rtol"], kw["atol"], kw["max_step"]) == ("RK45", 1e-3, 1e-6, 0.05)
+        return solve_ivp(fun, span, y0, **kw)
+
+    monkeypatch.setattr(scipy.integrate, "solve_ivp", recording)
+    protocol = named("mwf")
+    y0 = S.start_state("rk45-original")
+    np.testing.assert_array_equal(y0, [*Y0[:4], 1.000768])
+    t, y = S.integrator("rk45-original")(P0, protocol, y0, 0.0, END, out_times=[0.0, 500.0, END])
+    assert spans == [(a, b) for a, b, _ in protocol.periods()]  # no restart at the delayed switches
+    assert t.tolist() == [0.0, 500.0, END] and y[0, 4] == 1.000768
+    assert y[-1, 4] - y[0, 4] == pytest.approx(0.091496, abs=1e-6)
+    _, rk4 = S.integrate(P0, protocol, Y0, 0.0, END)
+    assert rk4[-1, 4] - 1.0 == pytest.approx(0.091245, abs=1e-6)
+    with pytest.raises(InputError, match="signaling_method: must be one of rk4, rk45-original"):
+        S.integrator("rk45")
+
+
+def test_cli_records_the_signaling_method(tmp_path):
+    import h5py
+
+    spec = tmp_path / "mine.toml"
+    spec.write_text("end = 60.0\n[[session]]\nstart = 10\nduration = 2\nintensity = 0.5\n")
+    path = tmp_path / "mine.h5"
+    assert S.main(["--protocol", str(spec), "--output", str(path), "--signaling-method", "rk45-original"]) == 0
+    with h5py.File(path) as f:
+        assert f.attrs["signaling_method"] == "rk45-original" and f.attrs["integrator"] == "RK45"
+        assert f["N"][0] == 1.000768
+
+
 # --- the paper's results -----------------------------------------------------------------
 
 
@@ -423,7 +465,8 @@ def test_cli_help_shows_every_default(capsys):
     with pytest.raises(SystemExit):
         S.main(["--help"])
     text = capsys.readouterr().out
-    assert "--signaling-dt H      largest RK4 step (h) (default: 0.05)" in text
+    assert "--signaling-dt H      largest step (h), of either method (default: 0.05)" in text
+    assert "rk45-original" in text and "(default: rk4)" in text
     assert "(default: mwf)" in text and "--protocol-file" not in text
 
 

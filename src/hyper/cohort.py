@@ -59,11 +59,11 @@ import numpy as np
 from mpi4py import MPI
 
 from hyper import checkpoint as ckpt
-from hyper import cli, farm, io, plot, protocols, run, signaling
+from hyper import cli, farm, io, plot, presets, protocols, run, signaling
 from hyper import geometry as geo
 from hyper.coupled import GrowthSettings, step_times
 from hyper.log import hms, info
-from hyper.params import InputError, build
+from hyper.params import InputError
 from hyper.protocols import Protocol
 
 COLUMNS = ("geometry", "muscle", "subject", "side", "protocol", "csa0_cm2", "volume0_cm3",
@@ -480,7 +480,9 @@ def parser() -> cli.Parser:
     p.add_argument("--output", type=cli.output(folder=True), default="results/cohort", help="output folder")
     p.add_argument("--ranks-per-job", type=cli.integer(1), default=1,
                    help="MPI ranks per run; must divide the number of ranks")
-    p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step Δtg (h)")
+    p.add_argument("--growth-dt", type=float,
+                   help=f"growth step Δtg (h); {GrowthSettings.growth_dt:g} unless --settings sets it")
+    presets.add_options(p)
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run fails; a failed run "
                         "resumes from its checkpoint with a larger value")
@@ -501,8 +503,9 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings]:
     for name in args.geometries:
         run.check_geometry(comm, name, "--geometries")
     run.check_geometry(comm, args.plot_geometry, "--plot-geometry")
-    settings = build(GrowthSettings, {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings"},
-                     growth_dt=args.growth_dt, max_halvings=args.max_halvings)
+    chosen = {"growth_dt": args.growth_dt, "max_halvings": args.max_halvings, **presets.chosen(args)}
+    settings = presets.settings(GrowthSettings, args.settings, chosen,
+                                {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings"})
     runs = plan(args.geometries, [p for text in args.protocols for p in protocols.from_option(text, "--protocols")])
     return runs, settings
 

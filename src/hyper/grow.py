@@ -29,11 +29,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from hyper import cli, fidelity, io, protocols, run, sequence, signaling
+from hyper import cli, fidelity, io, presets, protocols, run, sequence, signaling
 from hyper.checkpoint import on_rank0
 from hyper.log import info
-from hyper.params import InputError, build
-from hyper.signaling.cli import answer
+from hyper.params import InputError
+from hyper.signaling.cli import answer, method_option
 
 SIGNALING_SAMPLE_EVERY = 0.5  # h, the series of --ask signaling, as hyper signaling samples it
 # the options that set GrowthSettings' fields, for errors that name what the user typed
@@ -56,6 +56,7 @@ def scene_options(p: cli.Parser) -> None:
     p.add_argument("--params", type=Path, help="TOML file overriding signaling parameters")
     p.add_argument("--signaling-dt", type=float,
                    help=f"RK4 step (h); {fidelity.SIGNALING_DT0:g} unless --accuracy chooses one")
+    method_option(p, default=None)
 
 
 def parser(ask: str = "growth") -> cli.Parser:
@@ -77,9 +78,7 @@ def parser(ask: str = "growth") -> cli.Parser:
     p.add_argument("--growth-dt", type=float,
                    help=f"growth step Δtg (h); {GrowthSettings.growth_dt:g} unless --accuracy chooses one")
     p.add_argument("--feedback", choices=FEEDBACK_LAWS, default="hill", help="feedback of CSA on protein synthesis")
-    p.add_argument("--skip-sessions", action="store_true", help="no growth during sessions (the original code)")
-    p.add_argument("--fe-stress", action="store_true",
-                   help="P = Fe S (the original code) instead of the consistent det(Fg) Fe S Fg⁻ᵀ")
+    presets.add_options(p, signaling_method=False)
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run stops")
     p.add_argument("--linear-solver", choices=run.LINEAR_SOLVERS, help="MUMPS LU, GMRES with MUMPS's block "
@@ -97,6 +96,14 @@ def parser(ask: str = "growth") -> cli.Parser:
 
 
 def choose(scene: fidelity.Scene, args, growth_dt=None) -> fidelity.Choice | None:
+    original = [text for text, on in (("--signaling-method rk45-original", args.signaling_method == "rk45-original"),
+                                      ("--growth-increment left-point",
+                                       getattr(args, "growth_increment", None) == "left-point"),
+                                      (f"--settings {getattr(args, 'settings', 'default')}",
+                                       getattr(args, "settings", "default") != "default")) if on]
+    if args.accuracy is not None and original:
+        raise InputError(f"--accuracy chooses steps from the errors of the default model; it does not "
+                         f"combine with {original[0]}")
     try:
         return None if args.accuracy is None else fidelity.choose(scene, args.accuracy, growth_dt=growth_dt,
                                                                   signaling_dt=args.signaling_dt)
@@ -125,14 +132,10 @@ def plan_from(comm, args) -> sequence.Plan:
     # hyper grow takes uniform parameters only (per-cell ones are hyper ensemble's)
     scene = fidelity.Scene(name, ",".join(p.name for p in runs), heterogeneous=False, ask="growth")
     choice = choose(scene, args, args.growth_dt)
-    if choice is not None:
-        growth_dt, signaling_dt = choice.growth_dt, choice.signaling_dt
-    else:
-        growth_dt = GrowthSettings.growth_dt if args.growth_dt is None else args.growth_dt
-        signaling_dt = GrowthSettings.signaling_dt if args.signaling_dt is None else args.signaling_dt
-    settings = build(GrowthSettings, SETTING_OPTIONS, growth_dt=growth_dt, signaling_dt=signaling_dt,
-                     feedback=args.feedback, grow_during_sessions=not args.skip_sessions,
-                     consistent_stress=not args.fe_stress, max_halvings=args.max_halvings)
+    steps = (choice.growth_dt, choice.signaling_dt) if choice is not None else (args.growth_dt, args.signaling_dt)
+    settings = presets.settings(GrowthSettings, args.settings,
+                                {"growth_dt": steps[0], "signaling_dt": steps[1], "feedback": args.feedback,
+                                 "max_halvings": args.max_halvings, **presets.chosen(args)}, SETTING_OPTIONS)
     petsc_options = dict(cli.petsc_option(text) for text in args.petsc_option)
     if LAG_OPTION in petsc_options:
         jacobian_lag(petsc_options[LAG_OPTION])
@@ -167,9 +170,10 @@ def answer_signaling(comm, args) -> int:
     choice = choose(scene, args) or fidelity.assess(scene, None, args.signaling_dt or fidelity.SIGNALING_DT0)
     paths = io.result_paths(args.output, [p.name for p in runs])
     info(comm, f"fidelity: {choice.describe()}")
+    method = args.signaling_method or "rk4"
     try:
         on_rank0(comm, lambda: answer(comm, runs, paths, params, choice.signaling_dt, SIGNALING_SAMPLE_EVERY,
-                                      groups={"fidelity": choice.as_attributes()}))
+                                      groups={"fidelity": choice.as_attributes()}, method=method))
     except signaling.SignalingError as err:
         cli.error(comm, str(err))
         return cli.EXIT_FAILED

@@ -24,6 +24,8 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
+from hyper.signaling import net_balance
+
 FEEDBACK_LAWS = ("hill", "linear", "none")
 
 
@@ -40,6 +42,23 @@ def feedback(x, law: str = "hill", n: float = 4.0, K: float = 1.0):
     if law == "none":
         return np.ones_like(x)
     raise ValueError(f"unknown feedback law {law!r}; expected one of {', '.join(FEEDBACK_LAWS)}")
+
+
+INCREMENTS = ("exact", "left-point")
+
+
+def population_change(rule: str, y0, y1, dt: float, params, kM):
+    """dN over a growth step of dt (h) from signaling states y0 to y1 ((5,) or (5, n)).
+
+    exact: N's own change, y1[4] - y0[4]; left-point: f(y0) dt, the rate at the step's
+    start times the step, as the original code grew (MODEL.md §9), with the synthesis
+    rate kM the ODEs were integrated with.
+    """
+    if rule == "exact":
+        return y1[4] - y0[4]
+    if rule == "left-point":
+        return net_balance(y0[2], y0[3], y0[4], params, kM) * dt
+    raise ValueError(f"unknown growth increment {rule!r}; expected one of {', '.join(INCREMENTS)}")
 
 
 def area_multiplier(dN, csa_ratio):

@@ -14,11 +14,14 @@
   and a flag instead of an error. N stops exactly at the bound of [Nmin, Nmax] that a
   step carries it across (``stop_at_bounds``), in every backend alike.
 - ``reference``: SciPy's DOP853 at tight tolerance on the same pieces, for verification.
+- ``original``: the original code's integration (MODEL.md §9), SciPy's RK45 at its loose
+  default tolerances, for reproducing its numbers (``--signaling-method rk45-original``).
 - ``run`` and ``first_day``: the sampled series of one protocol from the rest state.
 """
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -449,27 +452,112 @@ def reference(params: SignalingParams, protocol: Protocol, y0, t0: float, t1: fl
 
 
 # --------------------------------------------------------------------------------------
+# The original code's integration (MODEL.md §9)
+
+METHODS = ("rk4", "rk45-original")
+ORIGINAL_N0 = 1.000768  # -, the original's initial N (its configuration file), with the rest state of x1..x4
+# SciPy's defaults for solve_ivp, which the original kept; its max_step was its dt, 0.05 h
+ORIGINAL_RTOL = 1e-3
+ORIGINAL_ATOL = 1e-6
+
+
+def original(params: SignalingParams, protocol: Protocol, y0, t0: float, t1: float, dt: float = 0.05, *,
+             out_times=None, kM: Array | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The original code's signaling: SciPy's RK45 at rtol 1e-3, atol 1e-6 with steps of at
+    most dt (h), restarted only at session starts and ends, not at the switches of the
+    delayed stimulus (t + tau_d), across which its error control steps as it can.
+
+    Same arguments and return convention as ``integrate`` (members one by one, about
+    2 s each for nine weeks: meant for uniform runs). The states at output times come
+    from RK45's dense output, which leaves its steps as they are; the original read f
+    at the solver step nearest to each growth time instead (at most dt/2 away).
+    Differs from the converged solution by 0.27 % of ΔN over nine weeks of ``mwf``.
+    """
+    from scipy.integrate import solve_ivp
+
+    positive_hours(dt, "dt", SMALLEST_DT)
+    kM, times, single, Y0, states = _batch(params, kM, y0, t0, t1, out_times)
+    starts, ends = protocol.starts.tolist(), protocol.ends.tolist()
+    cuts = sorted({t for t in starts + ends if t0 < t < t1})
+    bounds = [float(t0), *cuts, float(t1)]
+    for m in range(Y0.shape[1]):
+        p = params.member(m) if params.size is not None else params
+        f = scalar_rhs(p, float(np.ravel(kM)[m] if np.ndim(kM) else kM))
+        a10, a20, t1_, tau_h, tau_d = (float(v) for v in (p.a10, p.a20, p.t1, p.tau_h, p.tau_d))
+        stimulus = [float(p.beta * i * p.Fmax) for i in protocol.intensities.tolist()]
+        g0 = float(g(-t1_, tau_h))
+        y = Y0[:, m].copy()
+        if times[0] == t0:
+            states[0, :, m] = y
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            k = bisect.bisect_right(starts, a) - 1
+            t_ex = starts[k] if k >= 0 else None  # the latest session start, the same all over [a, b)
+
+            def fun(t, y, t_ex=t_ex):
+                i = bisect.bisect_right(starts, t - tau_d) - 1
+                A1 = stimulus[i] if i >= 0 and t - tau_d < ends[i] else a10
+                if t_ex is None:
+                    A2 = a20
+                else:
+                    A2 = a20 + max(float(g(min((t - t_ex) - t1_, 0.0), tau_h)) - g0, 0.0)
+                return f(*y, A1, A2)
+
+            inner = (times > a) & (times < b)
+            sol = solve_ivp(fun, (a, b), y, method="RK45", rtol=ORIGINAL_RTOL, atol=ORIGINAL_ATOL, max_step=dt,
+                            dense_output=bool(inner.any()))
+            y = sol.y[:, -1]
+            if not (sol.success and np.all(np.isfinite(y)) and np.all(y >= 0.0)):
+                state = ", ".join(f"{name}={float(v):.4g}" for name, v in zip(STATES, y))
+                raise SignalingError(f"RK45 from t = {a:g} h to t = {b:g} h gave member {m} a non-finite or "
+                                     f"negative state ({state}): {sol.message}")
+            if inner.any():
+                states[inner, :, m] = sol.sol(times[inner]).T
+            at_end = times == b
+            states[at_end, :, m] = y
+    return times, (states[:, :, 0] if single else states)
+
+
+def integrator(method: str):
+    """The integrator of a signaling method, with the signature of ``integrate``:
+    "rk4" (``integrate``) or "rk45-original" (``original``)."""
+    if method not in METHODS:
+        raise InputError(f"must be one of {', '.join(METHODS)}, got {method!r}", field="signaling_method")
+    return integrate if method == "rk4" else original
+
+
+def start_state(method: str = "rk4") -> np.ndarray:
+    """The state every run starts from: the baseline rest state (MODEL.md §1), with the
+    original's N0 = 1.000768 under "rk45-original" (an offset: f does not depend on N inside
+    its range, so ΔN is the same)."""
+    y = rest_state()
+    if integrator(method) is original:
+        y[4] = ORIGINAL_N0
+    return y
+
+
+# --------------------------------------------------------------------------------------
 # Series of one protocol
 
 
 def run(params: SignalingParams, protocol: Protocol, dt: float = 0.05,
-        sample_every: float = 0.5) -> dict[str, np.ndarray]:
-    """The series of one protocol from the baseline rest state, sampled every ``sample_every`` h."""
+        sample_every: float = 0.5, method: str = "rk4") -> dict[str, np.ndarray]:
+    """The series of one protocol from ``start_state``, sampled every ``sample_every`` h."""
     positive_hours(sample_every, "sample_every", SMALLEST_SAMPLE)
     times = np.arange(0.0, protocol.end, sample_every)
     times = np.append(times[times < protocol.end - 1e-9 * sample_every], protocol.end)
-    t, y = integrate(params, protocol, rest_state(), 0.0, protocol.end, dt, out_times=times)
+    t, y = integrator(method)(params, protocol, start_state(method), 0.0, protocol.end, dt, out_times=times)
     return {"t": t, **{name: y[:, k] for k, name in enumerate(STATES)}}
 
 
 def first_day(params: SignalingParams, protocol: Protocol, dt: float = 0.05,
-              every: float = 0.05) -> dict[str, np.ndarray] | None:
+              every: float = 0.05, method: str = "rk4") -> dict[str, np.ndarray] | None:
     """The 24 h after the first session start, finely sampled (the figure's insets); None without sessions."""
     if not protocol.sessions:
         return None
     s0 = protocol.sessions[0].start
     stop = min(s0 + 24.0, protocol.end)
     times = s0 + np.arange(0.0, stop - s0 + 0.5 * every, every)
-    t, y = integrate(params, protocol, rest_state(), 0.0, protocol.end, dt, out_times=times[times <= protocol.end])
+    t, y = integrator(method)(params, protocol, start_state(method), 0.0, protocol.end, dt,
+                              out_times=times[times <= protocol.end])
     return {"t": t - s0, **{name: y[:, k] for k, name in enumerate(STATES)}}
 
