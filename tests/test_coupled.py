@@ -168,3 +168,27 @@ def test_settings_presets_and_their_digests():
         presets.settings(GrowthSettings, "default", {"growth_increment": "midpoint"})
     with pytest.raises(InputError, match="--settings: expected one of default, original"):
         presets.settings(GrowthSettings, "paper", {})
+
+
+def test_grow_and_cohort_take_the_original_preset_and_explicit_switches(tmp_path):
+    from hyper import cohort, grow
+
+    out = ["--geometry", "cylinder", "--output", str(tmp_path / "run.h5")]
+    original = grow.plan(MPI.COMM_SELF, [*out, "--settings", "original"]).settings
+    assert (original.growth_dt, original.signaling_method, original.growth_increment, original.grow_during_sessions,
+            original.consistent_stress, original.preset) == (1.0, "rk45-original", "left-point", False, False,
+                                                             "original")
+    mixed = grow.plan(MPI.COMM_SELF, [*out, "--settings", "original", "--no-skip-sessions", "--growth-dt", "24"])
+    assert (mixed.settings.grow_during_sessions, mixed.settings.growth_dt, mixed.settings.preset) == (True, 24.0,
+                                                                                                    "original")
+    one = grow.plan(MPI.COMM_SELF, [*out, "--growth-increment", "left-point", "--fe-stress"]).settings
+    assert (one.growth_increment, one.consistent_stress, one.signaling_method, one.preset) == (
+        "left-point", False, "rk4", "default")
+    assert grow.plan(MPI.COMM_SELF, out).settings == GrowthSettings()
+    with pytest.raises(InputError, match="--accuracy .* does not combine with --settings original"):
+        grow.plan(MPI.COMM_SELF, [*out, "--settings", "original", "--accuracy"])
+    args = cohort.parser().parse_args(["--geometries", "cylinder", "--settings", "original",
+                                       "--signaling-method", "rk4"])
+    _, settings = cohort.check(args, MPI.COMM_SELF)
+    assert (settings.growth_dt, settings.signaling_method, settings.growth_increment) == (1.0, "rk4", "left-point")
+    assert not (tmp_path / "run.h5").exists()
