@@ -192,3 +192,14 @@ def test_grow_and_cohort_take_the_original_preset_and_explicit_switches(tmp_path
     _, settings = cohort.check(args, MPI.COMM_SELF)
     assert (settings.growth_dt, settings.signaling_method, settings.growth_increment) == (1.0, "rk4", "left-point")
     assert not (tmp_path / "run.h5").exists()
+
+
+def test_left_point_is_zero_where_N_is_held_at_a_bound():
+    p = signaling.SignalingParams(thetaM=0.46, Nmax=1.001)
+    y = np.array([0.045, 1.0, 0.43, 0.47, 1.0])  # mTOR above its threshold: f = 1e-2 × 0.01 = 1e-4 /h
+    assert growth.population_change("left-point", y, y, 2.0, p, p.kM) == pytest.approx(2e-4, rel=1e-12)
+    at_max = np.array([*y[:4], 1.001])
+    assert growth.population_change("left-point", at_max, at_max, 2.0, p, p.kM) == 0.0
+    cells = np.stack([y, at_max], axis=1)
+    np.testing.assert_allclose(growth.population_change("left-point", cells, cells, 2.0, p, p.kM), [2e-4, 0.0],
+                               rtol=1e-12)

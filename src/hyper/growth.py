@@ -52,12 +52,15 @@ def population_change(rule: str, y0, y1, dt: float, params, kM):
 
     exact: N's own change, y1[4] - y0[4]; left-point: f(y0) dt, the rate at the step's
     start times the step, as the original code grew (MODEL.md §9), with the synthesis
-    rate kM the ODEs were integrated with.
+    rate kM the ODEs were integrated with; zero where N is held at a bound that f
+    points beyond (there N does not change, and the original's f was zero too).
     """
     if rule == "exact":
         return y1[4] - y0[4]
     if rule == "left-point":
-        return net_balance(y0[2], y0[3], y0[4], params, kM) * dt
+        f = net_balance(y0[2], y0[3], y0[4], params, kM)
+        held = ((y0[4] <= params.Nmin) & (f < 0.0)) | ((y0[4] >= params.Nmax) & (f > 0.0))
+        return np.where(held, 0.0, f)[()] * dt
     raise ValueError(f"unknown growth increment {rule!r}; expected one of {', '.join(INCREMENTS)}")
 
 
