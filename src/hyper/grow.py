@@ -95,15 +95,23 @@ def parser(ask: str = "growth") -> cli.Parser:
     return p
 
 
+def untabulated(args) -> list[str]:
+    """The options given that change the model away from the one --accuracy's tables
+    measured (a signaling question has only the first)."""
+    out = []
+    if args.signaling_method == "rk45-original":
+        out.append("--signaling-method rk45-original")
+    if getattr(args, "growth_increment", None) == "left-point":
+        out.append("--growth-increment left-point")
+    if getattr(args, "settings", "default") != "default":
+        out.append(f"--settings {args.settings}")
+    return out
+
+
 def choose(scene: fidelity.Scene, args, growth_dt=None) -> fidelity.Choice | None:
-    original = [text for text, on in (("--signaling-method rk45-original", args.signaling_method == "rk45-original"),
-                                      ("--growth-increment left-point",
-                                       getattr(args, "growth_increment", None) == "left-point"),
-                                      (f"--settings {getattr(args, 'settings', 'default')}",
-                                       getattr(args, "settings", "default") != "default")) if on]
-    if args.accuracy is not None and original:
+    if args.accuracy is not None and untabulated(args):
         raise InputError(f"--accuracy chooses steps from the errors of the default model; it does not "
-                         f"combine with {original[0]}")
+                         f"combine with {untabulated(args)[0]}")
     try:
         return None if args.accuracy is None else fidelity.choose(scene, args.accuracy, growth_dt=growth_dt,
                                                                   signaling_dt=args.signaling_dt)
