@@ -262,6 +262,10 @@ def model_state(model: CoupledModel) -> tuple[np.ndarray, dict, dict]:
         glob["kM"] = float(model.kM)
     if model.period_states is not None:
         glob["period_times"] = model.period_times
+        if np.ndim(model.period_kM):
+            per_cell["period_kM"] = np.asarray(model.period_kM)
+        else:
+            glob["period_kM"] = float(model.period_kM)
         ys = model.period_states
         if per_cell_y:
             per_cell["period_states"] = np.moveaxis(ys, 2, 0)  # (cell, time, species)
@@ -319,6 +323,11 @@ def restore_model(model: CoupledModel, rows: Callable[[str], np.ndarray | None],
         ys = rows("period_states")
         model.period_states = (np.ascontiguousarray(np.moveaxis(ys[:nowned], 0, 2)) if ys is not None
                                else np.array(glob["period_states"], dtype=float))
+        kM = rows("period_kM")
+        if kM is not None:
+            model.period_kM = np.array(kM[:nowned])
+        else:  # uniform; or a checkpoint from before it was kept (only the left-point increment reads it)
+            model.period_kM = float(glob["period_kM"]) if "period_kM" in glob else model.kM
     else:
         model.period_times = model.period_states = None
 

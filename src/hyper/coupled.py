@@ -52,9 +52,18 @@ class GrowthSettings:
     # hyper.newton) or "lagged" (SNES Newton with a lagged Jacobian, before issue 17).
     # Both stop at the same Newton tolerances, so this is not part of the answer.
     newton: str = "kept"
+    # the signaling integrator (signaling.METHODS): rk4, or the original's RK45 and N0 (MODEL.md §9)
+    signaling_method: str = "rk4"
+    # dN of a growth step (growth.INCREMENTS): exact, N's change over the step; left-point,
+    # f at the step's start times Δtg (the original code)
+    growth_increment: str = "exact"
+    preset: str = "default"  # the --settings preset these came from (hyper.presets): a label
 
     # A step cut k times is 2^k solves: beyond this a run is better stopped and looked at.
     MAX_HALVINGS = 12
+    # Settings added after results existed: in the digest only where they differ from their
+    # defaults, so that the digests (and checkpoints) of default runs stay valid.
+    DIGEST_IF_CHANGED = ("signaling_method", "growth_increment", "growth_fields", "csa_method")
 
     def __post_init__(self):
         positive_hours(self.growth_dt, "growth_dt", signaling.SMALLEST_DT)
@@ -78,17 +87,21 @@ class GrowthSettings:
         ):
             raise InputError(f"must be an integer in [0, {self.MAX_HALVINGS}], got {self.max_halvings!r}",
                              field="max_halvings")
+        signaling.integrator(self.signaling_method)  # validates it
+        if self.growth_increment not in growth.INCREMENTS:
+            raise InputError(f"must be one of {', '.join(growth.INCREMENTS)}, got {self.growth_increment!r}",
+                             field="growth_increment")
 
     def model_attributes(self) -> dict:
         """The settings that define the solution; max_halvings only decides how hard a
-        failing step is tried, so a stopped run may be resumed with another value, and
-        newton how the same equilibrium is found."""
+        failing step is tried, so a stopped run may be resumed with another value, newton
+        how the same equilibrium is found, and the preset only names where the values
+        came from."""
         out = dataclasses.asdict(self)
-        del out["max_halvings"], out["newton"]
-        if self.growth_fields == "quadrature":
-            del out["growth_fields"]  # the default: digests of earlier runs stay valid
-        if out["csa_method"] == "cut":  # the digests of runs from before the switch stay
-            del out["csa_method"]
+        del out["max_halvings"], out["newton"], out["preset"]
+        for name in self.DIGEST_IF_CHANGED:
+            if out[name] == getattr(GrowthSettings, name):
+                del out[name]
         return out
 
 
@@ -262,7 +275,7 @@ class CoupledModel:
         self.protocol = protocol
         self.params = params if params is not None else signaling.SignalingParams()
         self.settings = settings
-        self.integrator = integrator if integrator is not None else signaling.integrate
+        self.integrator = integrator if integrator is not None else signaling.integrator(settings.signaling_method)
         self.monitor = monitor if monitor is not None else NoTiming()
         self.growth = growth.GrowthField(geometry.mesh, a0, geometry.quadrature_degree, settings.growth_fields)
         kwargs = {} if material is None else {"material": material}
@@ -301,7 +314,7 @@ class CoupledModel:
         # Every run starts from the rest state of the baseline parameters (MODEL §1).
         # Per-cell parameters (one member per owned cell) give one ODE per cell, and ϑ,
         # G and Ḡ per cell; uniform parameters need one ODE for the whole body.
-        rest = signaling.rest_state(signaling.SignalingParams())
+        rest = signaling.start_state(settings.signaling_method)
         n = self.params.size
         if n is None:
             self.y = rest
@@ -319,11 +332,13 @@ class CoupledModel:
         self.step = 0
         self.t = 0.0
         # Position in the protocol: the period being stepped through, the growth steps
-        # of it already done, and its signaling samples (None until it is integrated).
+        # of it already done, its signaling samples (None until it is integrated) and
+        # the synthesis rate they were integrated with.
         self.period = 0
         self.period_step = 0
         self.period_times: np.ndarray | None = None
         self.period_states: np.ndarray | None = None
+        self.period_kM = self.kM
         self.resumed = False
 
     def _mean_states(self, y) -> np.ndarray:
@@ -438,11 +453,13 @@ class CoupledModel:
                     raise GrowthFailure(f"signaling from {t0:g} h to {t1:g} h: {errors[0]}",
                                         step=self.step + 1, t0=t0, t1=t1)
                 self.period_times, self.period_states, self.period_step = times, ys, 0
+                self.period_kM = self.kM
             times, ys = self.period_times, self.period_states
             while self.period_step + 1 < len(times):
                 k = self.period_step + 1
                 iterations = halvings = 0
-                dN = ys[k][4] - ys[k - 1][4]
+                dN = growth.population_change(s.growth_increment, ys[k - 1], ys[k], times[k] - times[k - 1],
+                                              self.params, self.period_kM)
                 if in_session and not s.grow_during_sessions:
                     dN = np.zeros_like(dN)
                 theta = growth.area_multiplier(dN, self.csa_ratio)

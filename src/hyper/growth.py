@@ -24,6 +24,8 @@ import numpy as np
 import ufl
 from dolfinx import fem
 
+from hyper.signaling import net_balance
+
 FEEDBACK_LAWS = ("hill", "linear", "none")
 # Where G, Ḡ and A live: at the quadrature points of the forms, or at the nodes of
 # cell-wise linear (DG1) fields, which the forms interpolate (the original code).
@@ -43,6 +45,26 @@ def feedback(x, law: str = "hill", n: float = 4.0, K: float = 1.0):
     if law == "none":
         return np.ones_like(x)
     raise ValueError(f"unknown feedback law {law!r}; expected one of {', '.join(FEEDBACK_LAWS)}")
+
+
+INCREMENTS = ("exact", "left-point")
+
+
+def population_change(rule: str, y0, y1, dt: float, params, kM):
+    """dN over a growth step of dt (h) from signaling states y0 to y1 ((5,) or (5, n)).
+
+    exact: N's own change, y1[4] - y0[4]; left-point: f(y0) dt, the rate at the step's
+    start times the step, as the original code grew (MODEL.md §9), with the synthesis
+    rate kM the ODEs were integrated with; zero where N is held at a bound that f
+    points beyond (there N does not change, and the original's f was zero too).
+    """
+    if rule == "exact":
+        return y1[4] - y0[4]
+    if rule == "left-point":
+        f = net_balance(y0[2], y0[3], y0[4], params, kM)
+        held = ((y0[4] <= params.Nmin) & (f < 0.0)) | ((y0[4] >= params.Nmax) & (f > 0.0))
+        return np.where(held, 0.0, f)[()] * dt
+    raise ValueError(f"unknown growth increment {rule!r}; expected one of {', '.join(INCREMENTS)}")
 
 
 def area_multiplier(dN, csa_ratio):
