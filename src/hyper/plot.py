@@ -31,22 +31,22 @@ def save(fig, path: str | Path, *, dpi: int = 150) -> Path:
     return path
 
 
-def growth_series(results: dict[str, dict], path: str | Path, data: Path | None = None) -> Path:
+def growth_series(results: dict[str, dict], path: str | Path, data=(), errors=None) -> Path:
     """CSA, volume and kM against time for several protocols (the paper's Fig. 4C–E),
-    with DeFreitas et al.'s CSA (``data``: their CSV) where given."""
-    import numpy as np
-
+    with measured CSA courses (``data``: `hyper.measured.Measured`) and each protocol's
+    RMSE against them (``errors``: protocol -> `hyper.measured.Comparison`) where given."""
     plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), constrained_layout=True)
     for name, s in results.items():
         weeks = s["t"] / 168.0
-        axes[0].plot(weeks, 100 * (s["csa_ratio"] - 1), label=name)
+        error = (errors or {}).get(name)
+        label = name if error is None else f"{name} (RMSE {error.rmse_pp:.2f} pp)"
+        axes[0].plot(weeks, 100 * (s["csa_ratio"] - 1), label=label)
         axes[1].plot(weeks, 100 * (s["volume_ratio"] - 1), label=name)
         axes[2].plot(weeks, s["kM"], label=name)
-    if data is not None and data.is_file():
-        measured = np.genfromtxt(data, delimiter=",", names=True)
-        axes[0].plot(measured["week"], 100 * (measured["csa"] / measured["csa"][0] - 1), "ko", ms=4,
-                     label="DeFreitas 2011 (mwf)")
+    for i, measured in enumerate(data):
+        axes[0].plot(measured.t / 168.0, 100 * (measured.csa_ratio - 1), "k" + "osD^v"[i % 5], ms=4, mfc="none",
+                     label=measured.label)
     axes[0].set_ylabel("CSA change (%)")
     axes[1].set_ylabel("volume change (%)")
     axes[2].set_ylabel("kM (1/h)")
