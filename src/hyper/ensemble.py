@@ -149,7 +149,8 @@ def std_columns(comm) -> tuple[tuple[str, ...], Callable]:
     return STD, lambda model: state_std(comm, model.y)
 
 
-def run_sample(comm, sample: Sample, *, snapshot_every: float, stop=None, progress_every: float = PROGRESS_EVERY) -> dict:
+def run_sample(comm, sample: Sample, *, snapshot_every: float, stop=None,
+               progress_every: float = PROGRESS_EVERY) -> dict:
     """One coupled run of an ensemble, with checkpoints; writes its series and fields.
     Collective over comm; raises run.Interrupted after a SIGTERM (checkpoint saved)."""
     spec = sample.spec

@@ -362,6 +362,15 @@ class Series:
         return float(self.rows["wall_s"][-1]) if self.rows["wall_s"] else 0.0
 
 
+def snapshot_due(kept: list[float], t: float, every: float) -> bool:
+    """A snapshot is due at ``t`` (h) after those ``kept``: none yet, or ``t`` reaches the
+    first multiple of ``every`` hours after the last one."""
+    if not kept:
+        return True
+    slack = 1e-9 * every  # step times are sums of step lengths: 3 × 8 h may fall short of 24 h
+    return t >= (math.floor((kept[-1] + slack) / every) + 1) * every - slack
+
+
 class Snapshots:
     """Output fields of a run on spaces XDMF stores (P1 and DG0), updated in place:
     u, det Ḡ, a0, and N where each cell has its own signaling.
@@ -397,14 +406,6 @@ class Snapshots:
         """The fields of the snapshot just kept; the fibres, which never change, with the first only."""
         return (self.u, self.det) + ((self.a0,) if len(self.times) == 1 else ()) + \
             ((self.N,) if self.N is not None else ())
-
-    def due(self, t: float, every: float) -> bool:
-        """A snapshot is due at ``t`` (h): none kept yet, or ``t`` reaches the first multiple
-        of ``every`` hours after the last one kept."""
-        if not self.times:
-            return True
-        slack = 1e-9 * every  # step times are sums of step lengths: 3 × 8 h may fall short of 24 h
-        return t >= (math.floor((self.times[-1] + slack) / every) + 1) * every - slack
 
     def update(self, t: float) -> tuple:
         self.u.interpolate(self.model.problem.u)
@@ -557,7 +558,7 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: float = SN
             for report in model.run():
                 series.append(report, model, wall0 + time.perf_counter() - start)
                 last = report.t >= end
-                if snaps.due(report.t, snapshot_every) or last:
+                if snapshot_due(snaps.times, report.t, snapshot_every) or last:
                     for f in snaps.update(report.t):
                         xdmf.write_function(f, report.t)
                 progress.update(report.t, f"day {report.t / 24:5.1f}, CSA/CSA0 {report.csa_ratio:.5f}, "
