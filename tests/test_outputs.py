@@ -306,3 +306,39 @@ def test_quiet_grow_prints_nothing(grown, tmp_path, capfd):
     out, err = capfd.readouterr()
     assert out == "" and err == ""
     assert os.path.getsize(tmp_path / "q.h5") > 0
+
+
+# ------------------------------------------------------------------------- two ranks
+
+
+def by_position(points: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Point values in the order of their coordinates (the ranks number points each their way)."""
+    return values[np.lexsort(points.T[::-1])]
+
+
+@pytest.mark.mpi
+def test_mpi_fields_on_two_ranks_equal_the_serial_ones(tmp_path):
+    comm = MPI.COMM_WORLD
+    assert comm.size == 2
+    d = Path(comm.bcast(str(tmp_path) if comm.rank == 0 else None, root=0))
+    if comm.rank == 0:
+        (d / "short.toml").write_text(PROTOCOL)
+        (d / "growing.toml").write_text("thetaM = 0.46\n")
+    comm.barrier()
+    options = ["--geometry", "cylinder", "--protocol", str(d / "short.toml"), "--params", str(d / "growing.toml"),
+               "--growth-dt", "8", "--snapshot-every", "24", "--quiet"]
+    assert grow.main([*options, "--output", str(d / "two.h5")]) == 0
+    if comm.rank == 0:
+        assert grow.main([*options, "--output", str(d / "one.h5")], comm=MPI.COMM_SELF) == 0
+        p1, c1, one = read_fields(d / "one_fields.xdmf")
+        p2, c2, two = read_fields(d / "two_fields.xdmf")
+        assert p1.shape == p2.shape and len(c1[0].data) == len(c2[0].data)
+        assert [t for t, _, _ in one] == [t for t, _, _ in two] and len(one) == 5
+        for (_, pd1, cd1), (_, pd2, cd2) in zip(one, two):
+            assert sorted(pd2) == ["a0", "u"] and sorted(cd2) == ["detGbar"]
+            for name in ("u", "a0"):
+                np.testing.assert_allclose(by_position(p2, pd2[name]), by_position(p1, pd1[name]), rtol=0,
+                                           atol=1e-9 * max(1e-30, np.abs(pd1[name]).max()))
+            np.testing.assert_allclose(np.sort(cd2["detGbar"][0].ravel()), np.sort(cd1["detGbar"][0].ravel()),
+                                       rtol=1e-10)
+    comm.barrier()

@@ -12,7 +12,8 @@ communicator. Per run, under OUTPUT/runs/:
                                     attributes geometry, muscle, subject, side, protocol,
                                     csa0_m2, volume0_m3, wall_s, ranks, run_digest and
                                     the groups signaling, protocol, settings
-    GEOMETRY_PROTOCOL_fields.xdmf   snapshots of u, det Ḡ and a0 for ParaView
+    GEOMETRY_PROTOCOL_fields.xdmf   snapshots of u, det Ḡ and a0 every --snapshot-every
+                                    simulated hours (ParaView, meshio's TimeSeriesReader)
     GEOMETRY_PROTOCOL.log           the run's own progress lines
 
 and for the cohort, written by rank 0 from the complete .h5 files (so a rerun that had
