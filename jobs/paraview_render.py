@@ -3,38 +3,29 @@
     xvfb-run -a pvbatch jobs/paraview_render.py results/cohort/runs/BFLH_VHF_Left_mwf_fields.xdmf \
         results/cohort/BFLH_VHF_Left_mwf_paraview.png [--scale 10] [--color detGbar]
 
-Reads the last snapshot with Xdmf3ReaderT (DOLFINx writes XDMF 3; the legacy XDMF
-reader crashes on it), merges the per-function blocks that DOLFINx writes into one
-grid, warps it by u times --scale and colours it by a cell or point array (default
-detGbar, the growth det Ḡ; --color u for the displacement magnitude), with the
-reference shape in grey beside it. The longest side of the bounding box is drawn
-upright and the camera looks along the shortest.
+Reads the last snapshot with Xdmf3ReaderT (the legacy XDMF reader crashes on XDMF 3):
+one grid per snapshot time with every field (hyper.io.one_grid), warps it by u times
+--scale and colours it by a cell or point array: by default (auto) the growth det Ḡ
+where it varies over the mesh (heterogeneous signaling), else the displacement
+magnitude |u| (uniform growth has one det Ḡ everywhere); --color detGbar or u to choose.
+The reference shape stands in grey beside it. The longest side of the bounding box is
+drawn upright and the camera looks along the shortest.
 Prints the arrays and times found and checks that u and the colour array are there,
 so a broken file fails loudly. Runs with ParaView's own Python (Debian: paraview,
 python3-paraview), not the project's venv.
 """
 
 import argparse
-import builtins
 import os
 import sys
 
 from paraview.simple import (
-    ColorBy, GetActiveViewOrCreate, GetColorTransferFunction, GetScalarBar, ProgrammableFilter, Render,
-    SaveScreenshot, Show, Text, WarpByVector, Xdmf3ReaderT,
+    ColorBy, ExtractSurface, GetActiveViewOrCreate, GetColorTransferFunction, GetScalarBar, Render, SaveScreenshot, Show, Text,
+    WarpByVector, Xdmf3ReaderT,
 )
 
-
-MERGE_BLOCKS = """
-blocks = self.GetInputDataObject(0, 0)
-out = self.GetOutputDataObject(0)
-out.ShallowCopy(blocks.GetBlock(0))
-for i in range(1, blocks.GetNumberOfBlocks()):
-    block = blocks.GetBlock(i)
-    for data, into in ((block.GetPointData(), out.GetPointData()), (block.GetCellData(), out.GetCellData())):
-        for k in range(data.GetNumberOfArrays()):
-            into.AddArray(data.GetArray(k))
-"""
+# det Ḡ counts as varying over the mesh when its range exceeds this fraction of its value
+VARIES = 1e-6
 
 
 def main(argv):
@@ -43,7 +34,8 @@ def main(argv):
     p.add_argument("xdmf", help="a *_fields.xdmf file of hyper.grow or hyper.cohort")
     p.add_argument("png", help="the picture to write")
     p.add_argument("--scale", type=float, default=10.0, help="displacement amplification (default 10)")
-    p.add_argument("--color", default="detGbar", help="array to colour by (default detGbar; or u)")
+    p.add_argument("--color", default="auto",
+                   help="array to colour by: auto (default: detGbar where it varies, else u), detGbar, u, …")
     args = p.parse_args(argv)
 
     # The reader finds the .h5 relative to the .xdmf only when given an absolute path.
@@ -54,21 +46,26 @@ def main(argv):
     times = list(reader.TimestepValues)
     if not times:
         sys.exit(f"error: {path}: no time steps")
-    # DOLFINx writes each function as its own grid on the same mesh: the reader gives one
-    # block per function (u, detGbar, a0). Put all arrays on one grid for the filters.
-    reader = ProgrammableFilter(Input=reader, OutputDataSetType="vtkUnstructuredGrid", Script=MERGE_BLOCKS)
     reader.UpdatePipeline(times[-1])
-    # The filter ran its script in this module's namespace, whose max and abs are now
-    # numpy_interface's: use builtins.max and builtins.abs from here on.
     point, cell = list(reader.PointData.keys()), list(reader.CellData.keys())
     print(f"{path}: {len(times)} snapshots, t = {times[0]:g} … {times[-1]:g} h; point data {point}, cell data {cell}")
     if "u" not in point:
         sys.exit(f"error: {path}: no point array u")
+    if args.color == "auto":
+        lo, hi = reader.CellData["detGbar"].GetRange() if "detGbar" in cell else (0.0, 0.0)
+        args.color = "detGbar" if hi - lo > VARIES * abs(hi) else "u"
+        print(f"colour: {args.color} (det Ḡ {lo:.6g} … {hi:.6g} over the mesh)")
     if args.color not in point + cell:
         sys.exit(f"error: {path}: no array {args.color!r}")
     association = "POINTS" if args.color in point else "CELLS"
     rng = (reader.PointData if association == "POINTS" else reader.CellData)[args.color].GetRange(-1)
-    print(f"{args.color}: range {rng[0]:.6g} … {rng[1]:.6g} at t = {times[-1]:g} h")
+    # the colours span what the picture shows, the surface: under uniform growth |u| varies
+    # far less over it than through the interior (zero on the axis)
+    surface = ExtractSurface(Input=reader)
+    surface.UpdatePipeline(times[-1])
+    shown_range = (surface.PointData if association == "POINTS" else surface.CellData)[args.color].GetRange(-1)
+    print(f"{args.color}: range {rng[0]:.6g} … {rng[1]:.6g} at t = {times[-1]:g} h, on the surface "
+          f"{shown_range[0]:.6g} … {shown_range[1]:.6g}")
 
     view = GetActiveViewOrCreate("RenderView")
     view.ViewTime = times[-1]
@@ -99,8 +96,8 @@ def main(argv):
     ColorBy(shown, (association, args.color, "Magnitude") if args.color == "u" else (association, args.color))
     lut = GetColorTransferFunction(args.color)
     lut.ApplyPreset("Viridis (matplotlib)", True)
-    lo, hi = rng
-    if hi - lo < 1e-9 * builtins.abs(hi):  # uniform growth: widen the range so the bar shows the value
+    lo, hi = shown_range
+    if hi - lo < 1e-9 * abs(hi):  # uniform growth: widen the range so the bar shows the value
         lo, hi = lo - 1e-4, hi + 1e-4
     lut.RescaleTransferFunction(lo, hi)
     shown.SetScalarBarVisibility(view, True)

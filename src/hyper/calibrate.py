@@ -31,7 +31,6 @@ Writes OUTPUT/calibration.json and OUTPUT/calibration.png (data, fit, 95 % band)
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import json
 import math
@@ -42,12 +41,11 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import cli, fidelity, protocols, signaling, surrogate
+from hyper import cli, fidelity, measured, protocols, signaling, surrogate
 from hyper.log import info
 from hyper.params import InputError
 from hyper.protocols import Protocol
 
-TIME_UNITS = {"week": protocols.WEEK, "day": 24.0, "hour": 1.0}
 # Default bounds of the parameters one may fit without giving bounds: a decade either side
 # of the table value, wide enough for the published 0.01 and 0.025 1/h of kM.
 BOUNDS = {"kM": (1e-3, 0.1), "kF": (1.9e-3, 0.19)}
@@ -66,56 +64,10 @@ class Dataset:
     protocol: Protocol
 
 
-def read_data(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """(times in h, CSA / CSA at time 0) of a CSV file; InputError naming what is wrong."""
-    path = Path(path)
-    try:
-        with open(path, newline="") as f:
-            rows = list(csv.reader(f))
-    except OSError as err:
-        raise InputError(f"{path}: cannot read: {err.strerror}") from None
-    if not rows:
-        raise InputError(f"{path}: empty file")
-    header = [h.strip().lower() for h in rows[0]]
-    if "csa" not in header:
-        raise InputError(f"{path}: missing column 'csa' (columns: {', '.join(header)})")
-    units = [h for h in header if h != "csa"]
-    if len(units) != 1:
-        raise InputError(f"{path}: expected one time column besides 'csa', named after its unit "
-                         f"({', '.join(TIME_UNITS)}); columns: {', '.join(header)}")
-    if units[0] not in TIME_UNITS:
-        raise InputError(f"{path}: unknown time unit {units[0]!r}; known: {', '.join(TIME_UNITS)}")
-    it, ic = header.index(units[0]), header.index("csa")
-    values, lines = [], []
-    for k, row in enumerate(rows[1:], start=2):
-        if not any(cell.strip() for cell in row):
-            continue
-        if len(row) != len(header):
-            raise InputError(f"{path}: line {k}: expected {len(header)} values, got {len(row)}")
-        try:
-            values.append((float(row[it]), float(row[ic])))
-        except ValueError:
-            raise InputError(f"{path}: line {k}: not a number: {row}") from None
-        lines.append(k)
-    data = np.array(values, dtype=float).reshape(-1, 2)
-    if len(data) < 2:
-        raise InputError(f"{path}: need at least two rows (time 0 and a later one)")
-    bad = ~np.isfinite(data).all(axis=1)
-    if bad.any():
-        raise InputError(f"{path}: line {lines[int(np.flatnonzero(bad)[0])]}: NaN or infinite value")
-    back = np.diff(data[:, 0]) <= 0
-    if back.any():
-        raise InputError(f"{path}: line {lines[int(np.flatnonzero(back)[0]) + 1]}: time must increase strictly")
-    if data[0, 0] != 0.0:
-        raise InputError(f"{path}: the first row must be time 0 (the baseline CSA), got {data[0, 0]:g}")
-    if np.any(data[:, 1] <= 0):
-        raise InputError(f"{path}: CSA must be > 0")
-    return data[1:, 0] * TIME_UNITS[units[0]], data[1:, 1] / data[0, 1]
-
-
 def dataset(path: str | Path, protocol: Protocol, exclude_until: float = 0.0) -> Dataset:
     """The data of ``path`` under ``protocol``, without the points in (0, exclude_until] weeks."""
-    t, ratio = read_data(path)
+    measured_data = measured.read(path)
+    t, ratio = measured_data.t, measured_data.csa_ratio
     keep = t > exclude_until * protocols.WEEK
     if keep.sum() < 1:
         raise InputError(f"{path}: no points left after {exclude_until:g} weeks")

@@ -15,6 +15,7 @@ import argparse
 import contextlib
 import importlib
 import logging
+import math
 import os
 import re
 import signal
@@ -83,6 +84,30 @@ def integer(least: int, most: int | None = None) -> Callable[[str], int]:
 
     parse.__name__ = "integer"  # what argparse calls the type in its messages
     return parse
+
+
+def positive(unit: str) -> Callable[[str], float]:
+    """An argparse type: a finite number > 0 of ``unit`` (hours, seconds)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number of {unit}, got {text!r}") from None
+        if not (math.isfinite(value) and value > 0):
+            raise argparse.ArgumentTypeError(f"expected a finite number of {unit} > 0, got {text}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
+def progress_option(p: Parser) -> None:
+    """--progress-every of a long job (its progress lines, on rank 0; --quiet: none)."""
+    from hyper.log import PROGRESS_EVERY
+
+    p.add_argument("--progress-every", type=positive("seconds"), default=PROGRESS_EVERY, metavar="SECONDS",
+                   help="seconds of wall time between progress lines (the first and last always come)")
 
 
 # Where results never go: the kernel's and the devices' pseudo file systems.

@@ -13,7 +13,8 @@ communicator. Per run, under OUTPUT/runs/:
                                     csa0_m2, volume0_m3, wall_s, ranks, run_digest and
                                     the groups signaling, material, protocol, settings
                                     and the equivalent study file (hyper.provenance)
-    GEOMETRY_PROTOCOL_fields.xdmf   snapshots of u, det Ḡ and a0 for ParaView
+    GEOMETRY_PROTOCOL_fields.xdmf   snapshots of u, det Ḡ and a0 every --snapshot-every
+                                    simulated hours (ParaView, meshio's TimeSeriesReader)
     GEOMETRY_PROTOCOL.log           the run's own progress lines
 
 and for the cohort, written by rank 0 from the complete .h5 files (so a rerun that had
@@ -21,9 +22,11 @@ nothing left to do writes the same summary):
 
     summary.csv     geometry,muscle,subject,side,protocol,csa0_cm2,volume0_cm3,
                     final_csa_ratio,final_csa_ratio_cut,final_csa_ratio_box,
-                    final_volume_ratio,wall_s,status (final_csa_ratio is the one
-                    --csa-method feeds back; cut and box are blank on meshes with a
-                    tagged mid-section)
+                    final_volume_ratio,wall_s,data_rmse_pp,data_last_difference_pp,
+                    status (final_csa_ratio is the one --csa-method feeds back; cut
+                    and box are blank on meshes with a tagged mid-section; data_*:
+                    against --data, or the protocol's own data set, in percentage
+                    points; blank without)
     failures.txt    the error of every failed run (only when some failed)
     ratios.png      final CSA and volume change by muscle and protocol, mean ± standard
                     error over the four members of each muscle (Fig. 6C–D analog)
@@ -63,18 +66,20 @@ import numpy as np
 from mpi4py import MPI
 
 from hyper import checkpoint as ckpt
-from hyper import cli, farm, io, material, plot, presets, protocols, run, signaling
+from hyper import cli, farm, io, material, measured, plot, presets, protocols, run, signaling
 from hyper import geometry as geo
 from hyper.coupled import CSA_METHODS, GrowthSettings, step_times
-from hyper.log import hms, info
+from hyper.log import PROGRESS_EVERY, hms, info
 from hyper.params import InputError
 from hyper.protocols import Protocol
 
 COLUMNS = ("geometry", "muscle", "subject", "side", "protocol", "csa0_cm2", "volume0_cm3",
-           "final_csa_ratio", "final_csa_ratio_cut", "final_csa_ratio_box", "final_volume_ratio", "wall_s", "status")
-# the summary's numbers: CSA by the feedback's method and by each method (blank without them)
+           "final_csa_ratio", "final_csa_ratio_cut", "final_csa_ratio_box", "final_volume_ratio", "wall_s",
+           "data_rmse_pp", "data_last_difference_pp", "status")
+# the summary's numbers: CSA by the feedback's method and by each method, and against
+# measured CSA (blank without them)
 NUMBERS = ("csa0_cm2", "volume0_cm3", "final_csa_ratio", "final_csa_ratio_cut", "final_csa_ratio_box",
-           "final_volume_ratio", "wall_s")
+           "final_volume_ratio", "wall_s", "data_rmse_pp", "data_last_difference_pp")
 PAPER_PROTOCOLS = protocols.PAPER  # in the paper's order of growth: mwf > every3days > weekly
 # MODEL.md §8, anatomical cohort under mwf: increases in percent (low, high)
 PAPER_MWF_INCREASE = {"volume": (8.0, 9.0), "csa": (3.0, 6.0)}
@@ -181,8 +186,9 @@ class _RunLog:
 
 
 def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: GrowthSettings | None = None,
-               snapshot_every: int = run.SNAPSHOT_EVERY, ranks_per_job: int = 1, stop=None,
-               options: Mapping | None = None) -> list[farm.JobResult]:
+               snapshot_every: float = run.SNAPSHOT_EVERY, ranks_per_job: int = 1, stop=None,
+               options: Mapping | None = None, data: measured.Measured | None = None,
+               progress_every: float = PROGRESS_EVERY) -> list[farm.JobResult]:
     """Run every run not done before on the farm; collective over ``comm``.
 
     Each run checkpoints every run.CHECKPOINT_EVERY growth steps (runs/KEY.ckpt.h5) and
@@ -190,6 +196,9 @@ def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: Gr
     ``stop()`` turning true (run.StopOnTerm: SIGTERM) stops the running runs at their
     next step boundary with a checkpoint, and the runs not started yet at once; their
     results are ``{"interrupted": True}``. ``options``: more `RunSpec` fields for every run (`spec`).
+    Each run is compared with ``data`` (None: its protocol's own data set, if any; `hyper.measured`),
+    its error stored in its result's ``data`` group. Progress lines come at most every
+    ``progress_every`` s, the farm's on the terminal and each run's in its log.
     """
     params = signaling.SignalingParams() if params is None else params
     settings = GrowthSettings() if settings is None else settings
@@ -213,17 +222,22 @@ def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: Gr
         ckpt.on_rank0(subcomm, lambda: drop_stale_checkpoint(out.checkpoint, digests[entry.key]))
         try:
             with _RunLog(out.h5.with_suffix(".log")) if subcomm.rank == 0 else contextlib.nullcontext():
-                done = run.execute(subcomm, specs[entry.key], out, snapshot_every=snapshot_every, stop=stop)
+                done = run.execute(subcomm, specs[entry.key], out, snapshot_every=snapshot_every, stop=stop,
+                                   progress_every=progress_every)
         except run.Interrupted:
             return interrupted
         if subcomm.rank != 0:
             return None
-        out.store(done.series, {**done.meta, **member(entry.geometry), "protocol": entry.protocol.name},
-                  run.result_groups(specs[entry.key], done.choice))
+        groups = run.result_groups(specs[entry.key], done.choice)
+        against = data if data is not None else measured.of_protocol(entry.protocol)
+        if against is not None:
+            groups["data"] = measured.compare(against, done.series["t"], done.series["csa_ratio"]).attributes()
+        out.store(done.series, {**done.meta, **member(entry.geometry), "protocol": entry.protocol.name}, groups)
         return {"csa_ratio": float(done.series["csa_ratio"][-1]),
                 "volume_ratio": float(done.series["volume_ratio"][-1])}
 
-    return farm.run(comm, jobs, work, ranks_per_job=ranks_per_job, is_done=is_done, label="cohort")
+    return farm.run(comm, jobs, work, ranks_per_job=ranks_per_job, is_done=is_done, label="cohort",
+                    progress_every=progress_every)
 
 
 # --------------------------------------------------------------------------------------
@@ -243,7 +257,11 @@ def summary_row(path: Path) -> dict:
             "final_csa_ratio": float(f["csa_ratio"][-1]),
             **{f"final_csa_ratio_{m}": float(f[f"csa_ratio_{m}"][-1]) if f"csa_ratio_{m}" in f else float("nan")
                for m in CSA_METHODS},
-            "final_volume_ratio": float(f["volume_ratio"][-1]), "wall_s": float(a["wall_s"]), "status": "done",
+            "final_volume_ratio": float(f["volume_ratio"][-1]), "wall_s": float(a["wall_s"]),
+            # against measured CSA (hyper.measured), where the run was compared with some
+            "data_rmse_pp": float(f["data"].attrs["rmse_pp"]) if "data" in f else float("nan"),
+            "data_last_difference_pp": float(f["data"].attrs["last_difference_pp"]) if "data" in f else float("nan"),
+            "status": "done",
         }
 
 
@@ -277,7 +295,7 @@ def read_csv(path: Path) -> list[dict]:
         rows = list(csv.DictReader(f))
     for row in rows:
         for key in NUMBERS:
-            row[key] = float(row[key]) if row[key] else float("nan")
+            row[key] = float(row[key]) if row.get(key) else float("nan")
     return rows
 
 
@@ -510,8 +528,12 @@ def parser() -> cli.Parser:
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run fails; a failed run "
                         "resumes from its checkpoint with a larger value")
-    p.add_argument("--snapshot-every", type=cli.integer(1), default=run.SNAPSHOT_EVERY,
-                   help="XDMF snapshot every K growth steps")
+    p.add_argument("--snapshot-every", type=cli.positive("hours"), default=run.SNAPSHOT_EVERY, metavar="HOURS",
+                   help="fields snapshot every HOURS of simulated time, besides the first and the last state")
+    p.add_argument("--data", type=Path, metavar="CSV",
+                   help="measured CSA to compare every run with (as hyper grow --data); by default each "
+                        "protocol's own data set, if it has one (mwf: DeFreitas)")
+    cli.progress_option(p)
     p.add_argument("--plot-geometry", metavar="ID",
                    help=f"geometry of the shape plot (the paper's Fig. 6A), one of --geometries; {SHAPE_GEOMETRY} "
                         "when it is one of them, else the first")
@@ -537,6 +559,10 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings, material.MaterialParam
     settings = presets.settings(GrowthSettings, args.settings, chosen,
                                 {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings"})
     runs = plan(args.geometries, [p for text in args.protocols for p in protocols.from_option(text, "--protocols")])
+    if args.data is not None:
+        data = measured.read(args.data)
+        for r in runs:
+            measured.check_span(data, r.protocol)
     return runs, settings, material.load(args.material) if args.material else material.MaterialParams()
 
 
@@ -585,6 +611,11 @@ def finish(output: Path, runs: list[Run], results, settings: GrowthSettings, ela
         info(None, f"{r['geometry']:<16} {r['protocol']:<11} {r['csa0_cm2']:>8.3f} {r['volume0_cm3']:>8.2f} "
                    f"{r['final_csa_ratio']:>9.5f} {r['final_volume_ratio']:>8.5f} "
                    f"{hms(r['wall_s']) if r['status'] == 'done' else '-':>8} {r['status']}")
+    for r in rows:
+        if r["status"] == "done" and not math.isnan(r["data_rmse_pp"]):
+            info(None, f"{r['geometry']}/{r['protocol']} against measured CSA: RMSE {r['data_rmse_pp']:.2f} "
+                       f"percentage points, model − data at the last measured time "
+                       f"{r['data_last_difference_pp']:+.2f} points")
     info(None, "\n" + table)
     info(None, farm.summary_line(results) + f"; cohort wall time {hms(elapsed)} ({elapsed:.0f} s)")
     if failed:
@@ -606,7 +637,8 @@ def cohort(comm, args) -> int:
                    f"{settings.growth_dt:g} h, output {args.output}")
         with run.StopOnTerm() as stop:
             results = run_cohort(comm, runs, args.output, settings=settings, snapshot_every=args.snapshot_every,
-                                 ranks_per_job=args.ranks_per_job, stop=stop,
+                                 ranks_per_job=args.ranks_per_job, stop=stop, progress_every=args.progress_every,
+                                 data=None if args.data is None else measured.read(args.data),
                                  options={**args.shape, "material": muscle})
         code = 0
         if comm.rank == 0:

@@ -50,7 +50,7 @@ from mpi4py import MPI
 
 from hyper import cli, farm, heterogeneity, io, plot, protocols, run, signaling
 from hyper.coupled import GrowthSettings
-from hyper.log import hms, info
+from hyper.log import PROGRESS_EVERY, hms, info
 from hyper.params import InputError, build
 
 STD = tuple(f"{s}_std" for s in signaling.STATES)
@@ -149,12 +149,13 @@ def std_columns(comm) -> tuple[tuple[str, ...], Callable]:
     return STD, lambda model: state_std(comm, model.y)
 
 
-def run_sample(comm, sample: Sample, *, snapshot_every: int, stop=None) -> dict:
+def run_sample(comm, sample: Sample, *, snapshot_every: float, stop=None,
+               progress_every: float = PROGRESS_EVERY) -> dict:
     """One coupled run of an ensemble, with checkpoints; writes its series and fields.
     Collective over comm; raises run.Interrupted after a SIGTERM (checkpoint saved)."""
     spec = sample.spec
     done = run.execute(comm, spec, sample.outputs, snapshot_every=snapshot_every, stop=stop,
-                       extra_series=std_columns(comm), progress_every=30.0)
+                       extra_series=std_columns(comm), progress_every=progress_every)
     final = FinalFields(done.model)
     rough = final.roughness()
     cells = gather_cells(comm, final.mesh, final.cell_values(), heterogeneity.cell_midpoints(final.mesh))
@@ -281,9 +282,10 @@ def parser() -> cli.Parser:
     p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step Δtg (h)")
     p.add_argument("--signaling-dt", type=float, default=GrowthSettings.signaling_dt, help="RK4 step (h)")
     p.add_argument("--ranks-per-job", type=cli.integer(1), default=1, help="MPI ranks per coupled run")
-    p.add_argument("--snapshot-every", type=cli.integer(1), default=run.SNAPSHOT_EVERY,
-                   help="XDMF snapshot every K growth steps")
+    p.add_argument("--snapshot-every", type=cli.positive("hours"), default=run.SNAPSHOT_EVERY, metavar="HOURS",
+                   help="fields snapshot every HOURS of simulated time, besides the first and the last state")
     p.add_argument("--output", type=cli.output(folder=True), default="results/ensemble", help="results folder")
+    cli.progress_option(p)
     return p
 
 
@@ -324,7 +326,8 @@ def ensemble(comm, args) -> int:
         if sub.allreduce(bool(stop()), op=MPI.LOR):
             return {"interrupted": True}
         try:
-            return run_sample(sub, job.payload, snapshot_every=args.snapshot_every, stop=stop)
+            return run_sample(sub, job.payload, snapshot_every=args.snapshot_every, stop=stop,
+                              progress_every=args.progress_every)
         except run.Interrupted:
             return {"interrupted": True}
 
@@ -332,7 +335,7 @@ def ensemble(comm, args) -> int:
         results = farm.run(
             comm, jobs, lambda sub, job: work(sub, job, stop), ranks_per_job=args.ranks_per_job,
             is_done=lambda job: job.payload.outputs.is_current(digests[job.key]),
-            label=f"ensemble {args.geometry}/{protocol}/{het.label()}",
+            label=f"ensemble {args.geometry}/{protocol}/{het.label()}", progress_every=args.progress_every,
         )
     info(comm, farm.summary_line(results) + f" in {hms(time.perf_counter() - start)}")
     for r in results:

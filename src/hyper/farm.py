@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 from mpi4py import MPI
 
-from hyper.log import Progress, info
+from hyper.log import PROGRESS_EVERY, Progress, info
 from hyper.params import InputError
 
 _REQUEST, _REPLY = 71, 72
@@ -89,7 +89,7 @@ class _Queue:
     Used by rank 0's main thread and by its server thread, hence the lock.
     """
 
-    def __init__(self, comm, jobs: Sequence[Job], order: Sequence[int], state, label: str):
+    def __init__(self, comm, jobs: Sequence[Job], order: Sequence[int], state, label: str, progress_every: float):
         self.comm = comm
         self.jobs = jobs
         self.order = list(order)
@@ -98,7 +98,7 @@ class _Queue:
         self.lock = threading.Lock()
         self.next = 0
         self.cost_done = 0.0
-        self.progress = Progress(comm, sum(jobs[i].cost for i in order), label)
+        self.progress = Progress(comm, sum(jobs[i].cost for i in order), label, every=progress_every)
 
     def take(self) -> int:
         """The index of the next job to run, or -1 when none is left."""
@@ -180,6 +180,7 @@ def run(
     ranks_per_job: int = 1,
     is_done: Callable[[Job], bool] | None = None,
     label: str = "jobs",
+    progress_every: float = PROGRESS_EVERY,
 ) -> list[JobResult]:
     """Run every job once on a group of ``ranks_per_job`` ranks; collective over ``comm``.
 
@@ -187,7 +188,8 @@ def run(
     group's ranks (a fresh one per job) and returns a picklable dict (or None); the
     value on the group's rank 0 is recorded. ``is_done(job)``, called on rank 0 only,
     marks jobs whose complete results already exist: they are skipped. Returns the
-    results of all jobs, in the order of ``jobs``, on every rank.
+    results of all jobs, in the order of ``jobs``, on every rank. Rank 0 prints the
+    farm's progress as jobs end, at most every ``progress_every`` s (and at the last).
     """
     _check_ranks_per_job(comm, ranks_per_job)
     keys = [job.key for job in jobs]
@@ -210,7 +212,7 @@ def run(
     try:
         if comm.rank == 0:
             state = np.where(skipped, SKIPPED, PENDING).astype(np.int64)
-            queue = _Queue(comm, jobs, order, state, label)
+            queue = _Queue(comm, jobs, order, state, label, progress_every)
             info(
                 comm,
                 f"{label}: {len(todo)} to run, {len(jobs) - len(todo)} skipped (done before), "

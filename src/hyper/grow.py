@@ -13,6 +13,12 @@ On a mesh without a tagged mid-section (the anatomical ones) both CSA measures a
 recorded, csa_ratio_cut (the exact plane cut) and csa_ratio_box (the original code's
 box staircase, MODEL.md §9); csa_ratio is the one --csa-method feeds back. --plot-box
 draws the box's inner and rim facets at the end of each run, with the exact cut.
+snapshots (u, det Ḡ, fibres; every --snapshot-every simulated hours and the last state,
+one temporal series that ParaView and meshio's TimeSeriesReader read whole) and the
+paper's Fig. 4C–E analog (--plot). Against measured CSA (--data, or the protocol's own
+data set: DeFreitas for mwf) the run's RMSE in percentage points of CSA change and its
+difference at the last measured time are printed, stored (the result's `data` group)
+and the data drawn on the figure.
 
 --accuracy A (hyper.fidelity): the cheapest model, the longest steps whose tabulated
 error stays within A of the growth, and the linear solver that fits the memory; the
@@ -33,7 +39,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from hyper import cli, fidelity, io, material, presets, protocols, run, sequence, signaling
+from hyper import cli, fidelity, io, material, measured, presets, protocols, run, sequence, signaling
 from hyper.checkpoint import on_rank0
 from hyper.log import info
 from hyper.params import InputError
@@ -92,10 +98,16 @@ def parser(ask: str = "growth") -> cli.Parser:
                    "low-rank LU (less memory, same answer) or auto (LU while it fits); lu, or auto with --accuracy")
     p.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
                    help="a PETSc option of the mechanics solver, e.g. snes_max_it=50 (repeatable)")
-    p.add_argument("--snapshot-every", type=cli.integer(1), default=run.SNAPSHOT_EVERY,
-                   help="XDMF snapshot every K growth steps")
+    p.add_argument("--snapshot-every", type=cli.positive("hours"), default=run.SNAPSHOT_EVERY, metavar="HOURS",
+                   help="fields snapshot every HOURS of simulated time (at the first growth step on or after "
+                        "each multiple), besides the first and the last state")
     p.add_argument("--checkpoint-every", type=cli.integer(0), default=run.CHECKPOINT_EVERY,
                    help="checkpoint every K growth steps (0: only on SIGTERM and failures)")
+    p.add_argument("--data", type=Path, metavar="CSV",
+                   help="measured CSA to compare with (data/README.md: a time column named week, day or hour, "
+                        "and csa or csa_change_percent); by default the project's data set of the protocol, "
+                        "if it has one (mwf: DeFreitas)")
+    cli.progress_option(p)
     p.add_argument("--restart", action="store_true", help="ignore and delete an existing checkpoint")
     p.add_argument("--plot", type=cli.output(folder=False, suffixes=(".png",)), help="figure; beside the output: "
                    "RESULT.png, or in a folder GEOMETRY_PROTOCOL_growth.png (one protocol), GEOMETRY_growth.png")
@@ -188,6 +200,11 @@ def plan_from(comm, args) -> sequence.Plan:
         problem = cli.unwritable(args.plot_box, folder=False)
         if problem is not None:
             raise InputError(f"--plot-box: {problem}")
+    data = None
+    if args.data is not None:
+        data = measured.read(args.data)
+        for p in runs:
+            measured.check_span(data, p)
     if mesh is not None:
         mesh.load(comm)  # units and tags, before anything is written
     solver = args.linear_solver or ("auto" if args.accuracy is not None else "lu")
@@ -197,7 +214,7 @@ def plan_from(comm, args) -> sequence.Plan:
     if not args.restart:
         sequence.refuse_foreign_checkpoints(comm, specs, [run.Outputs(h5) for h5 in results])
     return sequence.Plan(specs, [run.Outputs(h5) for h5 in results], plot, args.snapshot_every, args.checkpoint_every,
-                args.restart, choice, box_plots(args.plot_box, runs))
+                args.restart, choice, box_plots(args.plot_box, runs), data=data, progress_every=args.progress_every)
 
 
 def answer_signaling(comm, args) -> int:

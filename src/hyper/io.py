@@ -188,9 +188,50 @@ def read_series(path: str | Path) -> dict[str, np.ndarray]:
         return {k: f[k][()] for k in f if isinstance(f[k], h5py.Dataset)}
 
 
+def one_grid(xml: str) -> str:
+    """DOLFINx's XDMF of functions written over time, as one temporal collection of grids
+    that each carry every function.
+
+    DOLFINx writes the mesh as a grid of its own and each function as its own temporal
+    collection: ParaView's Xdmf3 reader opens that as blocks to merge, meshio's time-series
+    reader sees the last collection only and `meshio.read` none. Here each time at which
+    any function was written is one grid: the mesh (the same HDF5 datasets, referenced
+    again) and every function, a function written less often (the fibres, once) with the
+    value it was last written with. The HDF5 file is untouched.
+    """
+    import xml.etree.ElementTree as ET
+
+    domain = ET.fromstring(xml).find("Domain")
+    grids = list(domain)
+    mesh = next(g for g in grids if g.get("GridType") == "Uniform")
+    shape = [mesh.find("Topology"), mesh.find("Geometry")]
+    written: dict[str, list[tuple[float, str, ET.Element]]] = {}
+    for collection in grids:
+        if collection.get("GridType") != "Collection":
+            continue
+        for grid in collection.findall("Grid"):
+            attribute, value = grid.find("Attribute"), grid.find("Time").get("Value")
+            written.setdefault(attribute.get("Name"), []).append((float(value), value, attribute))
+    times = sorted({(t, text) for rows in written.values() for t, text, _ in rows})
+    root = ET.Element("Xdmf", Version="3.0")
+    series = ET.SubElement(ET.SubElement(root, "Domain"), "Grid", Name="fields", GridType="Collection",
+                           CollectionType="Temporal")
+    for t, text in times:
+        grid = ET.SubElement(series, "Grid", Name="fields", GridType="Uniform")
+        grid.extend(shape)
+        ET.SubElement(grid, "Time", Value=text)
+        for rows in written.values():
+            held = [attribute for when, _, attribute in rows if when <= t]
+            if held:
+                grid.append(held[-1])
+    ET.indent(root)
+    return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+
+
 @contextlib.contextmanager
 def atomic_xdmf(comm, path: str | Path) -> Iterator[Any]:
-    """An open dolfinx XDMFFile that appears at ``path`` (with its .h5) only when closed.
+    """An open dolfinx XDMFFile that appears at ``path`` (with its .h5) only when closed,
+    its XML made one temporal series of grids that carry every function (`one_grid`).
 
     The pair is written into a ``<name>.partial/`` folder, so the .xdmf keeps the
     relative reference to its .h5, and moved into place: the .h5 first, the .xdmf last,
@@ -213,6 +254,8 @@ def atomic_xdmf(comm, path: str | Path) -> Iterator[Any]:
         comm.barrier()
         if comm.rank == 0:
             if ok:
+                staged = stage / path.name
+                staged.write_text(one_grid(staged.read_text()))
                 h5 = path.with_suffix(".h5")
                 os.replace(stage / h5.name, h5)
                 os.replace(stage / path.name, path)

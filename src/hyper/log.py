@@ -11,6 +11,9 @@ import time
 
 _logger = logging.getLogger("hyper")
 
+# s of wall time between progress lines of a long job: an hour-long run writes about 60
+PROGRESS_EVERY = 60.0
+
 
 def info(comm, *args) -> None:
     _logger.info(" ".join(str(a) for a in args), extra={"rank": 0 if comm is None else comm.rank})
@@ -30,7 +33,7 @@ def hms(seconds: float) -> str:
 class Progress:
     """Prints "label: done/total, elapsed, time left" on rank 0, at most every ``every`` s."""
 
-    def __init__(self, comm, total: float, label: str, every: float = 2.0):
+    def __init__(self, comm, total: float, label: str, every: float = PROGRESS_EVERY):
         self.comm = comm
         self.total = float(total)
         self.label = label

@@ -43,11 +43,10 @@ def save(fig, path: str | Path, *, dpi: int = 150) -> Path:
     return path
 
 
-def growth_series(results: dict[str, dict], path: str | Path, data: Path | None = None) -> Path:
+def growth_series(results: dict[str, dict], path: str | Path, data=(), errors=None) -> Path:
     """CSA, volume and kM against time for several protocols (the paper's Fig. 4C–E),
-    with DeFreitas et al.'s CSA (``data``: their CSV) where given."""
-    import numpy as np
-
+    with measured CSA courses (``data``: `hyper.measured.Measured`) and each protocol's
+    RMSE against them (``errors``: protocol -> `hyper.measured.Comparison`) where given."""
     plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), constrained_layout=True)
     end = 0.0
@@ -55,14 +54,15 @@ def growth_series(results: dict[str, dict], path: str | Path, data: Path | None 
         weeks = s["t"] / 168.0
         end = max(end, float(weeks[-1]))
         colour = protocol_colour(name)
-        axes[0].plot(weeks, 100 * (s["csa_ratio"] - 1), label=name, color=colour)
+        error = (errors or {}).get(name)
+        label = name if error is None else f"{name} (RMSE {error.rmse_pp:.2f} pp)"
+        axes[0].plot(weeks, 100 * (s["csa_ratio"] - 1), label=label, color=colour)
         axes[1].plot(weeks, 100 * (s["volume_ratio"] - 1), label=name, color=colour)
         axes[2].plot(weeks, s["kM"], label=name, color=colour)
-    if data is not None and data.is_file():
-        measured = np.genfromtxt(data, delimiter=",", names=True)
-        axes[0].plot(measured["week"], 100 * (measured["csa"] / measured["csa"][0] - 1), "ko", ms=4,
-                     label="DeFreitas 2011 (mwf)")
-        end = max(end, float(np.max(measured["week"])))
+    for i, measured in enumerate(data):
+        axes[0].plot(measured.t / 168.0, 100 * (measured.csa_ratio - 1), "k" + "osD^v"[i % 5], ms=4, mfc="none",
+                     label=measured.label)
+        end = max(end, float(max(measured.t)) / 168.0)
     for ax in axes:  # one time range in the three panels, with room for the end points
         ax.set_xlim(-0.02 * end, 1.02 * end)
     axes[0].set_ylabel("CSA change (%)")

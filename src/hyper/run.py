@@ -7,7 +7,9 @@ result, and a checkpoint is resumed only by the run with the same digest. `Outpu
 derives the files of a run from its result path:
 
     RESULT.h5             the time series (hyper.io.write_series), written when done
-    RESULT_fields.xdmf    snapshots of u, det Ḡ and a0 (and N with per-cell signaling)
+    RESULT_fields.xdmf    snapshots of u, det Ḡ and a0 (and N with per-cell signaling) every
+                          --snapshot-every simulated hours and at the end: one temporal
+                          series of grids, each with every field (hyper.io.one_grid)
     RESULT.ckpt.h5        the whole state, every --checkpoint-every growth steps, at the
                           first step boundary after a SIGTERM and when a step fails
     RESULT.status.json    why an unfinished run stopped, and how to resume it
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 import signal
 import time
 from collections.abc import Callable, Mapping
@@ -35,13 +38,13 @@ from mpi4py import MPI
 
 from hyper import checkpoint as ckpt
 from hyper import fidelity, io, provenance, signaling
-from hyper.log import Progress, info
+from hyper.log import PROGRESS_EVERY, Progress, info
 from hyper.material import MaterialParams
 from hyper.params import InputError, as_attributes
 from hyper.protocols import Protocol
 
 CHECKPOINT_EVERY = 10  # growth steps; writing one took 0.3 s on BFLH_VHF_Left (8512 cells, 30 MB), a step 7 s
-SNAPSHOT_EVERY = 10  # growth steps
+SNAPSHOT_EVERY = 24.0  # h of simulated time: a 9-week run writes 64 snapshots
 SERIES = ("t", "csa_ratio", "volume_ratio", "kM", *signaling.STATES, "newton_iterations", "halvings", "wall_s")
 LINEAR_SOLVERS = ("lu", "iterative", "auto")
 
@@ -387,6 +390,15 @@ class Series:
         return float(self.rows["wall_s"][-1]) if self.rows["wall_s"] else 0.0
 
 
+def snapshot_due(kept: list[float], t: float, every: float) -> bool:
+    """A snapshot is due at ``t`` (h) after those ``kept``: none yet, or ``t`` reaches the
+    first multiple of ``every`` hours after the last one."""
+    if not kept:
+        return True
+    slack = 1e-9 * every  # step times are sums of step lengths: 3 × 8 h may fall short of 24 h
+    return t >= (math.floor((kept[-1] + slack) / every) + 1) * every - slack
+
+
 class Snapshots:
     """Output fields of a run on spaces XDMF stores (P1 and DG0), updated in place:
     u, det Ḡ, a0, and N where each cell has its own signaling.
@@ -419,7 +431,9 @@ class Snapshots:
         return ("u", "det") + (("N",) if self.N is not None else ())
 
     def fields(self) -> tuple:
-        return (self.u, self.det, self.a0) + ((self.N,) if self.N is not None else ())
+        """The fields of the snapshot just kept; the fibres, which never change, with the first only."""
+        return (self.u, self.det) + ((self.a0,) if len(self.times) == 1 else ()) + \
+            ((self.N,) if self.N is not None else ())
 
     def update(self, t: float) -> tuple:
         self.u.interpolate(self.model.problem.u)
@@ -505,11 +519,13 @@ def build(comm, spec: RunSpec, *, monitor=None, integrator=None):
     return model, a0, {"linear_solver": solver, "linear_solver_reason": reason}, choice
 
 
-def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAPSHOT_EVERY,
+def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: float = SNAPSHOT_EVERY,
             checkpoint_every: int = CHECKPOINT_EVERY, stop: Callable[[], bool] | None = None,
             extra_series: tuple[tuple[str, ...], Callable] | None = None, checkpoints: bool = True,
-            progress_every: float = 2.0, monitor=None, command: list[str] | None = None) -> Result:
-    """Run ``spec``, writing its snapshots to ``outputs.fields``; return its `Result`.
+            progress_every: float = PROGRESS_EVERY, monitor=None, command: list[str] | None = None) -> Result:
+    """Run ``spec``, writing its snapshots to ``outputs.fields`` (the first state, then every
+    ``snapshot_every`` simulated hours and the last); return its `Result`. Progress
+    lines come at most every ``progress_every`` seconds of wall time.
 
     With ``checkpoints``, the run resumes from ``outputs.checkpoint`` if it exists (it
     must belong to this run: InputError otherwise), saves its state there every
@@ -571,7 +587,7 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: int = SNAP
             for report in model.run():
                 series.append(report, model, wall0 + time.perf_counter() - start)
                 last = report.t >= end
-                if report.step % snapshot_every == 0 or last:
+                if snapshot_due(snaps.times, report.t, snapshot_every) or last:
                     for f in snaps.update(report.t):
                         xdmf.write_function(f, report.t)
                 progress.update(report.t, f"day {report.t / 24:5.1f}, CSA/CSA0 {report.csa_ratio:.5f}, "

@@ -69,7 +69,7 @@ from mpi4py import MPI
 
 from hyper import cli, protocols
 from hyper import signaling as S
-from hyper.log import info
+from hyper.log import PROGRESS_EVERY, info
 from hyper.params import InputError, positive_hours
 from hyper.plot import pyplot
 from hyper.protocols import Protocol, named
@@ -489,7 +489,8 @@ def _chunk_ok(path: Path, key: str, start: int, stop: int) -> bool:
 
 
 def run_chunks(comm, X: np.ndarray, evaluate: Callable[[np.ndarray], np.ndarray], folder: Path, key: str,
-               chunk: int, label: str = "sobol", stop: Callable[[], bool] | None = None):
+               chunk: int, label: str = "sobol", stop: Callable[[], bool] | None = None,
+               progress_every: float = PROGRESS_EVERY):
     """Evaluate every row of X in chunks farmed over ``comm``; collective.
 
     Each chunk is written atomically to ``folder/<key>/<job key>.npz`` with its row range,
@@ -522,7 +523,7 @@ def run_chunks(comm, X: np.ndarray, evaluate: Callable[[np.ndarray], np.ndarray]
                 np.savez(f, Y=Y, start=first, stop=last, digest=key, complete=True)
         return {"failed": int((~np.isfinite(Y)).sum())}
 
-    results = farm.run(comm, jobs, work, is_done=is_done, label=label)
+    results = farm.run(comm, jobs, work, is_done=is_done, label=label, progress_every=progress_every)
     Y = None
     if comm.rank == 0 and all(r.status != "failed" and not interrupted(r) for r in results):
         Y = np.empty(X.shape[0])
@@ -596,6 +597,7 @@ def parser() -> cli.Parser:
                    "or the Ishigami test function; signaling unless the --problem file says")
     p.add_argument("--geometry", choices=tuple(SECTION_GEOMETRIES), default=GAIN_GEOMETRY,
                    help="csa-gain: whose section factor turns N into CSA (surrogate.SECTION_FACTOR)")
+    cli.progress_option(p)
     return p
 
 
@@ -705,7 +707,8 @@ def analyse(comm, args, protocol, prob) -> int:
     from hyper.run import StopOnTerm
 
     with StopOnTerm() as stop:
-        Y, results = run_chunks(comm, X, evaluate, chunks, key, args.chunk, label="sobol", stop=stop)
+        Y, results = run_chunks(comm, X, evaluate, chunks, key, args.chunk, label="sobol", stop=stop,
+                                progress_every=args.progress_every)
     if comm.allreduce(stop(), op=MPI.LOR):
         left = sum(interrupted(r) for r in results)
         info(comm, f"stopped by SIGTERM: {left} chunk(s) not computed, the others saved in {chunks}; "

@@ -53,6 +53,10 @@ of inputs are relative to the study file's folder (the output folder to the curr
     [output]
     folder = "results/study"   # (the default)
     figures = true
+    snapshot_every = 24.0      # h of simulated time between fields snapshots (and the last state)
+
+    [data]                     # measured CSA to compare every run with (hyper.measured), optional;
+    file = "mine.csv"          # without it a run is compared with its protocol's own data set, if any
 
     [sobol]                    # the sensitivity analysis of `hyper sobol --problem STUDY.toml`
     names = ["kM", "kF"]       # (checked here, run there; see hyper.sobol)
@@ -77,20 +81,21 @@ import time
 import traceback
 from pathlib import Path
 
-from hyper import cli, cohort, fidelity, protocols, run, sequence, signaling
+from hyper import cli, cohort, fidelity, measured, protocols, run, sequence, signaling
 from hyper import geometry as geo
 from hyper import material as mat
 from hyper.coupled import GrowthSettings
 from hyper.heterogeneity import Heterogeneity
-from hyper.log import info
+from hyper.log import PROGRESS_EVERY, info
 from hyper.params import InputError, as_attributes, build, positive_hours, read_toml, replace_from_mapping
 from hyper.protocols import Protocol
 
 KEYS = ("geometries", "protocols", "mesh", "protocol", "signaling", "material", "heterogeneity", "numerics",
-        "output", "sobol")
+        "output", "sobol", "data")
 MESH_KEYS = ("file", "unit")
+DATA_KEYS = ("file",)
 HETEROGENEITY_KEYS = ("model", "epsilon", "length", "nu", "seed")
-OUTPUT_KEYS = ("folder", "figures")
+OUTPUT_KEYS = ("folder", "figures", "snapshot_every")
 DEFAULT_FOLDER = Path("results/study")
 
 
@@ -146,8 +151,10 @@ class Numerics:
 class Output:
     folder: Path = DEFAULT_FOLDER  # where the results go
     figures: bool = True  # the growth figure (one run), or ratios.png and shape.png (a cohort)
+    snapshot_every: float = run.SNAPSHOT_EVERY  # h of simulated time between fields snapshots
 
     def __post_init__(self):
+        positive_hours(self.snapshot_every, "snapshot_every")
         if not isinstance(self.folder, Path) or not str(self.folder) or "\0" in str(self.folder):
             raise InputError(f"expected a folder path, got {self.folder!r}", field="folder")
         problem = cli.unwritable(self.folder, folder=True)
@@ -170,6 +177,8 @@ class Study:
     seed: int | None = None  # of the per-cell parameters
     numerics: Numerics = Numerics()
     output: Output = Output()
+    data: measured.Measured | None = None  # the measured CSA every run is compared with
+
 
     def __post_init__(self):
         unknown = [g for g in self.geometries if g not in geo.GEOMETRIES]
@@ -190,6 +199,8 @@ class Study:
                              field="numerics.quadrature_degree")
         if (self.heterogeneity is None) != (self.seed is None):
             raise InputError("per-cell parameters need both a model and a seed", field="heterogeneity")
+        for p in self.protocols if self.data is not None else ():
+            measured.check_span(self.data, p, "data.file")
 
     @property
     def names(self) -> list[str]:
@@ -270,10 +281,28 @@ def heterogeneity_of(values: dict, where: str) -> tuple[Heterogeneity | None, in
         raise InputError(f"{where}: {err}") from None
 
 
-def load(path: str | Path, overrides: dict | None = None) -> Study:
+def data_file(data: dict, base: Path, where: str) -> measured.Measured | None:
+    """The [data] table's measured CSA (its file relative to ``base``), if there is one."""
+    if "data" not in data:
+        return None
+    entry = table(data, "data", where, DATA_KEYS)
+    if not isinstance(entry.get("file"), str):
+        raise InputError(f"{where}: data.file: expected the path of a CSV file of measured CSA (data/README.md), "
+                         f"got {entry.get('file')!r}")
+    path = base / entry["file"]
+    if not path.is_file():
+        raise InputError(f"{where}: data.file: {path}: no such file")
+    try:
+        return measured.read(path)
+    except InputError as err:
+        raise InputError(f"{where}: data.file: {err}") from None
+
+
+def load(path: str | Path, overrides: dict | None = None, data_path: Path | None = None) -> Study:
     """The study of a file, with ``overrides`` (field -> (option, value)) of its
-    [numerics] and [output] keys from the command line. InputError names the key and the
-    expected form (or the option, for a bad overriding value)."""
+    [numerics] and [output] keys from the command line, and --data instead of
+    its [data] file (``data_path``). InputError names the key and the expected form (or the option, for
+    a bad overriding value)."""
     path = Path(path)
     where = str(path)
     base = path.parent
@@ -295,6 +324,7 @@ def load(path: str | Path, overrides: dict | None = None) -> Study:
     muscle = mat.from_mapping(table(data, "material", where, tuple(as_attributes(mat.MaterialParams()))),
                               f"{where}: material")
     het, seed = heterogeneity_of(table(data, "heterogeneity", where, HETEROGENEITY_KEYS), f"{where}: heterogeneity")
+    against = data_file(data, base, where) if data_path is None else measured.read(data_path)
     sections = {}
     for name, cls in (("numerics", Numerics), ("output", Output)):
         known = tuple(f.name for f in dataclasses.fields(cls))
@@ -312,7 +342,7 @@ def load(path: str | Path, overrides: dict | None = None) -> Study:
         sections[name] = build(cls, sources, **values)
     try:
         return Study(tuple(strings(data, "geometries", where)), meshes, tuple(protocol_list), params, muscle, het,
-                     seed, **sections)
+                     seed, **sections, data=against)
     except InputError as err:
         raise InputError(f"{where}: {err}") from None
 
@@ -332,20 +362,24 @@ def parser() -> cli.Parser:
     p.add_argument("--quadrature-degree", type=cli.integer(1, 12), help="overrides [numerics] quadrature_degree")
     p.add_argument("--linear-solver", choices=run.LINEAR_SOLVERS, help="overrides [numerics] linear_solver")
     p.add_argument("--max-halvings", type=cli.integer(0), help="overrides [numerics] max_halvings")
+    p.add_argument("--snapshot-every", type=cli.positive("hours"), metavar="HOURS",
+                   help="fields snapshot every HOURS of simulated time; overrides [output] snapshot_every")
+    p.add_argument("--data", type=Path, metavar="CSV", help="measured CSA to compare with; overrides [data] file")
     p.add_argument("--ranks-per-job", type=cli.integer(1), default=1,
                    help="MPI ranks per run of a cohort; must divide the number of ranks")
+    cli.progress_option(p)
     return p
 
 
 OVERRIDES = {"output": "folder", "figures": "figures", "growth_dt": "growth_dt", "accuracy": "accuracy",
              "signaling_dt": "signaling_dt", "quadrature_degree": "quadrature_degree",
-             "linear_solver": "linear_solver", "max_halvings": "max_halvings"}
+             "linear_solver": "linear_solver", "max_halvings": "max_halvings", "snapshot_every": "snapshot_every"}
 
 
 def from_args(args) -> Study:
     overrides = {field: ("--" + option.replace("_", "-"), getattr(args, option))
                  for option, field in OVERRIDES.items() if getattr(args, option) is not None}
-    return load(args.study, overrides)
+    return load(args.study, overrides, args.data)
 
 
 def steps(study: Study) -> tuple[GrowthSettings, fidelity.Choice | None]:
@@ -390,19 +424,20 @@ def first_spec(study: Study, settings, choice) -> run.RunSpec:
                        mesh=study.meshes[0] if study.meshes else None, **spec_options(study, choice))
 
 
-def one_run(comm, study: Study, settings, choice, stop, command) -> int:
+def one_run(comm, study: Study, settings, choice, stop, command, progress_every: float = PROGRESS_EVERY) -> int:
     """One geometry × one protocol: `hyper grow`'s plan and its execution."""
     name, protocol = study.names[0], study.protocols[0]
     folder = study.output.folder
     spec = first_spec(study, settings, choice)
     outputs = [run.Outputs(folder / f"{name}_{protocol.name}.h5")]
     sequence.refuse_foreign_checkpoints(comm, [spec], outputs)
-    work = sequence.Plan([spec], outputs, folder / f"{name}_growth.png", run.SNAPSHOT_EVERY, run.CHECKPOINT_EVERY,
-                     False, choice)
+    work = sequence.Plan([spec], outputs, folder / f"{name}_growth.png", study.output.snapshot_every,
+                         run.CHECKPOINT_EVERY, False, choice, data=study.data, progress_every=progress_every)
     return sequence.carry_out(comm, work, stop, command, figure=study.output.figures)
 
 
-def many_runs(comm, study: Study, settings, choice, stop, ranks_per_job: int) -> int:
+def many_runs(comm, study: Study, settings, choice, stop, ranks_per_job: int,
+              progress_every: float = PROGRESS_EVERY) -> int:
     """More runs: `hyper cohort`'s farm and its summary."""
     start = time.perf_counter()
     if comm.size % ranks_per_job:
@@ -414,7 +449,9 @@ def many_runs(comm, study: Study, settings, choice, stop, ranks_per_job: int) ->
                    f"on {comm.size} rank(s) in groups of {ranks_per_job}, growth step {settings.growth_dt:g} h, "
                    f"output {folder}")
         results = cohort.run_cohort(comm, runs, folder, params=study.signaling, settings=settings,
-                                    ranks_per_job=ranks_per_job, stop=stop, options=spec_options(study, choice))
+                                    ranks_per_job=ranks_per_job, stop=stop, options=spec_options(study, choice),
+                                    snapshot_every=study.output.snapshot_every, data=study.data,
+                                    progress_every=progress_every)
         code = 0
         if comm.rank == 0:
             try:
@@ -433,8 +470,8 @@ def carry_out(comm, args, argv: list[str]) -> int:
     check_inputs(comm, study)
     with run.StopOnTerm() as stop:
         if len(study.names) * len(study.protocols) == 1:
-            return one_run(comm, study, settings, choice, stop, ["hyper", "study", *argv])
-        return many_runs(comm, study, settings, choice, stop, args.ranks_per_job)
+            return one_run(comm, study, settings, choice, stop, ["hyper", "study", *argv], args.progress_every)
+        return many_runs(comm, study, settings, choice, stop, args.ranks_per_job, args.progress_every)
 
 
 def main(argv=None, comm=None) -> int:
