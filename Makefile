@@ -13,7 +13,7 @@ find_python = for p in $$(ls -d $$(pyenv root 2>/dev/null)/versions/3.12*/bin/py
 	if command -v $$p >/dev/null 2>&1 && $$p -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; \
 	then echo $$p; break; fi; done
 
-.PHONY: demo test test-serial test-mpi lint venv clean
+.PHONY: demo test test-serial test-mpi lint venv clean new-meshes
 
 venv: $(VENV)/.installed
 
@@ -36,6 +36,18 @@ test-serial: venv
 
 test-mpi: venv
 	$(MPIRUN) -n 2 $(PY) -m pytest -q --with-mpi -m mpi -p no:cacheprovider
+
+# The 19 meshes/M_S_side/ of geometry.NEW from the Visible Human surfaces (README "A mesh from
+# a surface"). The VHM frame's z axis points distally (its TA lies below its thigh), the VHF
+# frame's proximally: the origin (tag 1) is the end toward +z for VHF and toward -z for VHM.
+SURFACES ?= ../shared/surfaces
+NEW_MUSCLES := RectusFemoris:RF VastusLateralis:VL VastusMedialis:VM VastusIntermedius:VI GastrocnemiusMedial:GM
+new-meshes: venv
+	@for pair in $(NEW_MUSCLES); do for stl in $(SURFACES)/VH?_*_Muscle_$${pair%%:*}_smooth.stl; do \
+	  base=$$(basename $$stl); subject=$${base%%_*}; rest=$${base#*_}; side=$${rest%%_*}; \
+	  toward="0 0 1"; [ $$subject = VHM ] && toward="0 0 -1"; \
+	  $(PY) -m hyper.mesh $$stl --output meshes/$${pair##*:}_$${subject}_$$side --origin-toward $$toward --force \
+	    || exit 1; done; done
 
 lint: venv
 	$(VENV)/bin/ruff check src tests

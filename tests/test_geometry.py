@@ -23,7 +23,12 @@ def _sum(comm, value):
 
 def test_identifiers():
     assert list(g.GEOMETRIES)[:2] == ["idealized", "cylinder"]
-    assert len(g.ANATOMICAL) == 12 and len(g.GEOMETRIES) == 14
+    assert len(g.ANATOMICAL) == 12 and len(g.GEOMETRIES) == 14 + len(g.MESHED)
+    # The 19 shipped meshes of `hyper mesh`: 3 rectus femoris (no VHM right surface), 4 of each other muscle.
+    assert len(g.NEW) == 19 and set(g.NEW) <= set(g.MESHED)
+    assert {m: sum(n.startswith(m + "_") for n in g.NEW) for m in g.NEW_MUSCLES} == {
+        "RF": 3, "VL": 4, "VM": 4, "VI": 4, "GM": 4}
+    assert g.split_id("VL_VHM_Right") == ("VL", "VHM", "Right")
     assert g.split_id("ST_VHM_Right") == ("ST", "VHM", "Right")
     assert {g.split_id(n)[0] for n in g.ANATOMICAL} == set(g.MUSCLES)
     with pytest.raises(InputError, match="not an anatomical geometry"):

@@ -1,8 +1,10 @@
 """hyper mesh: surfaces refused before anything is written, the end rule on a cylinder,
-and a meshed cylinder's volume and cross-section against the analytic ones."""
+a meshed cylinder's volume and cross-section against the analytic ones, and one real
+surface (tests/data) meshed end to end."""
 
 import math
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -172,3 +174,46 @@ def test_a_meshed_cylinder_has_the_analytic_volume_and_cut_area(meshed):
 def test_an_existing_output_is_kept_without_force(meshed, capsys):
     status = hm.main([str(meshed / "missing.stl"), "--output", str(meshed)])
     assert status == cli.EXIT_INPUT and "exists" in capsys.readouterr().err
+
+
+REAL = Path(__file__).parent / "data" / "TA_VHF_Right_coarse.stl"  # tests/data/README.md
+
+
+def test_a_real_surface_meshes_end_to_end(tmp_path):
+    """The right female tibialis anterior (a coarse copy of its Visible Human surface) to a
+    loadable geometry with proximal origin, distal insertion and fibres along the muscle."""
+    import json
+
+    import h5py
+    from mpi4py import MPI
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from hyper import fibers
+    from hyper import geometry as geo
+
+    out = tmp_path / "TA_VHF_Right"
+    assert hm.main([str(REAL), "--output", str(out), "--cells", "3000", "--quiet"]) == cli.EXIT_OK
+    points, tris = hm.read_stl(REAL)
+    record = json.loads((out / "mesh.json").read_text())
+    stats = record["statistics"]
+    assert 2700 <= stats["cells"] <= 3300 and record["quality"]["min_dihedral_deg"] > 5
+    # gmsh's nodes lie on the STL and its edges are chords of it: the mesh is inside, a few % smaller.
+    assert -0.05 < stats["volume_cm3"] / (hm.enclosed_volume(points, tris) * 1e-3) - 1 < 0
+    with h5py.File(out / "TA_VHF_Right.h5", "r") as f:
+        x = f["Mesh/Grid/geometry"][()]
+        facets = f["MeshTags/ft_small/topology"][()]
+        tags = f["MeshTags/ft_small/Values"][()].ravel()
+    assert set(tags) == {1, 2, 3}
+    z = {}
+    for tag in (1, 2):
+        patch = facets[tags == tag]
+        incidence = coo_matrix((np.ones(patch.size), (np.repeat(np.arange(len(patch)), 3), patch.ravel()))).tocsr()
+        assert connected_components(incidence @ incidence.T, directed=False)[0] == 1  # one patch per end
+        z[tag] = x[patch].mean(axis=(0, 1))[2]
+    # The VHF frame's z points proximally: the origin (knee end of the TA) lies above the insertion (ankle).
+    assert z[1] - z[2] > 0.9 * np.ptp(points[:, 2])
+    geometry = geo.load_file(out / "TA_VHF_Right.xdmf", MPI.COMM_WORLD, name="TA_VHF_Right", scale=geo.MM)
+    assert geometry.num_cells() == stats["cells"]
+    a0 = fibers.load(geometry, out / fibers.FILE_NAME)
+    assert fibers.aligned_share(geometry, a0, record["ends"]["axis"], angle_deg=30.0) > 0.95

@@ -514,7 +514,8 @@ def shape_figure(fields: dict[str, dict], path: Path, title: str) -> None:
 def parser() -> cli.Parser:
     p = cli.Parser("cohort", __doc__)
     p.add_argument("--geometries", nargs="+", metavar="ID", default=list(geo.ANATOMICAL),
-                   help="geometry ids (the 12 anatomical meshes by default; idealized and cylinder work too)")
+                   help="geometry ids (the 12 anatomical meshes by default; idealized and cylinder work too), "
+                        f"or a set: {', '.join(f'{k} ({len(v)})' for k, v in geo.SETS.items())}")
     p.add_argument("--protocols", nargs="+", metavar="NAME|FILE", default=list(PAPER_PROTOCOLS),
                    help=f"named protocols ({', '.join(protocols.NAMES)}) or TOML protocol files")
     p.add_argument("--output", type=cli.output(folder=True), default="results/cohort", help="output folder")
@@ -541,6 +542,7 @@ def parser() -> cli.Parser:
 
 
 def check(args, comm) -> tuple[list[Run], GrowthSettings, material.MaterialParams]:
+    args.geometries = list(dict.fromkeys(n for g in args.geometries for n in geo.SETS.get(g, (g,))))
     unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
     if unknown:
         raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")

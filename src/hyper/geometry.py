@@ -51,6 +51,10 @@ LATERAL_TAG = 4
 MM = 1.0e-3  # m per mm: the anatomical meshes are stored in millimetres
 
 MUSCLES = {"BFLH": "biceps femoris long head", "ST": "semitendinosus", "TA": "tibialis anterior"}
+# The muscles `hyper mesh` made from the other Visible Human surfaces (meshes/M_S_side/, README
+# "A mesh from a surface"); the 19 folders are the set NEW.
+NEW_MUSCLES = {"RF": "rectus femoris", "VL": "vastus lateralis", "VM": "vastus medialis",
+               "VI": "vastus intermedius", "GM": "gastrocnemius medialis"}
 
 # Clean id -> mesh file relative to MESHES_DIR; folder names keep the dataset's spellings.
 GEOMETRIES: OrderedDict[str, str] = OrderedDict(
@@ -92,6 +96,9 @@ def meshed_folders(root: Path) -> list[str]:
 # Found when the module loads: `hyper mesh … --output meshes/NAME/` makes `--geometry NAME` known.
 MESHED: tuple[str, ...] = tuple(meshed_folders(MESHES_DIR))
 GEOMETRIES.update((name, f"{name}/{name}.xdmf") for name in MESHED)
+NEW: tuple[str, ...] = tuple(name for name in MESHED if name.split("_")[0] in NEW_MUSCLES)
+# Names that stand for several geometries where a job takes a list (cohort --geometries).
+SETS: dict[str, tuple[str, ...]] = {"paper": ANATOMICAL, "new": NEW}
 
 
 def split_id(name: str) -> tuple[str, str, str]:
@@ -509,6 +516,9 @@ __all__ = [
     "IDEALIZED_ENDS",
     "MESHED",
     "MUSCLES",
+    "NEW",
+    "NEW_MUSCLES",
+    "SETS",
     "load",
     "load_file",
     "meshed_folders",

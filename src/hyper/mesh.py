@@ -407,7 +407,9 @@ def figure(name: str, x_mm, facets, tags, centroid_m, fiber, axis):
     depth = np.cross(axis, across)
     basis = np.vstack([axis, across, depth])
     p = (x_mm - centre) @ basis.T
-    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.5), layout="constrained")
+    # As high as the muscle's side view needs: a fixed height left most of a long muscle's picture blank.
+    aspect = np.ptp(p[:, 1]) / np.ptp(p[:, 0])
+    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 1.4 + 5.6 * aspect), layout="constrained")
     corners = p[facets]
     order = np.argsort(corners[:, :, 2].mean(axis=1))  # far facets first: the near ones cover them
     colours = np.array(["#c0392b", "#1f5f99", "#cccccc"])[tags[order] - 1]
