@@ -670,10 +670,11 @@ def analyse(comm, args, protocol, prob) -> int:
     # collective call and hang. All ranks import it here, together.
     io.versions()
     D = prob["num_vars"]
-    X = sample(prob, args.samples, args.seed) if comm.rank == 0 else np.empty((args.samples * (2 * D + 2), D))
+    # before sampling: SALib's sampler marks the problem dict it is given (rank 0's only)
+    settings = _settings(args, protocol, prob)
+    X = sample(dict(prob), args.samples, args.seed) if comm.rank == 0 else np.empty((args.samples * (2 * D + 2), D))
     _idle_barrier(comm)
     comm.Bcast(X, root=0)
-    settings = _settings(args, protocol, prob)
     key = digest(X, settings)
     if args.function == "ishigami":
         evaluate = ishigami
