@@ -33,7 +33,9 @@ from hyper import slurm
 PYTHON = sys.executable
 SRC = Path(slurm.__file__).resolve().parents[1]
 # the runs: short, but long enough (about 6 s of growth steps) for a TERM to land mid-run
-GROW_ARGS = ["--geometry", "cylinder", "--growth-dt", "12", "--checkpoint-every", "0"]
+# a growth step of 2 h keeps a run going (about 15 s) until the test has warned it; the
+# tests wait for the progress lines, so they come every second
+GROW_ARGS = ["--geometry", "cylinder", "--growth-dt", "2", "--checkpoint-every", "0", "--progress-every", "1"]
 PROTOCOLS = ("weekly", "every3days")
 # How long a requeued job waits (Slurm's default is 120 s); short for the tests.
 CRED_EXPIRE_S = 10
@@ -309,7 +311,7 @@ def test_grow_array_task_stopped_requeued_and_resumed(cluster, uninterrupted, tm
 def test_cohort_stopped_requeued_and_resumed(cluster, uninterrupted, tmp_path):
     # two runs on two ranks of one rank each; the TERM reaches both ranks mid-run
     script = render(cluster, "cohort", tmp_path, "--ntasks", "2", "--ranks-per-job", "1",
-                    "--args=--geometries cylinder --protocols weekly every3days --growth-dt 12 "
+                    "--args=--geometries cylinder --protocols weekly every3days --growth-dt 2 --progress-every 1 "
                     "--plot-geometry cylinder")
     job_id = submit(cluster, script)
     runs = tmp_path / "results" / "cohort" / "runs"
