@@ -145,32 +145,62 @@ def original_fields(geometry: str, growth_dt: float, exact: bool = False) -> tup
     return tuple(settings.items()), tuple(spec.items())
 
 
+def attribution_dt(switch: Switch, quick: bool) -> float:
+    """The growth step (h) of a switch's attribution run: 1 h (the original's) in full mode;
+    in --quick one step per period, but QUICK_GROWTH_DT for the left-point rule, which
+    needs short steps."""
+    if not quick:
+        return ORIGINAL_GROWTH_DT
+    return QUICK_GROWTH_DT if "growth_increment" in switch.settings else 168.0
+
+
 def idealized_cases(quick: bool) -> list[Case]:
-    """The demo at Δtg = 1 h and the quick step under the original's switches, the 9-week
-    mwf run by both columns, and the attribution: the default at the original column's
-    step, then each switch alone."""
+    """The demo (the original's switches at Δtg = 1 h, and at QUICK_GROWTH_DT in --quick),
+    the 9-week mwf run by both columns, and the attribution: each switch alone against
+    the default at the same step."""
     dt = QUICK_GROWTH_DT if quick else ORIGINAL_GROWTH_DT
     cases = [Case("idealized_demo15_default", "idealized", "demo15")]
     for step in sorted({ORIGINAL_GROWTH_DT, dt}):
         s, sp = original_fields("idealized", step)
         cases.append(Case(f"idealized_demo15_original_dt{step:g}", "idealized", "demo15", s, sp))
     s, sp = original_fields("idealized", dt)
-    cases += [Case("idealized_mwf_default", "idealized", "mwf"),
-              Case(f"idealized_mwf_original_dt{dt:g}", "idealized", "mwf", s, sp),
-              Case(f"idealized_mwf_default_dt{dt:g}", "idealized", "mwf", (("growth_dt", dt),))]
+    cases += [
+        Case("idealized_mwf_default", "idealized", "mwf"),
+        Case(f"idealized_mwf_original_dt{dt:g}", "idealized", "mwf", s, sp),
+    ]
+    bases = set()
     for switch in SWITCHES:
         if applies(switch, "idealized"):
-            cases.append(Case(f"idealized_mwf_dt{dt:g}_{slug(switch.option)}", "idealized", "mwf",
-                              (("growth_dt", dt), *switch.settings.items()), tuple(switch.spec.items())))
+            step = attribution_dt(switch, quick)
+            bases.add(step)
+            cases.append(
+                Case(
+                    f"idealized_mwf_dt{step:g}_{slug(switch.option)}",
+                    "idealized",
+                    "mwf",
+                    (("growth_dt", step), *switch.settings.items()),
+                    tuple(switch.spec.items()),
+                )
+            )
+    cases += [
+        Case(f"idealized_mwf_default_dt{step:g}", "idealized", "mwf", (("growth_dt", step),))
+        for step in sorted(bases)
+        if step != 168.0
+    ]
     return cases
+
+
+def base_key(step: float) -> str:
+    return "idealized_mwf_default" if step == 168.0 else f"idealized_mwf_default_dt{step:g}"
 
 
 def cohort_cases(quick: bool) -> list[Case]:
     from hyper import geometry as geo
 
     muscles = QUICK_MUSCLES if quick else geo.ANATOMICAL
-    s, sp = original_fields("anatomical", 168.0, exact=True) if quick else original_fields("anatomical",
-                                                                                          ORIGINAL_GROWTH_DT)
+    s, sp = (
+        original_fields("anatomical", 168.0, exact=True) if quick else original_fields("anatomical", ORIGINAL_GROWTH_DT)
+    )
     cases = []
     for g in muscles:
         cases.append(Case(f"{g}_mwf_default", g, "mwf"))
@@ -179,16 +209,22 @@ def cohort_cases(quick: bool) -> list[Case]:
 
 
 def heterogeneity_cases() -> list[Case]:
-    return [Case(f"{BOX_FIGURE_GEOMETRY}_mwf_eps{HETEROGENEITY_EPSILON:g}_seed{k}", BOX_FIGURE_GEOMETRY, "mwf",
-                 seed=k) for k in range(HETEROGENEITY_SAMPLES)]
+    return [
+        Case(f"{BOX_FIGURE_GEOMETRY}_mwf_eps{HETEROGENEITY_EPSILON:g}_seed{k}", BOX_FIGURE_GEOMETRY, "mwf", seed=k)
+        for k in range(HETEROGENEITY_SAMPLES)
+    ]
 
 
 def slug(option: str) -> str:
     return option.strip("-").replace(" --", "_").replace(" ", "-")
 
 
-CONTRACTIONS = {"default": ("disks", "auto"), "ends-tags": ("tags", "auto"), "fibers-original": ("disks", "original"),
-                "original": ("tags", "original")}
+CONTRACTIONS = {
+    "default": ("disks", "auto"),
+    "ends-tags": ("tags", "auto"),
+    "fibers-original": ("disks", "original"),
+    "original": ("tags", "original"),
+}
 
 
 # ------------------------------------------------------------------------- the work
@@ -198,8 +234,12 @@ def signaling_numbers(protocol: Protocol, method: str) -> dict:
     """ΔN over the protocol, and the IGF1 and AKT peak times after its first session start (h)."""
     series = signaling.run(signaling.SignalingParams(), protocol, 0.05, 0.5, method)
     day = signaling.first_day(signaling.SignalingParams(), protocol, 0.05, method=method)
-    return {"dN": float(series["N"][-1] - series["N"][0]), "N0": float(series["N"][0]),
-            "igf1_peak_h": float(day["t"][np.argmax(day["igf1"])]), "akt_peak_h": float(day["t"][np.argmax(day["akt"])])}
+    return {
+        "dN": float(series["N"][-1] - series["N"][0]),
+        "N0": float(series["N"][0]),
+        "igf1_peak_h": float(day["t"][np.argmax(day["igf1"])]),
+        "akt_peak_h": float(day["t"][np.argmax(day["akt"])]),
+    }
 
 
 def contraction_path(output: Path, name: str) -> Path:
@@ -236,8 +276,11 @@ def plan(args) -> tuple[list[farm.Job], dict[str, Case]]:
     if "contraction" in args.cases:
         jobs += [farm.Job(f"contraction_{n}", cost=2e5, payload=("contraction", n)) for n in CONTRACTIONS]
     if "signaling" in args.cases:
-        jobs += [farm.Job(f"signaling_{m}_{p}", cost=1e4, payload=("signaling", m, p))
-                 for m in signaling.METHODS for p in protocols.PAPER]
+        jobs += [
+            farm.Job(f"signaling_{m}_{p}", cost=1e4, payload=("signaling", m, p))
+            for m in signaling.METHODS
+            for p in protocols.PAPER
+        ]
     return jobs, runs
 
 
@@ -257,9 +300,17 @@ def work_on(output: Path, runs: dict[str, Case]):
             from hyper import contraction, material
 
             ends, fibers = CONTRACTIONS[job.payload[1]]
-            args = Namespace(geometry="idealized", ends=ends, fibers=fibers, steps=CONTRACTION_STEPS,
-                             output=contraction_path(output, job.payload[1]), material=material.MaterialParams(),
-                             quadrature_degree=4, max_halvings=6, petsc=[])
+            args = Namespace(
+                geometry="idealized",
+                ends=ends,
+                fibers=fibers,
+                steps=CONTRACTION_STEPS,
+                output=contraction_path(output, job.payload[1]),
+                material=material.MaterialParams(),
+                quadrature_degree=4,
+                max_halvings=6,
+                petsc=[],
+            )
             contraction.contract(comm, args)
             return None
         from hyper import run
@@ -304,8 +355,13 @@ def final(output: Path, key: str) -> dict | None:
     if not io.is_complete(path):
         return None
     with h5py.File(path, "r") as f:
-        out = {"csa": 100 * (f["csa_ratio"][-1] - 1), "volume": 100 * (f["volume_ratio"][-1] - 1),
-               "kM": float(f["kM"][-1]), "wall_s": float(f.attrs["wall_s"]), "steps": int(f.attrs["growth_steps"])}
+        out = {
+            "csa": 100 * (f["csa_ratio"][-1] - 1),
+            "volume": 100 * (f["volume_ratio"][-1] - 1),
+            "kM": float(f["kM"][-1]),
+            "wall_s": float(f.attrs["wall_s"]),
+            "steps": int(f.attrs["growth_steps"]),
+        }
         for m in ("cut", "box"):
             if f"csa_ratio_{m}" in f:
                 out[f"csa_{m}"] = 100 * (f[f"csa_ratio_{m}"][-1] - 1)
@@ -323,8 +379,12 @@ def contraction_final(output: Path, name: str) -> dict | None:
 def collect(output: Path, jobs: list[farm.Job], results: list[farm.JobResult], runs: dict[str, Case]) -> dict:
     """Every number of the report, read from the stored runs and the farm's signaling results."""
     by_key = {r.key: r for r in results}
-    data: dict = {"signaling": {}, "runs": {}, "contraction": {}, "failed": [r.key for r in results
-                                                                            if r.status == "failed"]}
+    data: dict = {
+        "signaling": {},
+        "runs": {},
+        "contraction": {},
+        "failed": [r.key for r in results if r.status == "failed"],
+    }
     for job in jobs:
         if job.payload[0] == "signaling":
             result = by_key[job.key].result
@@ -366,24 +426,43 @@ def signaling_section(data: dict) -> list[str]:
         paper = num(ORIGINAL_DN.get(p), ".6f") + (" (original)" if p in ORIGINAL_DN else "")
         if p == "every3days":
             paper = "agrees with converged to 3e-5 (original)"
-        rows.append([f"ΔN at 9 weeks, {p}", paper, num(get(orig.get(p), "dN"), ".6f"), num(get(dflt.get(p), "dN"), ".6f")])
+        rows.append(
+            [f"ΔN at 9 weeks, {p}", paper, num(get(orig.get(p), "dN"), ".6f"), num(get(dflt.get(p), "dN"), ".6f")]
+        )
     for state, label in (("igf1", "IGF1"), ("akt", "AKT")):
-        rows.append([f"{label} peak after the first mwf session (h)", f"about {PAPER_PEAK_H:g} (paper)",
-                     num(get(orig.get("mwf"), f"{state}_peak_h"), ".2f"), num(get(dflt.get("mwf"), f"{state}_peak_h"), ".2f")])
+        rows.append(
+            [
+                f"{label} peak after the first mwf session (h)",
+                f"about {PAPER_PEAK_H:g} (paper)",
+                num(get(orig.get("mwf"), f"{state}_peak_h"), ".2f"),
+                num(get(dflt.get("mwf"), f"{state}_peak_h"), ".2f"),
+            ]
+        )
     for col in (orig, dflt):
-        col["_order"] = all(p in col for p in protocols.PAPER) and \
-            col["mwf"]["dN"] > col["every3days"]["dN"] > col["weekly"]["dN"]
+        col["_order"] = (
+            all(p in col for p in protocols.PAPER) and col["mwf"]["dN"] > col["every3days"]["dN"] > col["weekly"]["dN"]
+        )
     rows.append(["ΔN: mwf > every3days > weekly", "yes (paper)", yesno(orig["_order"]), yesno(dflt["_order"])])
-    rows.append(["N0", "1.000768 (original)", num(get(orig.get("mwf"), "N0"), ".6f"), num(get(dflt.get("mwf"), "N0"), ".6f")])
-    out = ["## Signaling (no mesh)", "", "hyper original: `--signaling-method rk45-original` (SciPy RK45, rtol 1e-3, "
-           "atol 1e-6, max_step 0.05 h, restarted at session starts and ends, N0 = 1.000768); default: RK4 at "
-           "0.05 h, converged to 4e-7.", ""]
+    rows.append(
+        ["N0", "1.000768 (original)", num(get(orig.get("mwf"), "N0"), ".6f"), num(get(dflt.get("mwf"), "N0"), ".6f")]
+    )
+    out = [
+        "## Signaling (no mesh)",
+        "",
+        "hyper original: `--signaling-method rk45-original` (SciPy RK45, rtol 1e-3, "
+        "atol 1e-6, max_step 0.05 h, restarted at session starts and ends, N0 = 1.000768); default: RK4 at "
+        "0.05 h, converged to 4e-7.",
+        "",
+    ]
     out += table(["quantity", "paper / original", "hyper, original", "hyper, default"], rows)
     d0, d1 = get(dflt.get("mwf"), "dN"), get(orig.get("mwf"), "dN")
     if d0 is not None and d1 is not None:
-        out += [f"Attribution (ΔN mwf): default {d0:.6f}; `--signaling-method rk45-original` alone {d1:.6f} "
-                f"({100 * (d1 / d0 - 1):+.3f} %). The N0 offset does not change ΔN (f does not depend on N "
-                "inside [Nmin, Nmax]).", ""]
+        out += [
+            f"Attribution (ΔN mwf): default {d0:.6f}; `--signaling-method rk45-original` alone {d1:.6f} "
+            f"({100 * (d1 / d0 - 1):+.3f} %). The N0 offset does not change ΔN (f does not depend on N "
+            "inside [Nmin, Nmax]).",
+            "",
+        ]
     return out
 
 
@@ -399,37 +478,76 @@ def idealized_section(data: dict, quick: bool) -> list[str]:
     orig_demo = runs.get(f"idealized_demo15_original_dt{dt:g}")
     orig_mwf = runs.get(f"idealized_mwf_original_dt{dt:g}")
     rows = []
-    for label, o, d in (("15-day demo (360 h)", orig_demo, runs.get("idealized_demo15_default")),
-                        ("9 weeks of mwf", orig_mwf, runs.get("idealized_mwf_default"))):
+    for label, o, d in (
+        ("15-day demo (360 h)", orig_demo, runs.get("idealized_demo15_default")),
+        ("9 weeks of mwf", orig_mwf, runs.get("idealized_mwf_default")),
+    ):
         paper = "not recorded here" if "demo" in label else "CSA, V grow; kM < kM0 = 0.01 1/h (paper)"
         rows.append([f"{label}: CSA", paper, pct(get(o, "csa")), pct(get(d, "csa"))])
         rows.append([f"{label}: volume", paper, pct(get(o, "volume")), pct(get(d, "volume"))])
         rows.append([f"{label}: kM (1/h)", paper, num(get(o, "kM"), ".5f"), num(get(d, "kM"), ".5f")])
-    out = ["## The idealized shape", "", f"hyper original: every switch of MODEL.md §9 (`--settings original "
-           f"--ends tags --fibers original --growth-fields dg1`) at Δtg = {dt:g} h"
-           + (" (--quick; the original: 1 h)" if quick else "") + "; default: one growth step per period.", ""]
+    out = [
+        "## The idealized shape",
+        "",
+        f"hyper original: every switch of MODEL.md §9 (`--settings original "
+        f"--ends tags --fibers original --growth-fields dg1`) at Δtg = {dt:g} h"
+        + (" (--quick; the original: 1 h)" if quick else "")
+        + "; default: one growth step per period.",
+        "",
+    ]
     out += table(["quantity", "paper / original", "hyper, original", "hyper, default"], rows)
-    one, coarse = runs.get("idealized_demo15_original_dt1"), runs.get(f"idealized_demo15_original_dt{QUICK_GROWTH_DT:g}")
+    one, coarse = (
+        runs.get("idealized_demo15_original_dt1"),
+        runs.get(f"idealized_demo15_original_dt{QUICK_GROWTH_DT:g}"),
+    )
     if quick and one and coarse:
-        out += [f"Δtg effect under the original's switches (15-day demo): CSA {pct(one['csa'])} at 1 h against "
-                f"{pct(coarse['csa'])} at {QUICK_GROWTH_DT:g} h, volume {pct(one['volume'])} against "
-                f"{pct(coarse['volume'])} (the left-point increment f(t0)·Δtg is first order in Δtg).", ""]
-    base = runs.get(f"idealized_mwf_default_dt{dt:g}")
-    rows = [["default (one step per period)", pct(get(runs.get("idealized_mwf_default"), "csa")),
-             pct(get(runs.get("idealized_mwf_default"), "volume")), "–"],
-            [f"default at Δtg = {dt:g} h (the base below)", pct(get(base, "csa")), pct(get(base, "volume")), "–"]]
+        out += [
+            f"Δtg effect under the original's switches (15-day demo): CSA {pct(one['csa'])} at 1 h against "
+            f"{pct(coarse['csa'])} at {QUICK_GROWTH_DT:g} h, volume {pct(one['volume'])} against "
+            f"{pct(coarse['volume'])} (the left-point increment f(t0)·Δtg is first order in Δtg).",
+            "",
+        ]
+    rows = [
+        [
+            "default (one step per period)",
+            pct(get(runs.get("idealized_mwf_default"), "csa")),
+            pct(get(runs.get("idealized_mwf_default"), "volume")),
+            "–",
+        ]
+    ]
+    if dt != 168.0:
+        base = runs.get(base_key(dt))
+        rows.append([f"default at Δtg = {dt:g} h", pct(get(base, "csa")), pct(get(base, "volume")), "–"])
     total = 0.0
     for switch in SWITCHES:
         if applies(switch, "idealized"):
-            r = runs.get(f"idealized_mwf_dt{dt:g}_{slug(switch.option)}")
+            step = attribution_dt(switch, quick)
+            r, base = runs.get(f"idealized_mwf_dt{step:g}_{slug(switch.option)}"), runs.get(base_key(step))
             effect = None if r is None or base is None else r["csa"] - base["csa"]
             total += effect or 0.0
-            rows.append([f"`{switch.option}` alone", pct(get(r, "csa")), pct(get(r, "volume")),
-                         "–" if effect is None else f"{effect:+.3f} points"])
+            rows.append(
+                [
+                    f"`{switch.option}` alone (Δtg = {step:g} h)",
+                    pct(get(r, "csa")),
+                    pct(get(r, "volume")),
+                    "–" if effect is None else f"{effect:+.3f} points",
+                ]
+            )
+    base = runs.get(base_key(dt))
     if orig_mwf and base:
-        rows.append(["all switches (hyper, original)", pct(orig_mwf["csa"]), pct(orig_mwf["volume"]),
-                     f"{orig_mwf['csa'] - base['csa']:+.3f} points (sum of the single effects {total:+.3f})"])
-    out += [f"Attribution, idealized mwf at 9 weeks (headline: CSA increase), each switch alone at Δtg = {dt:g} h:", ""]
+        rows.append(
+            [
+                f"all switches (hyper, original; Δtg = {dt:g} h)",
+                pct(orig_mwf["csa"]),
+                pct(orig_mwf["volume"]),
+                f"{orig_mwf['csa'] - base['csa']:+.3f} points (the single effects sum to {total:+.3f})",
+            ]
+        )
+    out += [
+        "Attribution, idealized mwf at 9 weeks (headline: the CSA increase): each switch alone, its effect "
+        "against the default at the same growth step:",
+        "",
+    ]
     out += table(["run", "CSA", "volume", "effect on CSA"], rows)
     return out
 
@@ -439,25 +557,45 @@ def contraction_section(data: dict) -> list[str]:
     if not c:
         return []
     o, d = c.get("original"), c.get("default")
-    rows = [["end force d·∫P N dA (N, headline)", "– (not computed by the original)", num(get(o, "end_force"), ".4f"),
-             num(get(d, "end_force"), ".4f")],
-            ["spring force (N)", "–", num(get(o, "spring_force"), ".4f"), num(get(d, "spring_force"), ".4f")],
-            ["reaction_force_original ∫(σN)·N dA (N)", f"{ORIGINAL_REACTION_N:.7f} (original)",
-             num(get(o, "reaction_force_original"), ".7f"), num(get(d, "reaction_force_original"), ".7f")]]
-    out = ["## Contraction at α = 1 (idealized shape)", "", "hyper original: `--ends tags --fibers original` (the XDMF's "
-           "end tags with their lateral band; P2 fibres not normalised, UFL's estimated surface degree); default: "
-           "the flat end disks, P1 unit fibres.", ""]
+    rows = [
+        [
+            "end force d·∫P N dA (N, headline)",
+            "– (not computed by the original)",
+            num(get(o, "end_force"), ".4f"),
+            num(get(d, "end_force"), ".4f"),
+        ],
+        ["spring force (N)", "–", num(get(o, "spring_force"), ".4f"), num(get(d, "spring_force"), ".4f")],
+        [
+            "reaction_force_original ∫(σN)·N dA (N)",
+            f"{ORIGINAL_REACTION_N:.7f} (original)",
+            num(get(o, "reaction_force_original"), ".7f"),
+            num(get(d, "reaction_force_original"), ".7f"),
+        ],
+    ]
+    out = [
+        "## Contraction at α = 1 (idealized shape)",
+        "",
+        "hyper original: `--ends tags --fibers original` (the XDMF's "
+        "end tags with their lateral band; P2 fibres not normalised, UFL's estimated surface degree); default: "
+        "the flat end disks, P1 unit fibres.",
+        "",
+    ]
     out += table(["quantity", "paper / original", "hyper, original", "hyper, default"], rows)
-    rows = [[name, num(get(c.get(name), "end_force"), ".4f"), num(get(c.get(name), "reaction_force_original"), ".7f")]
-            for name in CONTRACTIONS]
+    rows = [
+        [name, num(get(c.get(name), "end_force"), ".4f"), num(get(c.get(name), "reaction_force_original"), ".7f")]
+        for name in CONTRACTIONS
+    ]
     out += ["Attribution (each switch alone from the default):", ""]
     out += table(["ends, fibres", "end force (N)", "reaction_force_original (N)"], rows)
     return out
 
 
 def cohort_rows(data: dict, column: str) -> dict[str, dict]:
-    return {k[: -len(f"_mwf_{column}")]: v for k, v in data["runs"].items()
-            if k.endswith(f"_mwf_{column}") and v is not None and "_eps" not in k and not k.startswith("idealized")}
+    return {
+        k[: -len(f"_mwf_{column}")]: v
+        for k, v in data["runs"].items()
+        if k.endswith(f"_mwf_{column}") and v is not None and "_eps" not in k and not k.startswith("idealized")
+    }
 
 
 def stats(values) -> tuple:
@@ -475,40 +613,100 @@ def cohort_section(data: dict, quick: bool) -> list[str]:
         return []
     lo, hi = PAPER_MWF["volume"]
     clo, chi = PAPER_MWF["csa"]
-    rows = [["volume increase, mean (min, max)", f"+{lo:g}–{hi:g} % (paper)", mmm(stats(r["volume"] for r in orig.values())),
-             mmm(stats(r["volume"] for r in dflt.values()))],
-            ["CSA increase, the feedback's measure", f"+{clo:g}–{chi:g} % (paper)",
-             mmm(stats(r["csa"] for r in orig.values())) + " (box)", mmm(stats(r["csa"] for r in dflt.values())) + " (cut)"],
-            ["CSA increase, exact cut", "–", mmm(stats(r.get("csa_cut") for r in orig.values())),
-             mmm(stats(r.get("csa_cut") for r in dflt.values()))],
-            ["CSA increase, box (the original's measure)", f"+{clo:g}–{chi:g} % (paper)",
-             mmm(stats(r.get("csa_box") for r in orig.values())), mmm(stats(r.get("csa_box") for r in dflt.values()))]]
+    rows = [
+        [
+            "volume increase, mean (min, max)",
+            f"+{lo:g}–{hi:g} % (paper)",
+            mmm(stats(r["volume"] for r in orig.values())),
+            mmm(stats(r["volume"] for r in dflt.values())),
+        ],
+        [
+            "CSA increase, the feedback's measure",
+            f"+{clo:g}–{chi:g} % (paper)",
+            mmm(stats(r["csa"] for r in orig.values())) + " (box)",
+            mmm(stats(r["csa"] for r in dflt.values())) + " (cut)",
+        ],
+        [
+            "CSA increase, exact cut",
+            "–",
+            mmm(stats(r.get("csa_cut") for r in orig.values())),
+            mmm(stats(r.get("csa_cut") for r in dflt.values())),
+        ],
+        [
+            "CSA increase, box (the original's measure)",
+            f"+{clo:g}–{chi:g} % (paper)",
+            mmm(stats(r.get("csa_box") for r in orig.values())),
+            mmm(stats(r.get("csa_box") for r in dflt.values())),
+        ],
+    ]
     vol_gt = [sum(r["volume"] > r["csa"] for r in col.values()) for col in (orig, dflt)]
-    rows.append(["ΔV > ΔCSA (the feedback's CSA)", "yes, all (paper)", f"{vol_gt[0]} of {len(orig)}",
-                 f"{vol_gt[1]} of {len(dflt)}"])
-    settings = ("the original's switches (`--settings original --csa-method box --growth-fields dg1`) at one step "
-                "per period (168 h) with the exact increment (--quick: the left-point rule needs short steps)"
-                if quick else "`--settings original --csa-method box --growth-fields dg1`, Δtg = 1 h")
-    out = ["## The anatomical cohort under mwf", "", f"hyper original: {settings}; default: the exact cut feeds back, "
-           "one step per period. Both runs record both CSA measures.", ""]
+    rows.append(
+        [
+            "ΔV > ΔCSA (the feedback's CSA)",
+            "yes, all (paper)",
+            f"{vol_gt[0]} of {len(orig)}",
+            f"{vol_gt[1]} of {len(dflt)}",
+        ]
+    )
+    settings = (
+        "the original's switches (`--settings original --csa-method box --growth-fields dg1`) at one step "
+        "per period (168 h) with the exact increment (--quick: the left-point rule needs short steps)"
+        if quick
+        else "`--settings original --csa-method box --growth-fields dg1`, Δtg = 1 h"
+    )
+    out = [
+        "## The anatomical cohort under mwf",
+        "",
+        f"hyper original: {settings}; default: the exact cut feeds back, "
+        "one step per period. Both runs record both CSA measures.",
+        "",
+    ]
     out += table(["quantity", "paper / original", "hyper, original", "hyper, default"], rows)
     per = []
     for g in sorted(set(orig) | set(dflt)):
         o, d = orig.get(g), dflt.get(g)
         ref = INDEPENDENT_BOX.get(g)
-        per.append([g, pct(get(d, "csa_cut")), pct(get(d, "csa_box")), pct(get(d, "volume")), pct(get(o, "csa_cut")),
-                    pct(get(o, "csa_box")), pct(get(o, "volume")),
-                    "–" if ref is None else f"+{ref[0]:.2f} % / +{ref[1]:.2f} %"])
+        per.append(
+            [
+                g,
+                pct(get(d, "csa_cut")),
+                pct(get(d, "csa_box")),
+                pct(get(d, "volume")),
+                pct(get(o, "csa_cut")),
+                pct(get(o, "csa_box")),
+                pct(get(o, "volume")),
+                "–" if ref is None else f"+{ref[0]:.2f} % / +{ref[1]:.2f} %",
+            ]
+        )
     out += ["Per muscle (default: cut feedback; original: box feedback):", ""]
-    out += table(["geometry", "default CSA cut", "default CSA box", "default V", "original CSA cut", "original CSA box",
-                  "original V", "independent box restatement CSA / V (issue #15)"], per)
+    out += table(
+        [
+            "geometry",
+            "default CSA cut",
+            "default CSA box",
+            "default V",
+            "original CSA cut",
+            "original CSA box",
+            "original V",
+            "independent box restatement CSA / V (issue #15)",
+        ],
+        per,
+    )
     d = dflt.get(BOX_FIGURE_GEOMETRY)
     o = orig.get(BOX_FIGURE_GEOMETRY)
     if d is not None:
-        out += [f"Attribution on {BOX_FIGURE_GEOMETRY} (headline: the CSA the paper reports): default cut "
-                f"{pct(d.get('csa_cut'))}; the box measure of the same states, no feedback {pct(d.get('csa_box'))}"
-                + ("" if o is None else f"; the original's switches with box feedback {pct(o.get('csa_box'))} "
-                   f"(its exact cut {pct(o.get('csa_cut'))}, volume {pct(o.get('volume'))})") + ".", ""]
+        out += [
+            f"Attribution on {BOX_FIGURE_GEOMETRY} (headline: the CSA the paper reports): default cut "
+            f"{pct(d.get('csa_cut'))}; the box measure of the same states, no feedback {pct(d.get('csa_box'))}"
+            + (
+                ""
+                if o is None
+                else f"; the original's switches with box feedback {pct(o.get('csa_box'))} "
+                f"(its exact cut {pct(o.get('csa_cut'))}, volume {pct(o.get('volume'))})"
+            )
+            + ".",
+            "",
+        ]
     return out
 
 
@@ -518,27 +716,50 @@ def heterogeneity_section(data: dict) -> list[str]:
     if not samples:
         return []
     csa, vol = stats(s["csa"] for s in samples), stats(s["volume"] for s in samples)
-    rows = [["CSA, mean of the samples", "a little below uniform (paper)", "not run", f"{mmm(csa)}; uniform {pct(get(uniform, 'csa'))}"],
-            ["volume, mean of the samples", "a little below uniform (paper)", "not run",
-             f"{mmm(vol)}; uniform {pct(get(uniform, 'volume'))}"]]
-    return ["## Heterogeneity (ε = 0.01, BFLH_VHF_Left, mwf)", ""] + \
-        table(["quantity", "paper", "hyper, original", "hyper, default"], rows)
+    rows = [
+        [
+            "CSA, mean of the samples",
+            "a little below uniform (paper)",
+            "not run",
+            f"{mmm(csa)}; uniform {pct(get(uniform, 'csa'))}",
+        ],
+        [
+            "volume, mean of the samples",
+            "a little below uniform (paper)",
+            "not run",
+            f"{mmm(vol)}; uniform {pct(get(uniform, 'volume'))}",
+        ],
+    ]
+    return ["## Heterogeneity (ε = 0.01, BFLH_VHF_Left, mwf)", ""] + table(
+        ["quantity", "paper", "hyper, original", "hyper, default"], rows
+    )
 
 
-BOX_NOTE = ("The box measure's number depends on DOLFINx's `interpolate_nonmatching` extrapolating the muscle's "
-            "displacement into box nodes that lie outside the muscle but inside the bounding boxes of its cells "
-            "(MODEL.md §9 says u = 0 outside); setting every outside node to 0 instead makes the box read +0.02 % "
-            "(the rim then collapses towards no change at all). The numbers here are those of the original code's "
-            "call, which extrapolates.")
+BOX_NOTE = (
+    "The box measure's number depends on DOLFINx's `interpolate_nonmatching` extrapolating the muscle's "
+    "displacement into box nodes that lie outside the muscle but inside the bounding boxes of its cells "
+    "(MODEL.md §9 says u = 0 outside); setting every outside node to 0 instead makes the box read +0.02 % "
+    "(the rim then collapses towards no change at all). The numbers here are those of the original code's "
+    "call, which extrapolates."
+)
 
 
 def report(data: dict, quick: bool, elapsed: float, command: str) -> str:
-    lines = ["# hyper against the paper and its original code", "",
-             f"`{command}` ({'quick' if quick else 'full'} mode), {hms(elapsed)} on this machine. "
-             "Columns: the paper's claim or the original code's number; hyper with the original code's switches "
-             "(MODEL.md §9); hyper's default (converged, physically consistent choices).", ""]
-    for part in (signaling_section(data), idealized_section(data, quick), contraction_section(data),
-                 cohort_section(data, quick), heterogeneity_section(data)):
+    lines = [
+        "# hyper against the paper and its original code",
+        "",
+        f"`{command}` ({'quick' if quick else 'full'} mode), {hms(elapsed)} on this machine. "
+        "Columns: the paper's claim or the original code's number; hyper with the original code's switches "
+        "(MODEL.md §9); hyper's default (converged, physically consistent choices).",
+        "",
+    ]
+    for part in (
+        signaling_section(data),
+        idealized_section(data, quick),
+        contraction_section(data),
+        cohort_section(data, quick),
+        heterogeneity_section(data),
+    ):
         lines += part
     if cohort_rows(data, "default"):
         lines += ["## Notes", "", BOX_NOTE, ""]
@@ -560,15 +781,21 @@ def cohort_figure(data: dict, path: Path) -> Path | None:
         return None
     plt = plot.pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(max(8, 1.1 * len(names) + 4), 4.4), layout="constrained")
-    bars = (("default, cut", dflt, "csa_cut", "tab:blue"), ("default, box", dflt, "csa_box", "lightsteelblue"),
-            ("original, cut", orig, "csa_cut", "tab:red"), ("original, box", orig, "csa_box", "salmon"))
+    bars = (
+        ("default, cut", dflt, "csa_cut", "tab:blue"),
+        ("default, box", dflt, "csa_box", "lightsteelblue"),
+        ("original, cut", orig, "csa_cut", "tab:red"),
+        ("original, box", orig, "csa_box", "salmon"),
+    )
     x = np.arange(len(names))
     for j, (label, col, key, colour) in enumerate(bars):
-        axes[0].bar(x + (j - 1.5) * 0.2, [get(col.get(g), key) or np.nan for g in names], 0.18, label=label,
-                    color=colour)
+        axes[0].bar(
+            x + (j - 1.5) * 0.2, [get(col.get(g), key) or np.nan for g in names], 0.18, label=label, color=colour
+        )
     for j, (label, col, colour) in enumerate((("default", dflt, "tab:blue"), ("original", orig, "tab:red"))):
-        axes[1].bar(x + (j - 0.5) * 0.3, [get(col.get(g), "volume") or np.nan for g in names], 0.28, label=label,
-                    color=colour)
+        axes[1].bar(
+            x + (j - 0.5) * 0.3, [get(col.get(g), "volume") or np.nan for g in names], 0.28, label=label, color=colour
+        )
     for ax, quantity, title in ((axes[0], "csa", "mid-belly CSA, both measures"), (axes[1], "volume", "volume")):
         lo, hi = PAPER_MWF[quantity]
         ax.axhspan(lo, hi, color="0.85", zorder=0, label="paper, mwf")
@@ -591,16 +818,21 @@ def box_figure(output: Path, path: Path) -> Path | None:
     with np.load(saved) as f:
         picture = {k: f[k] for k in f.files}
     picture.setdefault("outline", np.empty((0, 2, 2)))
-    return plot.box_section(picture, path, f"{BOX_FIGURE_GEOMETRY}, mwf, 9 weeks, the original's switches: "
-                                           "the box measure's inner and rim facets")
+    return plot.box_section(
+        picture,
+        path,
+        f"{BOX_FIGURE_GEOMETRY}, mwf, 9 weeks, the original's switches: the box measure's inner and rim facets",
+    )
 
 
 def idealized_figure(output: Path, path: Path, quick: bool) -> Path | None:
     from hyper import plot, sequence
 
     dt = QUICK_GROWTH_DT if quick else ORIGINAL_GROWTH_DT
-    files = {"default": series_path(output, "idealized_mwf_default"),
-             "original": series_path(output, f"idealized_mwf_original_dt{dt:g}")}
+    files = {
+        "default": series_path(output, "idealized_mwf_default"),
+        "original": series_path(output, f"idealized_mwf_original_dt{dt:g}"),
+    }
     results = {name: io.read_series(p) for name, p in files.items() if io.is_complete(p)}
     return plot.growth_series(results, path, sequence.DATA) if results else None
 
@@ -612,11 +844,16 @@ def parser() -> cli.Parser:
     p = cli.Parser("reproduce", __doc__)
     p.add_argument("--output", type=cli.output(folder=True), default="results/reproduce", help="output folder")
     p.add_argument("--quick", action="store_true", help="3 muscles, coarser steps, no heterogeneity (about 10 min)")
-    p.add_argument("--cases", nargs="+", choices=CASES, metavar="CASE",
-                   help=f"families of cases ({', '.join(CASES)}); all of them (--quick: all but heterogeneity) "
-                        "by default")
-    p.add_argument("--ranks-per-job", type=cli.integer(1), default=1,
-                   help="MPI ranks per run; must divide the number of ranks")
+    p.add_argument(
+        "--cases",
+        nargs="+",
+        choices=CASES,
+        metavar="CASE",
+        help=f"families of cases ({', '.join(CASES)}); all of them (--quick: all but heterogeneity) by default",
+    )
+    p.add_argument(
+        "--ranks-per-job", type=cli.integer(1), default=1, help="MPI ranks per run; must divide the number of ranks"
+    )
     return p
 
 
@@ -636,18 +873,41 @@ def reproduce(comm, args) -> int:
     with cli.hold(comm, [output]):
         if comm.rank == 0:
             (output / "runs").mkdir(parents=True, exist_ok=True)
-        info(comm, f"reproduce: {len(jobs)} jobs ({', '.join(args.cases)}), {'quick' if args.quick else 'full'} "
-                   f"mode, on {comm.size} rank(s), output {output}")
-        results = farm.run(comm, jobs, work_on(output, runs), ranks_per_job=args.ranks_per_job,
-                           is_done=is_done_on(output, runs), label="reproduce")
+        info(
+            comm,
+            f"reproduce: {len(jobs)} jobs ({', '.join(args.cases)}), {'quick' if args.quick else 'full'} "
+            f"mode, on {comm.size} rank(s), output {output}",
+        )
+        results = farm.run(
+            comm,
+            jobs,
+            work_on(output, runs),
+            ranks_per_job=args.ranks_per_job,
+            is_done=is_done_on(output, runs),
+            label="reproduce",
+        )
         if comm.rank == 0:
             data = collect(output, jobs, results, runs)
-            command = "hyper reproduce" + (" --quick" if args.quick else "") + \
-                ("" if args.cases == list(QUICK_CASES if args.quick else CASES) else " --cases " + " ".join(args.cases))
-            data.update(mode="quick" if args.quick else "full", cases=list(args.cases), command=command,
-                        wall_s=time.perf_counter() - start)
-            figures = [cohort_figure(data, output / "cohort_ratios.png"), box_figure(output, output / "box_section.png"),
-                       idealized_figure(output, output / "idealized_mwf.png", args.quick)]
+            command = (
+                "hyper reproduce"
+                + (" --quick" if args.quick else "")
+                + (
+                    ""
+                    if args.cases == list(QUICK_CASES if args.quick else CASES)
+                    else " --cases " + " ".join(args.cases)
+                )
+            )
+            data.update(
+                mode="quick" if args.quick else "full",
+                cases=list(args.cases),
+                command=command,
+                wall_s=time.perf_counter() - start,
+            )
+            figures = [
+                cohort_figure(data, output / "cohort_ratios.png"),
+                box_figure(output, output / "box_section.png"),
+                idealized_figure(output, output / "idealized_mwf.png", args.quick),
+            ]
             text = report(data, args.quick, time.perf_counter() - start, command)
             shown = [f"![{p.stem}]({p.name})" for p in figures if p is not None]
             text += ("\n## Figures\n\n" + "\n\n".join(shown) + "\n") if shown else ""
