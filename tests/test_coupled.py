@@ -144,3 +144,92 @@ def test_a_monitor_times_the_phases_and_an_integrator_replaces_the_signaling():
     assert clock.calls["jacobian assembly"] == model.jacobian.assemblies
     assert clock.calls["measures"] == clock.calls["growth update"] / 2  # grow and accept per solved step
     assert clock.seconds["jacobian assembly"] <= clock.seconds["mechanics"]
+
+
+def test_left_point_grows_by_f_at_the_step_start_times_the_step():
+    """On the cylinder growth is compatible, CSA_k = CSA_{k-1} ϑ_k = CSA_{k-1} + dN_k: the
+    CSA ratio's increments are the dN of the steps. exact: N's change over the step;
+    left-point: f at the step's start (with the kM its period was integrated with) × Δtg."""
+    g = geo.load("cylinder", MPI.COMM_SELF)
+    a0 = fibers.fiber_field(g)
+    series = {}
+    for rule in growth.INCREMENTS:
+        model = CoupledModel(g, a0, short_protocol(), params=GROWING,
+                             settings=GrowthSettings(growth_dt=24.0, growth_increment=rule))
+        series[rule] = list(model.run())
+    # the period's kM: the one after the last step before the period (kM0 before any)
+    starts = {t0 for t0, _, _ in short_protocol().periods()}
+    for rule, reports in series.items():
+        kM = GROWING.kM
+        for before, after in zip(reports[:-1], reports[1:]):
+            if before.t in starts:
+                kM = before.kM
+            dt = after.t - before.t
+            f0 = signaling.net_balance(before.states[2], before.states[3], before.states[4], GROWING, kM)
+            dN = after.states[4] - before.states[4] if rule == "exact" else f0 * dt
+            # CSA is measured to the Newton tolerance, about 5e-10
+            assert after.csa_ratio - before.csa_ratio == pytest.approx(dN, rel=0, abs=2e-9)
+    exact, left = (np.array([r.csa_ratio for r in series[rule]]) for rule in growth.INCREMENTS)
+    assert abs(left[2] - exact[2]) > 1e-4  # the rules differ: f changes within a step
+
+
+def test_settings_presets_and_their_digests():
+    from hyper import presets
+
+    default = GrowthSettings()
+    assert set(default.model_attributes()) == {"growth_dt", "signaling_dt", "feedback", "grow_during_sessions",
+                                               "consistent_stress"}  # as before the switches: digests stay
+    original = presets.settings(GrowthSettings, "original", {"growth_dt": None, "feedback": "hill"})
+    assert (original.growth_dt, original.signaling_method, original.growth_increment, original.grow_during_sessions,
+            original.consistent_stress, original.csa_method, original.growth_fields, original.preset) == (
+        1.0, "rk45-original", "left-point", False, False, "box", "dg1", "original")
+    assert original.model_attributes()["signaling_method"] == "rk45-original"
+    # an explicit option wins over the preset
+    mixed = presets.settings(GrowthSettings, "original", {"growth_dt": 24.0, "grow_during_sessions": True})
+    assert (mixed.growth_dt, mixed.grow_during_sessions, mixed.consistent_stress) == (24.0, True, False)
+    assert presets.settings(GrowthSettings, "default", {}) == default
+    with pytest.raises(InputError, match="--growth-increment: must be one of exact, left-point"):
+        presets.settings(GrowthSettings, "default", {"growth_increment": "midpoint"})
+    with pytest.raises(InputError, match="--settings: expected one of default, original"):
+        presets.settings(GrowthSettings, "paper", {})
+
+
+def test_grow_and_cohort_take_the_original_preset_and_explicit_switches(tmp_path):
+    from hyper import cohort, grow
+
+    out = ["--geometry", "cylinder", "--output", str(tmp_path / "run.h5")]
+    original = grow.plan(MPI.COMM_SELF, [*out, "--settings", "original"]).settings
+    assert (original.growth_dt, original.signaling_method, original.growth_increment, original.grow_during_sessions,
+            original.consistent_stress, original.csa_method, original.growth_fields, original.preset) == (
+        1.0, "rk45-original", "left-point", False, False, "box", "dg1", "original")
+    idealized = grow.plan(MPI.COMM_SELF, ["--geometry", "idealized", "--output", str(tmp_path / "i.h5"),
+                                          "--settings", "original"]).specs[0]
+    assert (idealized.ends, idealized.fibers) == ("tags", "original")
+    with pytest.raises(InputError, match="idealized shape only"):
+        grow.plan(MPI.COMM_SELF, [*out, "--ends", "tags"])
+    mixed = grow.plan(MPI.COMM_SELF, [*out, "--settings", "original", "--no-skip-sessions", "--growth-dt", "24"])
+    assert (mixed.settings.grow_during_sessions, mixed.settings.growth_dt, mixed.settings.preset) == (True, 24.0,
+                                                                                                    "original")
+    one = grow.plan(MPI.COMM_SELF, [*out, "--growth-increment", "left-point", "--fe-stress"]).settings
+    assert (one.growth_increment, one.consistent_stress, one.signaling_method, one.preset) == (
+        "left-point", False, "rk4", "default")
+    assert grow.plan(MPI.COMM_SELF, out).settings == GrowthSettings()
+    with pytest.raises(InputError, match="--accuracy .* does not combine with --settings original"):
+        grow.plan(MPI.COMM_SELF, [*out, "--settings", "original", "--accuracy"])
+    args = cohort.parser().parse_args(["--geometries", "cylinder", "--settings", "original",
+                                       "--signaling-method", "rk4"])
+    _, settings, _ = cohort.check(args, MPI.COMM_SELF)
+    assert args.shape == {"ends": "disks", "fibers": "auto"}
+    assert (settings.growth_dt, settings.signaling_method, settings.growth_increment) == (1.0, "rk4", "left-point")
+    assert not (tmp_path / "run.h5").exists()
+
+
+def test_left_point_is_zero_where_N_is_held_at_a_bound():
+    p = signaling.SignalingParams(thetaM=0.46, Nmax=1.001)
+    y = np.array([0.045, 1.0, 0.43, 0.47, 1.0])  # mTOR above its threshold: f = 1e-2 × 0.01 = 1e-4 /h
+    assert growth.population_change("left-point", y, y, 2.0, p, p.kM) == pytest.approx(2e-4, rel=1e-12)
+    at_max = np.array([*y[:4], 1.001])
+    assert growth.population_change("left-point", at_max, at_max, 2.0, p, p.kM) == 0.0
+    cells = np.stack([y, at_max], axis=1)
+    np.testing.assert_allclose(growth.population_change("left-point", cells, cells, 2.0, p, p.kM), [2e-4, 0.0],
+                               rtol=1e-12)

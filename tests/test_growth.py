@@ -66,3 +66,16 @@ def test_elastic_part_times_growth_is_the_deformation():
 def test_area_multiplier_scales_by_the_current_area():
     assert growth.area_multiplier(0.02, 1.0) == pytest.approx(1.02, rel=1e-15)
     assert growth.area_multiplier(0.02, 2.0) == pytest.approx(1.01, rel=1e-15)
+
+
+def test_the_structured_update_and_the_adjugate_inverse_agree_with_the_general_ones():
+    """The fast paths of a growth step: Ḡ by the structure of G, M⁻¹ by the adjugate."""
+    rng = np.random.default_rng(3)
+    A = np.eye(3) + 0.1 * rng.normal(size=(6, 4, 3, 3))
+    Gbar = np.eye(3) + 0.1 * rng.normal(size=(6, 4, 3, 3))
+    a0 = unit(rng.normal(size=(6, 4, 3)))
+    np.testing.assert_allclose(growth.inverse(A) @ A, np.broadcast_to(np.eye(3), A.shape), atol=1e-14)
+    for theta in (1.07, np.linspace(1.0, 1.1, 6)[:, None]):
+        G = growth.transverse_growth(theta, a0)
+        np.testing.assert_allclose(growth.transverse_update(Gbar, A, theta, a0),
+                                   growth.cumulative_update(Gbar, A, G), rtol=0, atol=1e-14)

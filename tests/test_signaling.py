@@ -293,6 +293,74 @@ def test_auto_falls_back_to_numpy_without_a_compiler(monkeypatch, tmp_path, mixe
     assert list(tmp_path.iterdir()) == []  # the failed builds left nothing behind
 
 
+# --- N at the ends of its range -----------------------------------------------------------
+
+
+def test_N_stops_at_the_bounds_it_reaches_and_leaves_them_when_f_turns():
+    """FOXO above a lowered threshold drives N down to Nmin (about 100 h, held while f < 0);
+    a raised mTOR growth rate turns f positive near 190 h and N climbs to Nmax (about 700 h).
+    Without sessions RK4 is accurate to 1e-9 here: what is left is the bounds' handling."""
+    p = dataclasses.replace(P0, a4=1.1 * P0.a4, thetaF=0.42, Nmin=0.985, Nmax=1.05)
+    t = np.array([150.0, 400.0, 900.0, 1000.0])
+    # a third member starts below its range, where f = 0: it keeps its N
+    y0 = np.stack([Y0, Y0, [*Y0[:4], 0.9]], axis=1)
+    _, ref = S.reference(p, named("rest"), Y0, 0.0, 1000.0, out_times=t)
+    np.testing.assert_array_equal(ref[[0, 2, 3], 4], [0.985, 1.05, 1.05])  # the events stop N there
+    runs = [S.integrate(p, named("rest"), Y0, 0.0, 1000.0, out_times=t)[1]]
+    for backend in ("numpy", "c"):
+        _, batch = S.integrate(p, named("rest"), y0, 0.0, 1000.0, out_times=t, backend=backend)
+        np.testing.assert_array_equal(batch[:, 4, 2], 0.9)
+        runs += [batch[:, :, 0], batch[:, :, 1]]
+    for y in runs:
+        np.testing.assert_array_equal(y, runs[0])  # every backend, the same bits
+    N = runs[0][:, 4]
+    np.testing.assert_allclose(N[[0, 2, 3]], [0.985, 1.05, 1.05], rtol=0, atol=1e-12)
+    assert 1.0 < N[1] < 1.05  # released from Nmin, not yet at Nmax
+    assert abs((N[1] - 1.0) - (ref[1, 4] - 1.0)) < 1e-7
+
+
+# --- the original code's integration (MODEL.md §9) ----------------------------------------
+
+
+def test_the_original_rk45_gives_the_original_code_s_delta_N(monkeypatch):
+    """RK45 at rtol 1e-3 restarted only at session starts and ends: ΔN over nine weeks of
+    mwf is the original code's 0.091496, 0.27 % above the converged 0.091245."""
+    import scipy.integrate
+
+    spans = []
+    solve_ivp = scipy.integrate.solve_ivp
+
+    def recording(fun, span, y0, **kw):
+        spans.append(tuple(span))
+        assert (kw["method"], kw["rtol"], kw["atol"], kw["max_step"]) == ("RK45", 1e-3, 1e-6, 0.05)
+        return solve_ivp(fun, span, y0, **kw)
+
+    monkeypatch.setattr(scipy.integrate, "solve_ivp", recording)
+    protocol = named("mwf")
+    y0 = S.start_state("rk45-original")
+    np.testing.assert_array_equal(y0, [*Y0[:4], 1.000768])
+    t, y = S.integrator("rk45-original")(P0, protocol, y0, 0.0, END, out_times=[0.0, 500.0, END])
+    assert spans == [(a, b) for a, b, _ in protocol.periods()]  # no restart at the delayed switches
+    assert t.tolist() == [0.0, 500.0, END] and y[0, 4] == 1.000768
+    assert y[-1, 4] - y[0, 4] == pytest.approx(0.091496, abs=1e-6)
+    _, rk4 = S.integrate(P0, protocol, Y0, 0.0, END)
+    assert rk4[-1, 4] - 1.0 == pytest.approx(0.091245, abs=1e-6)
+    with pytest.raises(InputError, match="signaling_method: must be one of rk4, rk45-original"):
+        S.integrator("rk45")
+
+
+def test_cli_records_the_signaling_method(tmp_path):
+    import h5py
+
+    spec = tmp_path / "mine.toml"
+    spec.write_text("end = 60.0\n[[session]]\nstart = 10\nduration = 2\nintensity = 0.5\n")
+    path = tmp_path / "mine.h5"
+    assert S.main(["--protocol", str(spec), "--output", str(path), "--signaling-method", "rk45-original"]) == 0
+    with h5py.File(path) as f:
+        assert f.attrs["signaling_method"] == "rk45-original" and f.attrs["integrator"] == "RK45"
+        assert f["N"][0] == 1.000768
+
+
 # --- the paper's results -----------------------------------------------------------------
 
 
@@ -397,7 +465,8 @@ def test_cli_help_shows_every_default(capsys):
     with pytest.raises(SystemExit):
         S.main(["--help"])
     text = capsys.readouterr().out
-    assert "--signaling-dt H      largest RK4 step (h) (default: 0.05)" in text
+    assert "--signaling-dt H      largest step (h), of either method (default: 0.05)" in text
+    assert "rk45-original" in text and "(default: rk4)" in text
     assert "(default: mwf)" in text and "--protocol-file" not in text
 
 

@@ -10,7 +10,8 @@ a kill during the write leaves the previous checkpoint in place, never half a fi
     cells/<name>        (n, ...) one row per cell in that order: the model's per-cell
                         state (see `model_state`) and the snapshots
     global/<name>       scalars and small arrays (CSA/V ratios, time, step, protocol
-                        position, multipliers, Jacobian count, uniform signaling state)
+                        position, multipliers, Jacobian count, uniform signaling state,
+                        growth amounts and multipliers of the predictor's solutions)
     series/<name>       the time series so far
 
 Keyed by the original cell index, the file is read back on any number of ranks: rank
@@ -248,6 +249,11 @@ def model_state(model: CoupledModel) -> tuple[np.ndarray, dict, dict]:
         w_j, g_j = jacobian.point
         per_cell["jacobian_w"] = w_j[wdofs]
         per_cell["jacobian_Gbar"] = g_j.reshape(-1, 9)[growth.dofs]
+    history = getattr(jacobian, "history", [])  # the solutions kept for a predictor
+    if history:
+        glob["predictor_amounts"] = np.array([s for s, _, _ in history])
+        glob["predictor_multipliers"] = np.array([m for _, _, m in history], dtype=float)
+        per_cell["predictor_w"] = np.stack([w_k[wdofs] for _, w_k, _ in history], axis=1)
     per_cell_y = model.y.ndim == 2
     (per_cell if per_cell_y else glob)["y"] = model.y.T if per_cell_y else model.y
     if np.ndim(model.kM):
@@ -256,6 +262,10 @@ def model_state(model: CoupledModel) -> tuple[np.ndarray, dict, dict]:
         glob["kM"] = float(model.kM)
     if model.period_states is not None:
         glob["period_times"] = model.period_times
+        if np.ndim(model.period_kM):
+            per_cell["period_kM"] = np.asarray(model.period_kM)
+        else:
+            glob["period_kM"] = float(model.period_kM)
         ys = model.period_states
         if per_cell_y:
             per_cell["period_states"] = np.moveaxis(ys, 2, 0)  # (cell, time, species)
@@ -313,6 +323,11 @@ def restore_model(model: CoupledModel, rows: Callable[[str], np.ndarray | None],
         ys = rows("period_states")
         model.period_states = (np.ascontiguousarray(np.moveaxis(ys[:nowned], 0, 2)) if ys is not None
                                else np.array(glob["period_states"], dtype=float))
+        kM = rows("period_kM")
+        if kM is not None:
+            model.period_kM = np.array(kM[:nowned])
+        else:  # uniform; or a checkpoint from before it was kept (only the left-point increment reads it)
+            model.period_kM = float(glob["period_kM"]) if "period_kM" in glob else model.kM
     else:
         model.period_times = model.period_states = None
 
@@ -326,6 +341,14 @@ def restore_model(model: CoupledModel, rows: Callable[[str], np.ndarray | None],
         g.x.scatter_forward()
         point = (pw, g.x.array.copy())
     model.jacobian.rebuild(int(glob["jacobian_count"]), point)
+    kept = rows("predictor_w")
+    if kept is not None and hasattr(model.jacobian, "history"):
+        history = []
+        for i, amount in enumerate(np.asarray(glob["predictor_amounts"], dtype=float)):
+            w_k = np.zeros_like(w.x.array)
+            w_k[wdofs] = kept[:, i]
+            history.append((float(amount), w_k, np.array(glob["predictor_multipliers"][i], dtype=float)))
+        model.jacobian.history = history
     model.resumed = True
 
 

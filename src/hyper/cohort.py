@@ -63,12 +63,11 @@ import numpy as np
 from mpi4py import MPI
 
 from hyper import checkpoint as ckpt
-from hyper import cli, farm, io, material, plot, protocols, run, signaling
+from hyper import cli, farm, io, material, plot, presets, protocols, run, signaling
 from hyper import geometry as geo
 from hyper.coupled import CSA_METHODS, GrowthSettings, step_times
-from hyper.growth import GROWTH_FIELDS
 from hyper.log import hms, info
-from hyper.params import InputError, build
+from hyper.params import InputError
 from hyper.protocols import Protocol
 
 COLUMNS = ("geometry", "muscle", "subject", "side", "protocol", "csa0_cm2", "volume0_cm3",
@@ -503,24 +502,14 @@ def parser() -> cli.Parser:
     p.add_argument("--output", type=cli.output(folder=True), default="results/cohort", help="output folder")
     p.add_argument("--ranks-per-job", type=cli.integer(1), default=1,
                    help="MPI ranks per run; must divide the number of ranks")
-    p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step Δtg (h)")
+    p.add_argument("--growth-dt", type=float,
+                   help=f"growth step Δtg (h); {GrowthSettings.growth_dt:g} unless --settings sets it")
     p.add_argument("--material", type=Path, metavar="F.toml",
                    help="TOML file overriding the muscle law's parameters (hyper.material.MaterialParams)")
-    p.add_argument("--csa-method", choices=CSA_METHODS, default=GrowthSettings.csa_method,
-                   help="the CSA the feedback sees: the exact plane cut, or the original code's box staircase "
-                        "(MODEL.md §9); summary.csv has both (final_csa_ratio_cut, final_csa_ratio_box)")
+    presets.add_options(p)
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run fails; a failed run "
                         "resumes from its checkpoint with a larger value")
-    p.add_argument("--growth-fields", choices=GROWTH_FIELDS, default=GrowthSettings.growth_fields,
-                   help="where G, Ḡ and A live: at the quadrature points, or at the nodes of DG1 fields "
-                        "(the original code)")
-    p.add_argument("--ends", choices=geo.IDEALIZED_ENDS, default="disks",
-                   help="the idealized shape's spring ends: the flat end disks, or the XDMF's end tags with "
-                        "their lateral band (the original code; --geometries idealized only)")
-    p.add_argument("--fibers", choices=("auto", "original"), default="auto",
-                   help="the geometries' fibres, or the original code's on the idealized shape (P2 used as they "
-                        "are, surface integrals at UFL's estimated degree; --geometries idealized only)")
     p.add_argument("--snapshot-every", type=cli.integer(1), default=run.SNAPSHOT_EVERY,
                    help="XDMF snapshot every K growth steps")
     p.add_argument("--plot-geometry", metavar="ID",
@@ -543,12 +532,10 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings, material.MaterialParam
     elif args.plot_geometry not in args.geometries:
         raise InputError(f"--plot-geometry {args.plot_geometry}: not one of --geometries "
                          f"({', '.join(args.geometries)}); its shape could not be drawn")
-    if (args.ends, args.fibers) != ("disks", "auto") and set(args.geometries) != {"idealized"}:
-        raise InputError("--ends and --fibers original apply to the idealized shape only (--geometries idealized)")
-    settings = build(GrowthSettings, {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings",
-                                      "growth_fields": "--growth-fields", "csa_method": "--csa-method"},
-                     growth_dt=args.growth_dt, max_halvings=args.max_halvings, growth_fields=args.growth_fields,
-                     csa_method=args.csa_method)
+    args.shape = presets.shape(args, args.geometries)
+    chosen = {"growth_dt": args.growth_dt, "max_halvings": args.max_halvings, **presets.chosen(args)}
+    settings = presets.settings(GrowthSettings, args.settings, chosen,
+                                {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings"})
     runs = plan(args.geometries, [p for text in args.protocols for p in protocols.from_option(text, "--protocols")])
     return runs, settings, material.load(args.material) if args.material else material.MaterialParams()
 
@@ -620,7 +607,7 @@ def cohort(comm, args) -> int:
         with run.StopOnTerm() as stop:
             results = run_cohort(comm, runs, args.output, settings=settings, snapshot_every=args.snapshot_every,
                                  ranks_per_job=args.ranks_per_job, stop=stop,
-                                 options={"ends": args.ends, "fibers": args.fibers, "material": muscle})
+                                 options={**args.shape, "material": muscle})
         code = 0
         if comm.rank == 0:
             try:

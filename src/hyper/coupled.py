@@ -23,7 +23,7 @@ from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from hyper import box, growth, section, signaling
+from hyper import box, growth, newton, section, signaling
 from hyper.mechanics import MechanicsProblem, SolverError
 from hyper.params import InputError, positive_hours
 from hyper.protocols import Protocol
@@ -48,9 +48,22 @@ class GrowthSettings:
     # exact plane cut) or "box" (the original code's staircase, MODEL §9). Both are
     # recorded either way; a tagged section (idealized, cylinder) is measured on its facets.
     csa_method: str = "cut"
+    # How each step's equilibrium is solved: "kept" (factors kept across steps,
+    # hyper.newton) or "lagged" (SNES Newton with a lagged Jacobian, before issue 17).
+    # Both stop at the same Newton tolerances, so this is not part of the answer.
+    newton: str = "kept"
+    # the signaling integrator (signaling.METHODS): rk4, or the original's RK45 and N0 (MODEL.md §9)
+    signaling_method: str = "rk4"
+    # dN of a growth step (growth.INCREMENTS): exact, N's change over the step; left-point,
+    # f at the step's start times Δtg (the original code)
+    growth_increment: str = "exact"
+    preset: str = "default"  # the --settings preset these came from (hyper.presets): a label
 
     # A step cut k times is 2^k solves: beyond this a run is better stopped and looked at.
     MAX_HALVINGS = 12
+    # Settings added after results existed: in the digest only where they differ from their
+    # defaults, so that the digests (and checkpoints) of default runs stay valid.
+    DIGEST_IF_CHANGED = ("signaling_method", "growth_increment", "growth_fields", "csa_method")
 
     def __post_init__(self):
         positive_hours(self.growth_dt, "growth_dt", signaling.SMALLEST_DT)
@@ -61,6 +74,8 @@ class GrowthSettings:
         if self.feedback not in growth.FEEDBACK_LAWS:
             raise InputError(f"must be one of {', '.join(growth.FEEDBACK_LAWS)}, got {self.feedback!r}",
                              field="feedback")
+        if self.newton not in NEWTON_METHODS:
+            raise InputError(f"must be one of {', '.join(NEWTON_METHODS)}, got {self.newton!r}", field="newton")
         if self.growth_fields not in growth.GROWTH_FIELDS:
             raise InputError(f"must be one of {', '.join(growth.GROWTH_FIELDS)}, got {self.growth_fields!r}",
                              field="growth_fields")
@@ -72,16 +87,21 @@ class GrowthSettings:
         ):
             raise InputError(f"must be an integer in [0, {self.MAX_HALVINGS}], got {self.max_halvings!r}",
                              field="max_halvings")
+        signaling.integrator(self.signaling_method)  # validates it
+        if self.growth_increment not in growth.INCREMENTS:
+            raise InputError(f"must be one of {', '.join(growth.INCREMENTS)}, got {self.growth_increment!r}",
+                             field="growth_increment")
 
     def model_attributes(self) -> dict:
         """The settings that define the solution; max_halvings only decides how hard a
-        failing step is tried, so a stopped run may be resumed with another value."""
+        failing step is tried, so a stopped run may be resumed with another value, newton
+        how the same equilibrium is found, and the preset only names where the values
+        came from."""
         out = dataclasses.asdict(self)
-        del out["max_halvings"]
-        if self.growth_fields == "quadrature":
-            del out["growth_fields"]  # the default: digests of earlier runs stay valid
-        if out["csa_method"] == "cut":  # the digests of runs from before the switch stay
-            del out["csa_method"]
+        del out["max_halvings"], out["newton"], out["preset"]
+        for name in self.DIGEST_IF_CHANGED:
+            if out[name] == getattr(GrowthSettings, name):
+                del out[name]
         return out
 
 
@@ -92,6 +112,7 @@ class GrowthSettings:
 # -mechanics_snes_lag_jacobian) sets it and never reaches PETSc.
 JACOBIAN_LAG = 10
 LAG_OPTION = "snes_lag_jacobian"
+NEWTON_METHODS = ("kept", "lagged")
 
 
 class NoTiming:
@@ -105,9 +126,12 @@ class NoTiming:
         return contextlib.nullcontext()
 
 
-# The phases a model times through its monitor. "jacobian assembly" happens inside
-# "mechanics" (the Newton solves); the others do not overlap.
-PHASES = ("signaling", "mechanics", "jacobian assembly", "growth update", "measures")
+# The phases a model times through its monitor. "jacobian assembly", "residual
+# assembly", "factorisation" and "back-solves" happen inside "mechanics" (the Newton
+# solves; the last two are timed with kept factors only: SNES does them inside PETSc);
+# the others do not overlap.
+PHASES = ("signaling", "mechanics", "jacobian assembly", "residual assembly", "factorisation", "back-solves",
+          "growth update", "measures")
 
 
 class GrowthFailure(RuntimeError):
@@ -143,6 +167,11 @@ class LaggedJacobian:
         self._refresh = False
         K = problem.jacobian_matrix
         problem.snes.setJacobian(self._jacobian, K, K)
+        problem.snes.setFunction(self._residual, problem.snes.getFunction()[0])
+
+    def _residual(self, snes, x, f) -> None:
+        with self.monitor.track("residual assembly"):
+            self.problem.assemble_residual(x, f)
 
     def refresh(self) -> None:
         """Assemble anew at the next Newton iteration."""
@@ -246,7 +275,7 @@ class CoupledModel:
         self.protocol = protocol
         self.params = params if params is not None else signaling.SignalingParams()
         self.settings = settings
-        self.integrator = integrator if integrator is not None else signaling.integrate
+        self.integrator = integrator if integrator is not None else signaling.integrator(settings.signaling_method)
         self.monitor = monitor if monitor is not None else NoTiming()
         self.growth = growth.GrowthField(geometry.mesh, a0, geometry.quadrature_degree, settings.growth_fields)
         kwargs = {} if material is None else {"material": material}
@@ -267,7 +296,10 @@ class CoupledModel:
                 **kwargs,
             )
         self.growth.set_deformation(self.problem.F)
-        self.jacobian = LaggedJacobian(self.problem, self.growth.function, lag, self.monitor)
+        if settings.newton == "kept":
+            self.jacobian = newton.KeptFactors(self.problem, self.growth.function, self.monitor)
+        else:
+            self.jacobian = LaggedJacobian(self.problem, self.growth.function, lag, self.monitor)
         if geometry.midsection is not None:
             self.section = growth.FacetSection(geometry, self.problem.F)
             self.csa0 = self.section.area0
@@ -282,7 +314,7 @@ class CoupledModel:
         # Every run starts from the rest state of the baseline parameters (MODEL §1).
         # Per-cell parameters (one member per owned cell) give one ODE per cell, and ϑ,
         # G and Ḡ per cell; uniform parameters need one ODE for the whole body.
-        rest = signaling.rest_state(signaling.SignalingParams())
+        rest = signaling.start_state(settings.signaling_method)
         n = self.params.size
         if n is None:
             self.y = rest
@@ -300,11 +332,13 @@ class CoupledModel:
         self.step = 0
         self.t = 0.0
         # Position in the protocol: the period being stepped through, the growth steps
-        # of it already done, and its signaling samples (None until it is integrated).
+        # of it already done, its signaling samples (None until it is integrated) and
+        # the synthesis rate they were integrated with.
         self.period = 0
         self.period_step = 0
         self.period_times: np.ndarray | None = None
         self.period_states: np.ndarray | None = None
+        self.period_kM = self.kM
         self.resumed = False
 
     def _mean_states(self, y) -> np.ndarray:
@@ -341,7 +375,13 @@ class CoupledModel:
 
     def _solve(self) -> int:
         """Newton from the previous state; a failure with a lagged Jacobian is retried
-        once with a fresh one before the caller cuts the step."""
+        once with a fresh one before the caller cuts the step. Kept factors retry
+        inside their own solve."""
+        if self.settings.newton == "kept":
+            amount = self.comm.allreduce(float(np.sum(self.growth.cell_det())), op=MPI.SUM)
+            amount = math.log(amount / self.comm.allreduce(len(self.growth.cells), op=MPI.SUM))
+            with self.monitor.track("mechanics"):
+                return self.jacobian.solve(amount)
         try:
             with self.monitor.track("mechanics"):
                 return self.problem.solve()
@@ -380,6 +420,8 @@ class CoupledModel:
             self.problem.w.x.array[:] = w
             self.problem.multipliers = mult
             self.growth.set(Gbar, A)
+            if self.settings.newton == "kept":
+                self.jacobian.forget()
             raise GrowthFailure(
                 f"growth step {self.step + 1} ({t0:g} h to {t1:g} h): Newton did not converge "
                 f"with the step cut {self.settings.max_halvings} time(s): {err}",
@@ -411,11 +453,13 @@ class CoupledModel:
                     raise GrowthFailure(f"signaling from {t0:g} h to {t1:g} h: {errors[0]}",
                                         step=self.step + 1, t0=t0, t1=t1)
                 self.period_times, self.period_states, self.period_step = times, ys, 0
+                self.period_kM = self.kM
             times, ys = self.period_times, self.period_states
             while self.period_step + 1 < len(times):
                 k = self.period_step + 1
                 iterations = halvings = 0
-                dN = ys[k][4] - ys[k - 1][4]
+                dN = growth.population_change(s.growth_increment, ys[k - 1], ys[k], times[k] - times[k - 1],
+                                              self.params, self.period_kM)
                 if in_session and not s.grow_during_sessions:
                     dN = np.zeros_like(dN)
                 theta = growth.area_multiplier(dN, self.csa_ratio)

@@ -33,11 +33,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from hyper import cli, fidelity, io, material, protocols, run, sequence, signaling
+from hyper import cli, fidelity, io, material, presets, protocols, run, sequence, signaling
 from hyper.checkpoint import on_rank0
 from hyper.log import info
-from hyper.params import InputError, build
-from hyper.signaling.cli import answer
+from hyper.params import InputError
+from hyper.signaling.cli import answer, method_option
 
 SIGNALING_SAMPLE_EVERY = 0.5  # h, the series of --ask signaling, as hyper signaling samples it
 # the options that set GrowthSettings' fields, for errors that name what the user typed
@@ -61,6 +61,7 @@ def scene_options(p: cli.Parser) -> None:
     p.add_argument("--params", type=Path, help="TOML file overriding signaling parameters")
     p.add_argument("--signaling-dt", type=float,
                    help=f"RK4 step (h); {fidelity.SIGNALING_DT0:g} unless --accuracy chooses one")
+    method_option(p, default=None)
 
 
 def parser(ask: str = "growth") -> cli.Parser:
@@ -69,21 +70,14 @@ def parser(ask: str = "growth") -> cli.Parser:
         scene_options(p)
         p.add_argument("--output", type=cli.output(), default="results/signaling", help="an .h5 file or a folder")
         return p
-    from hyper.coupled import CSA_METHODS, GrowthSettings
-    from hyper.geometry import IDEALIZED_ENDS
-    from hyper.growth import FEEDBACK_LAWS, GROWTH_FIELDS
+    from hyper.coupled import GrowthSettings
+    from hyper.growth import FEEDBACK_LAWS
 
     p = cli.Parser("grow", __doc__)
     p.add_argument("--geometry", help="geometry id (idealized, cylinder, BFLH_VHF_Left, …); idealized by default")
     p.add_argument("--mesh", type=Path, help="your own tetrahedral XDMF mesh instead of --geometry (facet tags "
                    "'ft_small': 1, 2 the ends, 3 the side; fibres along its principal axis)")
     p.add_argument("--mesh-unit", help=f"length unit of --mesh ({' or '.join(run.MESH_UNITS)}); m by default")
-    p.add_argument("--ends", choices=IDEALIZED_ENDS, default="disks",
-                   help="the idealized shape's spring ends: the flat end disks, or the XDMF's end tags with "
-                        "their lateral band (the original code)")
-    p.add_argument("--fibers", choices=("auto", "original"), default="auto",
-                   help="the geometry's fibres, or on the idealized shape the original code's (P2 used as they "
-                        "are, surface integrals at UFL's estimated degree)")
     scene_options(p)
     p.add_argument("--output", type=cli.output(), default="results/grow", help="an .h5 file (one protocol) or a folder")
     p.add_argument("--material", type=Path, metavar="F.toml",
@@ -91,16 +85,7 @@ def parser(ask: str = "growth") -> cli.Parser:
     p.add_argument("--growth-dt", type=float,
                    help=f"growth step Δtg (h); {GrowthSettings.growth_dt:g} unless --accuracy chooses one")
     p.add_argument("--feedback", choices=FEEDBACK_LAWS, default="hill", help="feedback of CSA on protein synthesis")
-    p.add_argument("--csa-method", choices=CSA_METHODS, default=GrowthSettings.csa_method,
-                   help="the CSA the feedback sees on a mesh without a tagged mid-section: the exact plane cut, or "
-                        "the original code's box staircase (MODEL.md §9); both are recorded (csa_ratio_cut, "
-                        "csa_ratio_box)")
-    p.add_argument("--skip-sessions", action="store_true", help="no growth during sessions (the original code)")
-    p.add_argument("--growth-fields", choices=GROWTH_FIELDS, default=GrowthSettings.growth_fields,
-                   help="where G, Ḡ and A live: at the quadrature points, or at the nodes of DG1 fields "
-                        "(the original code)")
-    p.add_argument("--fe-stress", action="store_true",
-                   help="P = Fe S (the original code) instead of the consistent det(Fg) Fe S Fg⁻ᵀ")
+    presets.add_options(p, signaling_method=False)
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run stops")
     p.add_argument("--linear-solver", choices=run.LINEAR_SOLVERS, help="MUMPS LU, GMRES with MUMPS's block "
@@ -126,9 +111,26 @@ def box_plots(path, runs) -> list:
     if path is None:
         return [None] * len(runs)
     return [path] if len(runs) == 1 else [path.with_name(f"{path.stem}_{p.name}.png") for p in runs]
+def untabulated(args) -> list[str]:
+    """The options given that change the model away from the one --accuracy's tables
+    measured (a signaling question has only the first)."""
+    out = []
+    if args.signaling_method == "rk45-original":
+        out.append("--signaling-method rk45-original")
+    if getattr(args, "growth_increment", None) == "left-point":
+        out.append("--growth-increment left-point")
+    for option, value in (("csa_method", "box"), ("growth_fields", "dg1")):
+        if getattr(args, option, None) == value:
+            out.append(f"--{option.replace('_', '-')} {value}")
+    if getattr(args, "settings", "default") != "default":
+        out.append(f"--settings {args.settings}")
+    return out
 
 
 def choose(scene: fidelity.Scene, args, growth_dt=None) -> fidelity.Choice | None:
+    if args.accuracy is not None and untabulated(args):
+        raise InputError(f"--accuracy chooses steps from the errors of the default model; it does not "
+                         f"combine with {untabulated(args)[0]}")
     try:
         return None if args.accuracy is None else fidelity.choose(scene, args.accuracy, growth_dt=growth_dt,
                                                                   signaling_dt=args.signaling_dt)
@@ -158,15 +160,10 @@ def plan_from(comm, args) -> sequence.Plan:
     # hyper grow takes uniform parameters only (per-cell ones are hyper ensemble's)
     scene = fidelity.Scene(name, ",".join(p.name for p in runs), heterogeneous=False, ask="growth")
     choice = choose(scene, args, args.growth_dt)
-    if choice is not None:
-        growth_dt, signaling_dt = choice.growth_dt, choice.signaling_dt
-    else:
-        growth_dt = GrowthSettings.growth_dt if args.growth_dt is None else args.growth_dt
-        signaling_dt = GrowthSettings.signaling_dt if args.signaling_dt is None else args.signaling_dt
-    settings = build(GrowthSettings, SETTING_OPTIONS, growth_dt=growth_dt, signaling_dt=signaling_dt,
-                     feedback=args.feedback, grow_during_sessions=not args.skip_sessions,
-                     consistent_stress=not args.fe_stress, max_halvings=args.max_halvings,
-                     growth_fields=args.growth_fields, csa_method=args.csa_method)
+    steps = (choice.growth_dt, choice.signaling_dt) if choice is not None else (args.growth_dt, args.signaling_dt)
+    settings = presets.settings(GrowthSettings, args.settings,
+                                {"growth_dt": steps[0], "signaling_dt": steps[1], "feedback": args.feedback,
+                                 "max_halvings": args.max_halvings, **presets.chosen(args)}, SETTING_OPTIONS)
     petsc_options = dict(cli.petsc_option(text) for text in args.petsc_option)
     if LAG_OPTION in petsc_options:
         jacobian_lag(petsc_options[LAG_OPTION])
@@ -194,10 +191,9 @@ def plan_from(comm, args) -> sequence.Plan:
     if mesh is not None:
         mesh.load(comm)  # units and tags, before anything is written
     solver = args.linear_solver or ("auto" if args.accuracy is not None else "lu")
-    if (args.ends, args.fibers) != ("disks", "auto") and name != "idealized":
-        raise InputError("--ends and --fibers original apply to the idealized shape only")
+    shape = presets.shape(args, [name])
     specs = [run.RunSpec(name, p, params, settings, petsc_options, mesh=mesh, linear_solver=solver, choice=choice,
-                         ends=args.ends, fibers=args.fibers, material=muscle) for p in runs]
+                         **shape, material=muscle) for p in runs]
     if not args.restart:
         sequence.refuse_foreign_checkpoints(comm, specs, [run.Outputs(h5) for h5 in results])
     return sequence.Plan(specs, [run.Outputs(h5) for h5 in results], plot, args.snapshot_every, args.checkpoint_every,
@@ -212,9 +208,10 @@ def answer_signaling(comm, args) -> int:
     choice = choose(scene, args) or fidelity.assess(scene, None, args.signaling_dt or fidelity.SIGNALING_DT0)
     paths = io.result_paths(args.output, [p.name for p in runs])
     info(comm, f"fidelity: {choice.describe()}")
+    method = args.signaling_method or "rk4"
     try:
         on_rank0(comm, lambda: answer(comm, runs, paths, params, choice.signaling_dt, SIGNALING_SAMPLE_EVERY,
-                                      groups={"fidelity": choice.as_attributes()}))
+                                      groups={"fidelity": choice.as_attributes()}, method=method))
     except signaling.SignalingError as err:
         cli.error(comm, str(err))
         return cli.EXIT_FAILED

@@ -344,6 +344,17 @@ class MechanicsProblem:
         """The positions of the pressure dofs in w's local array (owned, then ghost)."""
         return self._p_dofs
 
+    def assemble_residual(self, x: PETSc.Vec, f: PETSc.Vec) -> None:
+        """Take the state (w, μ) from the Newton unknowns ``x`` and assemble the residual
+        into ``f`` (a vector like `solution_vector`)."""
+        self._assemble_residual(None, x, f)
+
+    def load_state(self, x: PETSc.Vec) -> None:
+        """Write the current state (w, μ) into the Newton unknowns ``x``."""
+        arr = x.getArray()
+        arr[: self._nowned] = self.w.x.array[: self._nowned]
+        arr[self._nowned:] = self.multipliers[: self._nmult]
+
     def assemble_jacobian(self, x: PETSc.Vec) -> None:
         """Take the state (w, μ) from the Newton unknowns ``x`` and assemble
         `jacobian_matrix` there."""

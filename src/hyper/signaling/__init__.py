@@ -7,7 +7,7 @@ every parameter may be a float or an array of n per-member values.
 - ``params``: `SignalingParams` (Table 2, units, validation) and TOML loading;
 - ``model``: the rest state, the stimuli, the right-hand side and its switch times;
 - ``integrators``: RK4 over the batch axis (numpy or compiled), the reference solution,
-  the sampled series of a protocol;
+  the original code's RK45 (``METHODS``), the sampled series of a protocol;
 - ``compiled``: the RK4 step in C, built at run time;
 - ``plot``: the Fig. 3A–E analog;
 - ``cli``: ``hyper signaling`` (``python -m hyper.signaling``).
@@ -22,22 +22,29 @@ from hyper.signaling.integrators import (
     BACKENDS,
     CHUNK,
     FAILURES,
+    METHODS,
+    ORIGINAL_N0,
     SMALLEST_DT,
     SMALLEST_SAMPLE,
     SignalingError,
     c_backend_error,
     first_day,
     integrate,
+    integrator,
+    original,
     reference,
     run,
+    start_state,
     step_count,
+    stop_at_bounds,
 )
 from hyper.signaling.model import STATES, a1, a2, bump_duration, g, net_balance, rest_state, rhs, switch_times
 from hyper.signaling.params import SignalingParams, load_params
 
 __all__ = [
-    "AUTO_MIN_MEMBERS", "BACKENDS", "CHUNK", "FAILURES",
+    "AUTO_MIN_MEMBERS", "BACKENDS", "CHUNK", "FAILURES", "METHODS", "ORIGINAL_N0",
     "SMALLEST_DT", "SMALLEST_SAMPLE", "PAPER", "STATES", "SignalingError", "SignalingParams",
-    "a1", "a2", "bump_duration", "c_backend_error", "first_day", "g", "integrate", "load_params",
-    "main", "net_balance", "reference", "rest_state", "rhs", "run", "step_count", "switch_times",
+    "a1", "a2", "bump_duration", "c_backend_error", "first_day", "g", "integrate", "integrator", "load_params",
+    "main", "net_balance", "original", "reference", "rest_state", "rhs", "run", "start_state", "step_count",
+    "stop_at_bounds", "switch_times",
 ]

@@ -15,9 +15,20 @@ from pathlib import Path
 from hyper import cli, log, protocols
 from hyper.checkpoint import on_rank0
 from hyper.params import as_attributes, positive_hours
-from hyper.signaling.integrators import SMALLEST_DT, SMALLEST_SAMPLE, SignalingError, first_day
+from hyper.signaling.integrators import METHODS, SMALLEST_DT, SMALLEST_SAMPLE, SignalingError, first_day
 from hyper.signaling.integrators import run as series
 from hyper.signaling.params import load_params
+
+METHOD_HELP = ("rk4: classical RK4 with steps landing on every switch (converged at 0.05 h); rk45-original: "
+               "the original code's SciPy RK45 at rtol 1e-3, atol 1e-6, steps of at most --signaling-dt, "
+               "restarted only at session starts and ends, from its N0 = 1.000768 (MODEL.md §9)")
+
+
+def method_option(p: cli.Parser, default: str | None = "rk4") -> None:
+    """--signaling-method, the same for every job that integrates the signaling ODEs
+    (default None where a preset may choose it: rk4 unless it does)."""
+    p.add_argument("--signaling-method", choices=METHODS, default=default,
+                   help=METHOD_HELP + ("" if default else "; rk4 unless --settings sets it"))
 
 
 def parser() -> cli.Parser:
@@ -26,7 +37,9 @@ def parser() -> cli.Parser:
                    help=f"a named protocol ({', '.join(protocols.NAMES)}), 'all' for {' '.join(protocols.PAPER)}, "
                    "or a TOML protocol file")
     p.add_argument("--params", type=Path, metavar="F.toml", help="parameter overrides, keys as in MODEL.md's table")
-    p.add_argument("--signaling-dt", type=float, default=0.05, metavar="H", help="largest RK4 step (h)")
+    p.add_argument("--signaling-dt", type=float, default=0.05, metavar="H",
+                   help="largest step (h), of either method")
+    method_option(p)
     p.add_argument("--sample-every", type=float, default=0.5, metavar="H", help="output sampling (h)")
     p.add_argument("--output", type=cli.output(), default="results/signaling",
                    help="an .h5 file (one protocol) or a folder that gets <protocol>.h5 per protocol")
@@ -35,26 +48,30 @@ def parser() -> cli.Parser:
     return p
 
 
-def write(path: Path, series: dict, params, protocol, dt: float, sample_every: float, groups=None) -> None:
+def write(path: Path, series: dict, params, protocol, dt: float, sample_every: float, groups=None,
+          method: str = "rk4") -> None:
     """A signaling result: the series, the integrator's settings, parameters and protocol
     (and any other attribute ``groups``, e.g. a fidelity choice)."""
     from hyper import io
 
     io.write_series(
         path, series,
-        attrs={"model": "signaling (MODEL.md §1)", "integrator": "RK4", "dt": dt, "sample_every": sample_every,
+        attrs={"model": "signaling (MODEL.md §1)", "integrator": "RK4" if method == "rk4" else "RK45",
+               "signaling_method": method, "dt": dt, "sample_every": sample_every,
                "N_final": float(series["N"][-1])},
         groups={"signaling": as_attributes(params), "protocol": protocol.to_attributes(),
                 "settings": {"integrator": "RK4", "signaling_dt": dt, "sample_every": sample_every}, **(groups or {})},
     )
 
 
-def answer(comm, runs: list, paths: list[Path], params, dt: float, sample_every: float, groups=None) -> dict:
-    """Integrate each protocol of ``runs`` and write its result to the path beside it; the
-    series by name. All are integrated before any is written: a failure writes nothing."""
-    results = {protocol.name: series(params, protocol, dt, sample_every) for protocol in runs}
+def answer(comm, runs: list, paths: list[Path], params, dt: float, sample_every: float, groups=None,
+           method: str = "rk4") -> dict:
+    """Integrate each protocol of ``runs`` with ``method`` and write its result to the path
+    beside it; the series by name. All are integrated before any is written: a failure
+    writes nothing."""
+    results = {protocol.name: series(params, protocol, dt, sample_every, method) for protocol in runs}
     for protocol, path in zip(runs, paths):
-        write(path, results[protocol.name], params, protocol, dt, sample_every, groups)
+        write(path, results[protocol.name], params, protocol, dt, sample_every, groups, method)
         log.info(comm, f"{protocol.name}: N({protocol.end:g} h) = {results[protocol.name]['N'][-1]:.6f}; "
                        f"no mesh built -> {path}")
     return results
@@ -70,8 +87,9 @@ def run(comm, args) -> int:
     paths = io.result_paths(args.output, [p.name for p in runs])
 
     def work():
-        insets = {p.name: first_day(params, p, dt) for p in runs}
-        results = answer(comm, runs, paths, params, dt, sample_every)
+        method = args.signaling_method
+        insets = {p.name: first_day(params, p, dt, method=method) for p in runs}
+        results = answer(comm, runs, paths, params, dt, sample_every, method=method)
         if args.plot is not None:
             from hyper import plot
             from hyper.signaling.plot import figure_protocols

@@ -100,7 +100,12 @@ void rk4_piece(long n, long steps, double s, double third, double t0, double h,
             int ok = 1;
             for (int c = 0; c < 5; ++c) {
                 const double m = K2[c] + K3[c];
-                const double z = x[c] + ((K1[c] + K4[c]) + (m + m)) * third;
+                double z = x[c] + ((K1[c] + K4[c]) + (m + m)) * third;
+                if (c == 4) {  /* integrators.stop_at_bounds: N stops at the bound it crosses */
+                    const double lo = x[4] < ROW(NMIN)[i] ? x[4] : ROW(NMIN)[i];
+                    const double hi = x[4] > ROW(NMAX)[i] ? x[4] : ROW(NMAX)[i];
+                    z = z < lo ? lo : (z > hi ? hi : z);
+                }
                 Y[c * n + i] = z;
                 ok &= (z >= 0.0) & (z < INFINITY);
             }

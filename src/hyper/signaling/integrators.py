@@ -11,13 +11,17 @@
   hand, numpy otherwise. All perform the same floating-point operations in the same
   order, so a member of a batch equals its single run, on either backend, bit for bit.
   ``failures="mask"`` turns a member whose state goes non-finite or negative into NaN
-  and a flag instead of an error.
+  and a flag instead of an error. N stops exactly at the bound of [Nmin, Nmax] that a
+  step carries it across (``stop_at_bounds``), in every backend alike.
 - ``reference``: SciPy's DOP853 at tight tolerance on the same pieces, for verification.
+- ``original``: the original code's integration (MODEL.md §9), SciPy's RK45 at its loose
+  default tolerances, for reproducing its numbers (``--signaling-method rk45-original``).
 - ``run`` and ``first_day``: the sampled series of one protocol from the rest state.
 """
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -117,6 +121,19 @@ def _failure(t_from: float, t_to: float, member: int, y, dt: float) -> Signaling
     )
 
 
+def stop_at_bounds(N_old: np.ndarray, N_new: np.ndarray, Nmin: Array, Nmax: Array) -> None:
+    """N after a step, in place on N_new: stopped at the bound of [Nmin, Nmax] the step crossed.
+
+    f = 0 outside the range makes the right-hand side jump there, and an RK4 step across
+    it overshoots the bound (up to 1.6e-4 seen with Sobol samples): the exact solution
+    stops at the bound and stays there until f points back inside. A member that starts
+    outside the range (f = 0 there) keeps its value. NaNs pass through (the failure check
+    sees them). The backends compute the same selects: min(N_old, Nmin) <= N <= max(N_old, Nmax).
+    """
+    np.maximum(N_new, np.minimum(N_old, Nmin), out=N_new)
+    np.minimum(N_new, np.maximum(N_old, Nmax), out=N_new)
+
+
 # One RK4 step with K_i = (h/2) k_i: y + K1, y + K2, y + 2 K3 are the stage states and
 # y_new = y + ((K1 + K4) + 2 (K2 + K3)) / 3 = y + h/6 (k1 + 2 k2 + 2 k3 + k4).
 THIRD = 1.0 / 3.0
@@ -125,6 +142,7 @@ THIRD = 1.0 / 3.0
 def _rk4_single(y, p: SignalingParams, kM: float, pieces: list[_Piece], dt: float, out: np.ndarray, member: int):
     """RK4 for one member on plain floats: the same operations, in the same order, as _rk4_block."""
     inf, third = math.inf, THIRD
+    Nmin, Nmax = float(p.Nmin), float(p.Nmax)
     x1, x2, x3, x4, N = (float(v) for v in y)
     for piece in pieces:
         steps, h = _steps(piece, dt)
@@ -147,7 +165,11 @@ def _rk4_single(y, p: SignalingParams, kM: float, pieces: list[_Piece], dt: floa
             x2 = x2 + ((k12 + k42) + (s2 + s2)) * third
             x3 = x3 + ((k13 + k43) + (s3 + s3)) * third
             x4 = x4 + ((k14 + k44) + (s4 + s4)) * third
+            # stop_at_bounds on one member
+            lo = N if N < Nmin else Nmin
+            hi = N if N > Nmax else Nmax
             N = N + ((k15 + k45) + (s5 + s5)) * third
+            N = lo if N < lo else (hi if N > hi else N)
             if not (0.0 <= x1 < inf and 0.0 <= x2 < inf and 0.0 <= x3 < inf and 0.0 <= x4 < inf and 0.0 <= N < inf):
                 ta = piece.t0 + j * h
                 raise _failure(ta, ta + h, member, (x1, x2, x3, x4, N), dt)
@@ -166,6 +188,7 @@ def _rk4_block(Y: np.ndarray, p: SignalingParams, kM: Array, pieces: list[_Piece
     n = Y.shape[1]
     kernel = BatchRhs(p, kM, n)
     K, ACC, W, Ys = (np.empty(Y.shape) for _ in range(4))
+    inner = (float(np.max(p.Nmin)), float(np.min(p.Nmax)))  # N in here for all: no bound is crossed
     for piece, (steps, h, bumps) in zip(pieces, tables):
         kernel.scale(0.5 * h)
         kernel.set_a1(_a1_value(piece, p))
@@ -191,7 +214,12 @@ def _rk4_block(Y: np.ndarray, p: SignalingParams, kM: Array, pieces: list[_Piece
             np.add(K, K, out=K)
             np.add(ACC, K, out=ACC)
             np.multiply(ACC, THIRD, out=ACC)
-            np.add(Y, ACC, out=Y)
+            N = ACC[4]
+            np.add(Y[4], N, out=N)
+            if not (N.min() >= inner[0] and N.max() <= inner[1]):
+                stop_at_bounds(Y[4], N, p.Nmin, p.Nmax)
+            np.add(Y[:4], ACC[:4], out=Y[:4])
+            np.copyto(Y[4], N)
             if not (Y.min() >= 0.0 and Y.max() < math.inf):
                 bad = ~(np.isfinite(Y) & (Y >= 0.0)).all(axis=0)
                 if failed is None:
@@ -356,6 +384,8 @@ def reference(params: SignalingParams, protocol: Protocol, y0, t0: float, t1: fl
     """A high-accuracy solution for verification: SciPy's ``method`` at tight tolerance, restarted
     on every piece between switch and output times (smooth right-hand side on each).
 
+    N's bounds are located as events: N stops exactly at the bound it reaches and is held
+    there while f points outside, a second event (f = 0) releases it.
     Same arguments and return convention as ``integrate``; members are solved one by one.
     """
     from scipy.integrate import solve_ivp
@@ -365,25 +395,144 @@ def reference(params: SignalingParams, protocol: Protocol, y0, t0: float, t1: fl
         p = params.member(m) if params.size is not None else params
         f = scalar_rhs(p, float(np.ravel(kM)[m] if np.ndim(kM) else kM))
         a20, t1_, tau_h = float(p.a20), float(p.t1), float(p.tau_h)
+        Nmin, Nmax = float(p.Nmin), float(p.Nmax)
+        inside = 0.5 * (Nmin + Nmax)  # where f is the net balance, unclipped
         g0 = g(-t1_, tau_h)
         y = Y0[:, m].copy()
         if times[0] == t0:
             states[0, :, m] = y
         for piece in _pieces(protocol, p, t0, t1, times):
             A1 = float(_a1_value(piece, p))
-            if piece.t_ex is None:
-                def fun(t, y, A1=A1):
-                    return f(*y, A1, a20)
-            else:
-                def fun(t, y, A1=A1, t_ex=piece.t_ex):
-                    return f(*y, A1, a20 + (g((t - t_ex) - t1_, tau_h) - g0))
-            sol = solve_ivp(fun, (piece.t0, piece.t1), y, method=method, rtol=rtol, atol=atol)
-            if not sol.success:
-                raise SignalingError(f"reference integrator failed on [{piece.t0}, {piece.t1}] h: {sol.message}")
-            y = sol.y[:, -1]
+
+            def a2(t, t_ex=piece.t_ex):
+                return a20 if t_ex is None else a20 + (g((t - t_ex) - t1_, tau_h) - g0)
+
+            def balance(t, y, A1=A1):
+                return f(y[0], y[1], y[2], y[3], inside, A1, a2(t))[4]
+
+            def fun(t, y, A1=A1, held=None):
+                k = f(*y, A1, a2(t))
+                return k if held is None else (*k[:4], 0.0)
+
+            def below(t, y):
+                return y[4] - Nmin
+
+            def above(t, y):
+                return y[4] - Nmax
+
+            def release(t, y):
+                return balance(t, y)
+
+            below.terminal, below.direction = True, -1
+            above.terminal, above.direction = True, 1
+            release.terminal = True
+            t, released = piece.t0, False
+            while t < piece.t1:
+                # held at a bound where f points outside, unless it was just released there
+                b = balance(t, y)
+                held = None if released else Nmin if (y[4] == Nmin and b < 0) else \
+                    Nmax if (y[4] == Nmax and b > 0) else None
+                release.direction = 1 if held == Nmin else -1
+                events = [release] if held is not None else [below, above]
+                sol = solve_ivp(lambda t, y, held=held: fun(t, y, held=held), (t, piece.t1), y, method=method,
+                                rtol=rtol, atol=atol, events=events)
+                if not sol.success:
+                    raise SignalingError(f"reference integrator failed on [{t}, {piece.t1}] h: {sol.message}")
+                hit = [k for k, te in enumerate(sol.t_events) if te.size]
+                if not hit:
+                    t, y = piece.t1, sol.y[:, -1]
+                    continue
+                t, y = float(sol.t_events[hit[0]][0]), sol.y_events[hit[0]][0].copy()
+                released = held is not None
+                if held is None:
+                    y[4] = Nmin if hit[0] == 0 else Nmax  # stopped exactly there
             if piece.out >= 0:
                 states[piece.out, :, m] = y
     return times, (states[:, :, 0] if single else states)
+
+
+# --------------------------------------------------------------------------------------
+# The original code's integration (MODEL.md §9)
+
+METHODS = ("rk4", "rk45-original")
+ORIGINAL_N0 = 1.000768  # -, the original's initial N (its configuration file), with the rest state of x1..x4
+# SciPy's defaults for solve_ivp, which the original kept; its max_step was its dt, 0.05 h
+ORIGINAL_RTOL = 1e-3
+ORIGINAL_ATOL = 1e-6
+
+
+def original(params: SignalingParams, protocol: Protocol, y0, t0: float, t1: float, dt: float = 0.05, *,
+             out_times=None, kM: Array | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The original code's signaling: SciPy's RK45 at rtol 1e-3, atol 1e-6 with steps of at
+    most dt (h), restarted only at session starts and ends, not at the switches of the
+    delayed stimulus (t + tau_d), across which its error control steps as it can.
+
+    Same arguments and return convention as ``integrate`` (members one by one, about
+    2 s each for nine weeks: meant for uniform runs). The states at output times come
+    from RK45's dense output, which leaves its steps as they are; the original read f
+    at the solver step nearest to each growth time instead (at most dt/2 away).
+    Differs from the converged solution by 0.27 % of ΔN over nine weeks of ``mwf``.
+    """
+    from scipy.integrate import solve_ivp
+
+    positive_hours(dt, "dt", SMALLEST_DT)
+    kM, times, single, Y0, states = _batch(params, kM, y0, t0, t1, out_times)
+    starts, ends = protocol.starts.tolist(), protocol.ends.tolist()
+    cuts = sorted({t for t in starts + ends if t0 < t < t1})
+    bounds = [float(t0), *cuts, float(t1)]
+    for m in range(Y0.shape[1]):
+        p = params.member(m) if params.size is not None else params
+        f = scalar_rhs(p, float(np.ravel(kM)[m] if np.ndim(kM) else kM))
+        a10, a20, t1_, tau_h, tau_d = (float(v) for v in (p.a10, p.a20, p.t1, p.tau_h, p.tau_d))
+        stimulus = [float(p.beta * i * p.Fmax) for i in protocol.intensities.tolist()]
+        g0 = float(g(-t1_, tau_h))
+        y = Y0[:, m].copy()
+        if times[0] == t0:
+            states[0, :, m] = y
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            k = bisect.bisect_right(starts, a) - 1
+            t_ex = starts[k] if k >= 0 else None  # the latest session start, the same all over [a, b)
+
+            def fun(t, y, t_ex=t_ex):
+                i = bisect.bisect_right(starts, t - tau_d) - 1
+                A1 = stimulus[i] if i >= 0 and t - tau_d < ends[i] else a10
+                if t_ex is None:
+                    A2 = a20
+                else:
+                    A2 = a20 + max(float(g(min((t - t_ex) - t1_, 0.0), tau_h)) - g0, 0.0)
+                return f(*y, A1, A2)
+
+            inner = (times > a) & (times < b)
+            sol = solve_ivp(fun, (a, b), y, method="RK45", rtol=ORIGINAL_RTOL, atol=ORIGINAL_ATOL, max_step=dt,
+                            dense_output=bool(inner.any()))
+            y = sol.y[:, -1]
+            if not (sol.success and np.all(np.isfinite(y)) and np.all(y >= 0.0)):
+                state = ", ".join(f"{name}={float(v):.4g}" for name, v in zip(STATES, y))
+                raise SignalingError(f"RK45 from t = {a:g} h to t = {b:g} h gave member {m} a non-finite or "
+                                     f"negative state ({state}): {sol.message}")
+            if inner.any():
+                states[inner, :, m] = sol.sol(times[inner]).T
+            at_end = times == b
+            states[at_end, :, m] = y
+    return times, (states[:, :, 0] if single else states)
+
+
+def integrator(method: str):
+    """The integrator of a signaling method, with the signature of ``integrate``:
+    "rk4" (``integrate``) or "rk45-original" (``original``)."""
+    if method not in METHODS:
+        raise InputError(f"must be one of {', '.join(METHODS)}, got {method!r}", field="signaling_method")
+    return integrate if method == "rk4" else original
+
+
+def start_state(method: str = "rk4") -> np.ndarray:
+    """The state every run starts from: the baseline rest state (MODEL.md §1), with the
+    original's N0 = 1.000768 under "rk45-original" (an offset: f does not depend on N inside
+    its range, so ΔN is the same)."""
+    y = rest_state()
+    if integrator(method) is original:
+        y[4] = ORIGINAL_N0
+    return y
 
 
 # --------------------------------------------------------------------------------------
@@ -391,23 +540,24 @@ def reference(params: SignalingParams, protocol: Protocol, y0, t0: float, t1: fl
 
 
 def run(params: SignalingParams, protocol: Protocol, dt: float = 0.05,
-        sample_every: float = 0.5) -> dict[str, np.ndarray]:
-    """The series of one protocol from the baseline rest state, sampled every ``sample_every`` h."""
+        sample_every: float = 0.5, method: str = "rk4") -> dict[str, np.ndarray]:
+    """The series of one protocol from ``start_state``, sampled every ``sample_every`` h."""
     positive_hours(sample_every, "sample_every", SMALLEST_SAMPLE)
     times = np.arange(0.0, protocol.end, sample_every)
     times = np.append(times[times < protocol.end - 1e-9 * sample_every], protocol.end)
-    t, y = integrate(params, protocol, rest_state(), 0.0, protocol.end, dt, out_times=times)
+    t, y = integrator(method)(params, protocol, start_state(method), 0.0, protocol.end, dt, out_times=times)
     return {"t": t, **{name: y[:, k] for k, name in enumerate(STATES)}}
 
 
 def first_day(params: SignalingParams, protocol: Protocol, dt: float = 0.05,
-              every: float = 0.05) -> dict[str, np.ndarray] | None:
+              every: float = 0.05, method: str = "rk4") -> dict[str, np.ndarray] | None:
     """The 24 h after the first session start, finely sampled (the figure's insets); None without sessions."""
     if not protocol.sessions:
         return None
     s0 = protocol.sessions[0].start
     stop = min(s0 + 24.0, protocol.end)
     times = s0 + np.arange(0.0, stop - s0 + 0.5 * every, every)
-    t, y = integrate(params, protocol, rest_state(), 0.0, protocol.end, dt, out_times=times[times <= protocol.end])
+    t, y = integrator(method)(params, protocol, start_state(method), 0.0, protocol.end, dt,
+                              out_times=times[times <= protocol.end])
     return {"t": t - s0, **{name: y[:, k] for k, name in enumerate(STATES)}}
 
