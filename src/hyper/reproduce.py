@@ -6,7 +6,7 @@
 
 For each claim of the paper (MODEL.md §8) and each number of the original code (§9) the
 report has three columns: the paper's or the original's value, hyper with the original
-code's switches (`--settings original` and the switches of §9 not in that preset yet),
+code's switches (`--settings original`: every switch of §9; reproduce sets each explicitly too),
 and hyper's default. An attribution table per headline number starts from the default
 and turns on one switch at a time. Cases (families, --cases):
 
@@ -489,8 +489,8 @@ def idealized_section(data: dict, quick: bool) -> list[str]:
     out = [
         "## The idealized shape",
         "",
-        f"hyper original: every switch of MODEL.md §9 (`--settings original "
-        f"--ends tags --fibers original --growth-fields dg1`) at Δtg = {dt:g} h"
+        f"hyper original: every switch of MODEL.md §9 (`--settings original`, on this shape with "
+        f"`--ends tags --fibers original`) at Δtg = {dt:g} h"
         + (" (--quick; the original: 1 h)" if quick else "")
         + "; default: one growth step per period.",
         "",
@@ -649,10 +649,10 @@ def cohort_section(data: dict, quick: bool) -> list[str]:
         ]
     )
     settings = (
-        "the original's switches (`--settings original --csa-method box --growth-fields dg1`) at one step "
+        "the original's switches (`--settings original`, box feedback) at one step "
         "per period (168 h) with the exact increment (--quick: the left-point rule needs short steps)"
         if quick
-        else "`--settings original --csa-method box --growth-fields dg1`, Δtg = 1 h"
+        else "`--settings original` (box feedback, Δtg = 1 h)"
     )
     out = [
         "## The anatomical cohort under mwf",
