@@ -748,7 +748,8 @@ def report(data: dict, quick: bool, elapsed: float, command: str) -> str:
     lines = [
         "# hyper against the paper and its original code",
         "",
-        f"`{command}` ({'quick' if quick else 'full'} mode), {hms(elapsed)} on this machine. "
+        f"`{command}` ({'quick' if quick else 'full'} mode): this invocation took {hms(elapsed)} "
+        "(runs stored before are reused). "
         "Columns: the paper's claim or the original code's number; hyper with the original code's switches "
         "(MODEL.md §9); hyper's default (converged, physically consistent choices).",
         "",
