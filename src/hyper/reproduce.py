@@ -803,7 +803,8 @@ def cohort_figure(data: dict, path: Path) -> Path | None:
         ax.set_xticks(x, names, rotation=45, ha="right", fontsize=8)
         ax.set_ylabel(f"{title} change (%)")
         ax.grid(axis="y", alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.set_ylim(0.0, 1.4 * ax.get_ylim()[1])  # room above the bars for the legend
+        ax.legend(fontsize=7, ncol=3, loc="upper center")
     fig.suptitle("cohort under mwf, 9 weeks: hyper's default and the original code's switches")
     plot.save(fig, path, dpi=130)
     plt.close(fig)
