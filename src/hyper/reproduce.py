@@ -1,6 +1,6 @@
 """hyper reproduce: the paper's claims and the original code's numbers beside hyper's, switch by switch.
 
-    mpirun -n 2 python -m hyper.reproduce --quick        # about 10 min on 2 quiet cores
+    mpirun -n 2 python -m hyper.reproduce --quick        # 29 runs, about 4 min on 2 cores
     mpirun -n 2 python -m hyper.reproduce                # full: 12 muscles at Δtg = 1 h, heterogeneity
     python -m hyper.reproduce --cases signaling          # one family of cases (no mesh)
 
@@ -845,7 +845,9 @@ def idealized_figure(output: Path, path: Path, quick: bool) -> Path | None:
 def parser() -> cli.Parser:
     p = cli.Parser("reproduce", __doc__)
     p.add_argument("--output", type=cli.output(folder=True), default="results/reproduce", help="output folder")
-    p.add_argument("--quick", action="store_true", help="3 muscles, coarser steps, no heterogeneity (about 10 min)")
+    p.add_argument(
+        "--quick", action="store_true", help="3 muscles, coarser steps, no heterogeneity (about 4 min on 2 ranks)"
+    )
     p.add_argument(
         "--cases",
         nargs="+",
