@@ -1,0 +1,40 @@
+"""hyper reproduce: the report's columns, and the original code's signaling number."""
+
+import json
+
+from mpi4py import MPI
+
+from hyper import reproduce
+
+
+def test_signaling_report(tmp_path):
+    out = tmp_path / "rep"
+    assert reproduce.main(["--cases", "signaling", "--output", str(out), "--quiet"], comm=MPI.COMM_SELF) == 0
+    text = (out / "REPORT.md").read_text()
+    assert "| quantity | paper / original | hyper, original | hyper, default |" in text
+    data = json.loads((out / "report.json").read_text())
+    sig = data["signaling"]
+    # MODEL.md §9: the original's RK45 gives ΔN = 0.091496 over 9 weeks of mwf, the converged 0.091245
+    assert abs(sig["rk45-original"]["mwf"]["dN"] - reproduce.ORIGINAL_DN["mwf"]) < 1e-5
+    assert abs(sig["rk4"]["mwf"]["dN"] - 0.091245) < 1e-5
+    assert sig["rk45-original"]["mwf"]["N0"] == 1.000768
+    row = next(line for line in text.splitlines() if line.startswith("| ΔN at 9 weeks, mwf"))
+    assert row.split(" | ")[1:] == ["0.091496 (original)", f"{sig['rk45-original']['mwf']['dN']:.6f}",
+                                    f"{sig['rk4']['mwf']['dN']:.6f} |"]
+    assert "## Contraction" not in text  # only the cases asked for
+
+
+def test_switches_make_the_original():
+    """The original column sets every switch that applies to its geometry, and the quick
+    anatomical one keeps the exact increment at one step per period."""
+    settings, spec = (dict(p) for p in reproduce.original_fields("idealized", 1.0))
+    assert spec == {"ends": "tags", "fibers": "original"}
+    assert settings["growth_increment"] == "left-point" and settings["growth_dt"] == 1.0
+    assert "csa_method" not in settings
+    settings, spec = (dict(p) for p in reproduce.original_fields("BFLH_VHF_Left", 168.0, exact=True))
+    assert spec == {} and settings["csa_method"] == "box" and settings["growth_increment"] == "exact"
+    built = reproduce.Case("k", "BFLH_VHF_Left", "mwf", tuple(settings.items())).run_spec().settings
+    assert (built.signaling_method, built.grow_during_sessions, built.consistent_stress, built.growth_fields) == \
+        ("rk45-original", False, False, "dg1")
+    demo = reproduce.demo15()
+    assert demo.end == 360.0 and [s.start for s in demo.sessions] == [0, 48, 96, 144, 192, 240, 288]
