@@ -13,7 +13,7 @@ find_python = for p in $$(ls -d $$(pyenv root 2>/dev/null)/versions/3.12*/bin/py
 	if command -v $$p >/dev/null 2>&1 && $$p -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; \
 	then echo $$p; break; fi; done
 
-.PHONY: demo test test-serial test-mpi lint venv clean new-meshes
+.PHONY: demo test test-serial test-mpi lint venv clean install-check new-meshes
 
 venv: $(VENV)/.installed
 
@@ -51,6 +51,16 @@ new-meshes: venv
 
 lint: venv
 	$(VENV)/bin/ruff check src tests
+
+# A user's install: `pip install .` (not editable, dependencies from PyPI) into a fresh
+# venv, then a run from an empty folder, so nothing of the checkout is within reach.
+FRESH ?= /tmp/hyper-fresh-venv
+install-check:
+	@python=$$($(find_python)); rm -rf $(FRESH); $$python -m venv $(FRESH)
+	$(FRESH)/bin/pip install -q .
+	@empty=$$(mktemp -d); cd $$empty && OMP_NUM_THREADS=1 $(FRESH)/bin/hyper grow --geometry idealized \
+	  --protocol weekly --quiet && test -s results/grow/idealized_weekly.h5 && \
+	  echo "install-check: a fresh venv's hyper grew the idealized muscle in $$empty" && rm -rf $$empty $(FRESH)
 
 clean:
 	rm -rf $(VENV)
