@@ -50,7 +50,7 @@ new-meshes: venv
 	    || exit 1; done; done
 
 lint: venv
-	$(VENV)/bin/ruff check src tests
+	$(VENV)/bin/ruff check src tests jobs
 
 # A user's install: `pip install .` (not editable, dependencies from PyPI) into a fresh
 # venv, then a run from an empty folder, so nothing of the checkout is within reach.

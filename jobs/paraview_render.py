@@ -20,8 +20,17 @@ import os
 import sys
 
 from paraview.simple import (
-    ColorBy, ExtractSurface, GetActiveViewOrCreate, GetColorTransferFunction, GetScalarBar, Render, SaveScreenshot, Show, Text,
-    WarpByVector, Xdmf3ReaderT,
+    ColorBy,
+    ExtractSurface,
+    GetActiveViewOrCreate,
+    GetColorTransferFunction,
+    GetScalarBar,
+    Render,
+    SaveScreenshot,
+    Show,
+    Text,
+    WarpByVector,
+    Xdmf3ReaderT,
 )
 
 # det Ḡ counts as varying over the mesh when its range exceeds this fraction of its value
