@@ -202,6 +202,16 @@ def test_cli_signaling_small(tmp_path, capsys):
         assert f["protocol"].attrs["end"] == 480.0 and f["signaling"].attrs["kM"] == 0.01
         X, Y = f["X"][()], f["Y"][()]
     assert np.array_equal(Y[:30], sobol.final_N(X[:30]))
+    # the result's study text is a --problem file that reruns the same analysis
+    with h5py.File(out / "sobol.h5") as f:
+        study, digest = f.attrs["study"], f.attrs["digest"]
+    assert study.startswith("[sobol]") and 'protocol = "daily15"' in study and "samples = 16" in study
+    (tmp_path / "again.toml").write_text(study)
+    again = tmp_path / "again"
+    assert sobol.main(["--problem", str(tmp_path / "again.toml"), "--chunk", "200", "--output", str(again)],
+                      comm=MPI.COMM_SELF) == 0
+    with h5py.File(again / "sobol.h5") as f:
+        assert f.attrs["digest"] == digest and np.array_equal(f["Y"][()], Y)
 
 
 def test_cli_failures_are_reported(tmp_path, capsys):

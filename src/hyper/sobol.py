@@ -643,6 +643,7 @@ def _check(args) -> tuple[Protocol | None, dict]:
     default = GAIN_PROTOCOL if args.function == "csa-gain" else "daily15"
     text = args.protocol or config.get("protocol", default)
     found = protocols.from_option(text)
+    args.protocol_text = str(Path(text).resolve()) if text not in protocols.NAMES else text
     if len(found) > 1:
         raise InputError(f"--protocol {text}: the analysis takes one protocol")
     args.at = args.at if args.at is not None else config.get("at")
@@ -791,6 +792,16 @@ def _finish(args, prob, X, Y, results, protocol, key, timing, start, ranks) -> i
     if protocol is not None:
         groups["protocol"] = protocol.to_attributes()
         groups["signaling"] = dataclasses.asdict(S.SignalingParams())
+    from hyper import provenance
+
+    # the [sobol] table of a study file that reruns this analysis (hyper sobol --problem FILE)
+    config = {"function": args.function, "names": list(prob["names"]),
+              "bounds": [[float(lo), float(hi)] for lo, hi in prob["bounds"]], "samples": args.samples}
+    if protocol is not None:
+        config["protocol"] = args.protocol_text
+        if args.at is not None:  # else the protocol's end, which the digest records as "not given"
+            config["at"] = args.at
+    attrs["study"] = "\n".join(provenance.table("sobol", config))
     out = args.output
     io.write_series(out / "sobol.h5", {
         "parameters": np.array(prob["names"], dtype="S"), "X": X, "Y": Y, "failed_rows": failed,
