@@ -38,3 +38,33 @@ def test_switches_make_the_original():
         ("rk45-original", False, False, "dg1")
     demo = reproduce.demo15()
     assert demo.end == 360.0 and [s.start for s in demo.sessions] == [0, 48, 96, 144, 192, 240, 288]
+
+
+def test_a_sigterm_stops_the_farm_with_exit_143_and_no_report(tmp_path):
+    """SIGTERM (Slurm's time limit): the running run stops with a checkpoint, no case
+    starts, no report is written, exit 143 (a rerun resumes through run.execute, whose
+    resume tests/test_reliability.py checks bit for bit)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "rep"
+    proc = subprocess.Popen([sys.executable, "-m", "hyper.reproduce", "--cases", "idealized", "--quick",
+                             "--output", str(out), "--progress-every", "1"], env={**os.environ, "OMP_NUM_THREADS": "1"},
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines = []
+    for line in proc.stdout:  # the first growth run under way
+        lines.append(line)
+        if "% day" in line and "  0.0% day" not in line:
+            break
+        assert len(lines) < 200, "".join(lines)
+    proc.send_signal(signal.SIGTERM)
+    try:
+        rest, _ = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 143, "".join(lines) + rest
+    assert "stopped by SIGTERM" in rest and not (out / "REPORT.md").exists()
+    kept = list((out / "runs").glob("*.ckpt.h5")) + list((out / "runs").glob("*.h5"))
+    assert kept, "nothing kept"

@@ -41,6 +41,7 @@ from argparse import Namespace
 from pathlib import Path
 
 import numpy as np
+from mpi4py import MPI
 
 from hyper import cli, farm, io, protocols, signaling
 from hyper.log import hms, info
@@ -288,10 +289,15 @@ def series_path(output: Path, key: str) -> Path:
     return output / "runs" / f"{key}.h5"
 
 
-def work_on(output: Path, runs: dict[str, Case]):
-    """The farm's ``work``: one case on the group's communicator."""
+def work_on(output: Path, runs: dict[str, Case], stop, progress_every: float):
+    """The farm's ``work``: one case on the group's communicator. Once ``stop()`` turns
+    true (SIGTERM) a running growth run stops at its next step with a checkpoint, and no
+    case starts: their results are ``{"interrupted": True}``."""
 
     def work(comm, job):
+        interrupted = {"interrupted": True} if comm.rank == 0 else None
+        if comm.allreduce(bool(stop()), op=MPI.LOR):
+            return interrupted
         kind = job.payload[0]
         if kind == "signaling":
             _, method, name = job.payload
@@ -318,7 +324,10 @@ def work_on(output: Path, runs: dict[str, Case]):
         case = runs[job.payload[1]]
         spec = case.run_spec()
         out = run.Outputs(series_path(output, case.key))
-        done = run.execute(comm, spec, out)
+        try:
+            done = run.execute(comm, spec, out, stop=stop, progress_every=progress_every)
+        except run.Interrupted:
+            return interrupted
         if case.picture:
             picture = done.model.section.box.picture()
             if comm.rank == 0:
@@ -858,6 +867,7 @@ def parser() -> cli.Parser:
     p.add_argument(
         "--ranks-per-job", type=cli.integer(1), default=1, help="MPI ranks per run; must divide the number of ranks"
     )
+    cli.progress_option(p)
     return p
 
 
@@ -882,14 +892,28 @@ def reproduce(comm, args) -> int:
             f"reproduce: {len(jobs)} jobs ({', '.join(args.cases)}), {'quick' if args.quick else 'full'} "
             f"mode, on {comm.size} rank(s), output {output}",
         )
-        results = farm.run(
-            comm,
-            jobs,
-            work_on(output, runs),
-            ranks_per_job=args.ranks_per_job,
-            is_done=is_done_on(output, runs),
-            label="reproduce",
+        from hyper import run
+
+        with run.StopOnTerm() as stop:
+            results = farm.run(
+                comm,
+                jobs,
+                work_on(output, runs, stop, args.progress_every),
+                ranks_per_job=args.ranks_per_job,
+                is_done=is_done_on(output, runs),
+                label="reproduce",
+                progress_every=args.progress_every,
+            )
+        stopped = comm.bcast(
+            any(r.status == "done" and isinstance(r.result, dict) and r.result.get("interrupted") for r in results)
+            if comm.rank == 0
+            else None,
+            root=0,
         )
+        if stopped:
+            info(comm, f"reproduce: stopped by SIGTERM; the finished runs are kept, the running ones have "
+                       f"checkpoints: rerun the same command to go on (exit status {cli.EXIT_TERMINATED})")
+            return cli.EXIT_TERMINATED
         if comm.rank == 0:
             data = collect(output, jobs, results, runs)
             command = (
