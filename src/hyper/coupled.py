@@ -191,17 +191,8 @@ class LaggedJacobian:
         """Take over a saved state: the count and the matrix assembled at ``point``."""
         self.count = count
         self.point = point
-        if point is None:
-            return
-        problem, g = self.problem, self.growth_function
-        saved = problem.w.x.array.copy(), problem.multipliers.copy(), g.x.array.copy()
-        g.x.array[:] = point[1]
-        x, n = problem.solution_vector, problem.owned_size
-        x.getArray()[:n] = point[0][:n]
-        problem.assemble_jacobian(x)
-        problem.w.x.array[:] = saved[0]
-        problem.multipliers = saved[1]
-        g.x.array[:] = saved[2]
+        if point is not None:
+            newton.assemble_jacobian_at(self.problem, self.growth_function, point, self.problem.solution_vector)
 
 
 @dataclass

@@ -57,6 +57,20 @@ class _NoTiming:
         return contextlib.nullcontext()
 
 
+def assemble_jacobian_at(problem, growth_function, point: tuple[np.ndarray, np.ndarray], x) -> None:
+    """Assemble the Jacobian again at a saved ``point`` (w and Ḡ), through the vector
+    ``x``, and leave the problem's state (w, multipliers, Ḡ) as it was: how a resumed run
+    gets back the Newton matrix it had kept."""
+    saved = problem.w.x.array.copy(), problem.multipliers.copy(), growth_function.x.array.copy()
+    growth_function.x.array[:] = point[1]
+    n = problem.owned_size
+    x.getArray()[:n] = point[0][:n]
+    problem.assemble_jacobian(x)
+    problem.w.x.array[:] = saved[0]
+    problem.multipliers = saved[1]
+    growth_function.x.array[:] = saved[2]
+
+
 class KeptFactors:
     """The Newton matrix of a `MechanicsProblem`, assembled rarely, and the iteration
     that solves each growth step with its factors (module docstring).
@@ -98,17 +112,8 @@ class KeptFactors:
         """Take over a saved state: the count and the matrix assembled at ``point``."""
         self.count = count
         self.point = point
-        if point is None:
-            return
-        problem, g = self.problem, self.growth_function
-        saved = problem.w.x.array.copy(), problem.multipliers.copy(), g.x.array.copy()
-        g.x.array[:] = point[1]
-        x, n = self.x, problem.owned_size
-        x.getArray()[:n] = point[0][:n]
-        problem.assemble_jacobian(x)
-        problem.w.x.array[:] = saved[0]
-        problem.multipliers = saved[1]
-        g.x.array[:] = saved[2]
+        if point is not None:
+            assemble_jacobian_at(self.problem, self.growth_function, point, self.x)
 
     def _residual(self, x, r) -> float:
         with self.monitor.track("residual assembly"):
