@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import cli, plot
+from hyper import cli, io, plot
 from hyper.bench import common
 from hyper.params import InputError
 
@@ -229,7 +229,8 @@ def run(comm, args) -> int:
               "wall_s": time.perf_counter() - started}
     out = args.output
     out.mkdir(parents=True, exist_ok=True)
-    (out / "speed.json").write_text(json.dumps(result, indent=1))
+    with io.atomic_path(out / "speed.json") as tmp:
+        tmp.write_text(json.dumps(result, indent=1))
     chart(out / "speed.png", result)
     print(f"wrote {out / 'speed.json'}, {out / 'speed.png'}")
     return 0
