@@ -11,7 +11,8 @@ a kill during the write leaves the previous checkpoint in place, never half a fi
                         state (see `model_state`) and the snapshots
     global/<name>       scalars and small arrays (CSA/V ratios, time, step, protocol
                         position, multipliers, Jacobian count, uniform signaling state,
-                        growth amounts and multipliers of the predictor's solutions)
+                        growth amounts and multipliers of the predictor's solutions,
+                        multiplier parts of the Newton secant pairs)
     series/<name>       the time series so far
 
 Keyed by the original cell index, the file is read back on any number of ranks: rank
@@ -254,6 +255,11 @@ def model_state(model: CoupledModel) -> tuple[np.ndarray, dict, dict]:
         glob["predictor_amounts"] = np.array([s for s, _, _ in history])
         glob["predictor_multipliers"] = np.array([m for _, _, m in history], dtype=float)
         per_cell["predictor_w"] = np.stack([w_k[wdofs] for _, w_k, _ in history], axis=1)
+    if hasattr(jacobian, "secant_state"):
+        arrays, multipliers = jacobian.secant_state()
+        if arrays:
+            per_cell["secant_w"] = np.stack([a[wdofs] for a in arrays], axis=1)
+            glob["secant_multipliers"] = multipliers
     per_cell_y = model.y.ndim == 2
     (per_cell if per_cell_y else glob)["y"] = model.y.T if per_cell_y else model.y
     if np.ndim(model.kM):
@@ -349,6 +355,14 @@ def restore_model(model: CoupledModel, rows: Callable[[str], np.ndarray | None],
             w_k[wdofs] = kept[:, i]
             history.append((float(amount), w_k, np.array(glob["predictor_multipliers"][i], dtype=float)))
         model.jacobian.history = history
+    pairs = rows("secant_w")
+    if pairs is not None and hasattr(model.jacobian, "restore_secants"):
+        arrays = []
+        for i in range(pairs.shape[1]):
+            a = np.zeros_like(w.x.array)
+            a[wdofs] = pairs[:, i]
+            arrays.append(a)
+        model.jacobian.restore_secants(arrays, np.asarray(glob["secant_multipliers"], dtype=float))
     model.resumed = True
 
 

@@ -1,26 +1,33 @@
-"""Newton solves of growth steps with factors kept across steps (Anderson-accelerated).
+"""Newton solves of growth steps with factors kept across steps, and secants kept too.
 
 A growth step changes the equilibrium by a fraction of a percent, so the LU factors of
 a Newton matrix assembled a few steps earlier are still a good approximate inverse M⁻¹
-of the current Jacobian. `KeptFactors` iterates on the equilibrium R(x) = 0 with them:
+of the current Jacobian J. `KeptFactors` iterates on the equilibrium R(x) = 0 with them,
+corrected by the secant pairs (s_i, y_i) = (Δx_i, ΔR_i) of the last `DEPTH` iterations
+(of this solve and of earlier ones): the multisecant inverse
 
-    f_i = -M⁻¹ R(x_i),   x_{k+1} = Σ α_i (x_i + f_i),   Σ α_i = 1,
+    H = M⁻¹ + (S − M⁻¹Y)(YᵀY)⁻¹Yᵀ,    x_{k+1} = x_k − H R(x_k),
 
-where the α minimise |Σ α_i R(x_i)| over the last `DEPTH` + 1 iterates (Anderson
-acceleration, in the norm of the residual that the convergence test measures). On a
-linear problem this is GMRES right-preconditioned by M, so the few directions in which
-an old matrix is badly wrong (soft rigid-like motions of the anatomical meshes, whose
-stiffness changes with the growth: there the plain iteration x + f diverges) cost an
-iteration or two instead of a new factorisation. An iteration is one residual assembly
-and one back-substitution; the matrix is assembled and factorised again only when
-`KEPT_ITERATIONS` iterations with factors of earlier steps did not converge (or the
-residual grew), at the step's first iterate.
+satisfies H y_i = s_i, so it is right wherever an earlier iteration has probed J, and
+costs one back-substitution of the part of R outside the span of Y. With the pairs of
+this solve only, this is Anderson acceleration (type II), on a linear problem GMRES
+right-preconditioned by M. The directions in which an old matrix is badly wrong are few
+(soft rigid-like motions of the anatomical meshes, whose stiffness changes with the
+growth: there the plain iteration x − M⁻¹R diverges) and the same from step to step, so
+pairs carried over from the earlier steps correct them from a step's first iteration.
+A pair stays a good secant of J as long as J changes little; they are dropped when the
+matrix is assembled anew. An iteration is one residual assembly and one back-substitution;
+the matrix is assembled and factorised again only when `KEPT_ITERATIONS` iterations with
+factors of earlier steps did not converge (or the residual grew), at the step's first
+iterate.
 
-The first iterate is extrapolated from the last solutions (`ORDER`): the growth changes
-the state smoothly, so on BFLH_VHF_Left (mwf) the first residual falls from 1e-2 (the
-previous solution) to 1e-5. Measured in ``python -m hyper.bench speed``: 47 solved steps
-of BFLH_VHF_Left take 5 factorisations and 145 iterations, against 39 and 154 of the
-lagged SNES Newton, with the CSA/V series within 2e-7 of the growth.
+The first iterate is extrapolated from the last solutions (`ORDER`), as polynomials in
+the growth amount through nodes at least `SPACING` times the extrapolation's reach apart:
+protocols alternate long and short periods, and a quadratic through two solutions a short
+period apart amplifies their errors (left at the tolerance) by the square of the ratio.
+
+Measured in ``python -m hyper.bench speed`` (47 solved steps of BFLH_VHF_Left, mwf):
+see the README's speed section for the numbers of this and the earlier solvers.
 
 The stopping test is SNES's, with its tolerances (snes_atol, snes_rtol, snes_max_it
 and snes_divergence_tolerance of the mechanics solver's options), so that a step ends
@@ -28,8 +35,8 @@ as converged as a SNES Newton solve would.
 
 State kept across solves, all in the checkpoint: the point (w, Ḡ) where the matrix was
 assembled, so that a resumed run assembles the same matrix (`rebuild`); the solutions
-the predictor extrapolates (`history`); the iteration count (`count`). So a resumed run
-continues bit for bit. The Anderson history is per solve.
+the predictor extrapolates (`history`); the secant pairs (`secants`); the iteration
+count (`count`). So a resumed run continues bit for bit.
 """
 
 from __future__ import annotations
@@ -39,16 +46,19 @@ import math
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
+from mpi4py import MPI
 
 from hyper.mechanics import SolverError
 
-DEPTH = 5  # earlier iterates combined in each Anderson step
-# The first iterate extrapolates the last ORDER + 1 solutions, as polynomials in the growth
-# amount (log of the mean det Ḡ): on BFLH_VHF_Left (mwf) the first residual falls from
-# 1e-2 to 1e-5, and the soft motions start within the reach of kept factors.
+DEPTH = 10  # secant pairs kept, over this and earlier solves
+# The first iterate extrapolates ORDER + 1 solutions, as polynomials in the growth amount
+# (log of the mean det Ḡ): on BFLH_VHF_Left (mwf) the first residual falls from 1e-2 (the
+# previous solution) to 1e-6..1e-5, and the soft motions start within reach of kept factors.
 ORDER = 2
+KEPT_SOLUTIONS = 6  # the latest solutions, from which the nodes are chosen
+SPACING = 0.5  # least distance of the nodes, as a fraction of the extrapolation's reach
 # Iterations tried with the factors of an earlier step before the matrix is assembled anew.
-KEPT_ITERATIONS = 6
+KEPT_ITERATIONS = 10
 RCOND = 1e-12  # of the scaled least-squares problem: nearly dependent residuals are dropped
 
 
@@ -83,7 +93,6 @@ class KeptFactors:
         self.problem = problem
         self.growth_function = growth_function
         self.monitor = monitor if monitor is not None else _NoTiming()
-        self.depth = depth
         self.count = 0  # iterations over all solves
         self.assemblies = 0  # Newton matrices assembled (each factorised once)
         self.point: tuple[np.ndarray, np.ndarray] | None = None  # (w, Ḡ) local arrays of the last assembly
@@ -95,6 +104,7 @@ class KeptFactors:
         self.pc = ksp.getPC()
         self.x = problem.solution_vector
         self._r = K.createVecLeft()
+        self.secants = Secants(problem.comm, depth)
 
     def _assemble(self, x) -> None:
         problem = self.problem
@@ -139,22 +149,53 @@ class KeptFactors:
         try:
             iterations = self._iterate(x)
         except SolverError:
+            self.secants.clear()  # pairs of a diverging path: no secants of the solution's J
             problem.w.x.array[:] = previous[0]
             problem.w.x.scatter_forward()
             problem.multipliers = previous[1]
             raise
         self.history.append((amount, problem.w.x.array.copy(), problem.multipliers.copy()))
-        del self.history[: -(ORDER + 1)]
+        del self.history[:-KEPT_SOLUTIONS]
         return iterations
+
+    def secant_state(self) -> tuple[list[np.ndarray], np.ndarray]:
+        """The secant pairs for a checkpoint: s_0, y_0, s_1, … as arrays of w's layout
+        (ghosts filled), and their multiplier parts, one row each (all ranks)."""
+        n = self.problem.owned_size
+        scratch = self._scratch()
+        arrays, multipliers = [], []
+        for pair in zip(self.secants.s, self.secants.y):
+            for v in pair:
+                scratch.x.array[:n] = v[:n]
+                scratch.x.scatter_forward()
+                arrays.append(scratch.x.array.copy())
+                multipliers.append(np.concatenate(self.problem.comm.allgather(v[n:])))
+        width = len(self.problem.multipliers)
+        return arrays, np.array(multipliers, dtype=float).reshape(len(arrays), width)
+
+    def restore_secants(self, arrays: list[np.ndarray], multipliers: np.ndarray) -> None:
+        """Take over pairs saved by `secant_state` (the Gram matrix is recomputed as it was built)."""
+        n = self.problem.owned_size
+        here = self.x.getLocalSize() - n  # the multipliers in this rank's unknowns (last rank)
+        vectors = [np.concatenate([a[:n], m[len(m) - here:] if here else m[:0]]) for a, m in zip(arrays, multipliers)]
+        self.secants.clear()
+        for s, y in zip(vectors[0::2], vectors[1::2]):
+            self.secants.add(s, y)
+
+    def _scratch(self):
+        from dolfinx import fem
+
+        return fem.Function(self.problem.W)
 
     def forget(self) -> None:
         """Drop the solutions kept for the predictor (the state went back before them)."""
         self.history.clear()
+        self.secants.clear()
 
     def _predict(self, amount: float) -> None:
-        """w and μ extrapolated to ``amount`` through the kept solutions (Lagrange)."""
-        points = self.history
-        if len(points) < 2 or len({s for s, _, _ in points} | {amount}) < len(points) + 1:
+        """w and μ extrapolated to ``amount`` through kept solutions (Lagrange)."""
+        points = self._nodes(amount)
+        if len(points) < 2:
             return
         weights = []
         for i, (s_i, _, _) in enumerate(points):
@@ -167,6 +208,20 @@ class KeptFactors:
         problem.w.x.array[:] = sum(c * w for c, (_, w, _) in zip(weights, points))
         problem.multipliers = sum(c * m for c, (_, _, m) in zip(weights, points))
 
+    def _nodes(self, amount: float) -> list:
+        if not self.history:
+            return []
+        nodes = [self.history[-1]]
+        reach = abs(amount - nodes[0][0])
+        for point in reversed(self.history[:-1]):
+            if len(nodes) == ORDER + 1:
+                break
+            if abs(point[0] - nodes[-1][0]) >= SPACING * reach:
+                nodes.append(point)
+        if len(nodes) < min(ORDER + 1, len(self.history)):
+            nodes = self.history[-(ORDER + 1):][::-1]
+        return nodes if reach > 0 else []
+
     def _iterate(self, x) -> int:
         snes = self.problem.snes
         rtol, atol, _, max_it = snes.getTolerances()
@@ -174,6 +229,7 @@ class KeptFactors:
         fresh = self.point is None  # factors assembled for this solve
         if fresh:
             self._assemble(x)
+            self.secants.clear()
         r = self._r
         norm0 = norm = self._residual(x, r)
         if not math.isfinite(norm0):
@@ -182,19 +238,22 @@ class KeptFactors:
             return 0
         tol = max(atol, rtol * norm0)
         start = x.copy()
-        history: list[tuple] = []  # (x_i + f_i, R_i)
+        f = x.duplicate()
         iterations = kept = 0
         while True:
             self._factorise()
-            f = x.duplicate()
-            self._correction(r, f)
-            f.axpy(1.0, x)  # the plain iterate x + f
-            history.append((f, r.copy()))
-            del history[: -(self.depth + 1)]
-            self._combine(history, x)
+            r_old = r.getArray(readonly=True).copy()
+            gamma = self.secants.coefficients(r_old)
+            y_gamma, s_gamma = self.secants.combine(gamma)
+            r.getArray()[:] = r_old - y_gamma
+            self._correction(r, f)  # f = −M⁻¹(R − Yγ)
+            step = f.getArray(readonly=True) - s_gamma
+            x.getArray()[:] += step
             norm = self._residual(x, r)
             iterations += 1
             self.count += 1
+            if math.isfinite(norm):
+                self.secants.add(step, r.getArray(readonly=True) - r_old)
             if not math.isfinite(norm):
                 reason = "DIVERGED_FNORM_NAN"
             elif norm <= tol:
@@ -210,40 +269,59 @@ class KeptFactors:
                 continue
             if fresh and reason is not None:
                 raise SolverError(self._message(iterations, reason))
-            # Slow (or failing) with factors of an earlier step: start again with the matrix
-            # assembled at the start. Not at the best iterate: a small residual may hide a
-            # large error in a soft motion, where a matrix would be a poor one.
             start.copy(x)
             self._assemble(x)
+            self.secants.clear()
             norm = self._residual(x, r)
-            history.clear()
             fresh = True
-
-    def _combine(self, history: list[tuple], x) -> None:
-        """x = Σ α_i g_i with the α (Σ α = 1) that minimise |Σ α_i R_i| (history of (g, R))."""
-        g_k, r_k = history[-1]
-        if len(history) == 1:
-            g_k.copy(x)
-            return
-        diffs = []
-        for _, r_j in history[:-1]:
-            d = r_j.copy()
-            d.axpy(-1.0, r_k)
-            diffs.append(d)
-        m = len(diffs)
-        gram = np.empty((m, m))
-        rhs = np.empty(m)
-        for i in range(m):
-            rhs[i] = -diffs[i].dot(r_k)
-            for j in range(i, m):
-                gram[i, j] = gram[j, i] = diffs[i].dot(diffs[j])
-        scale = np.sqrt(np.maximum(np.diag(gram), np.finfo(float).tiny))
-        gamma = np.linalg.lstsq(gram / np.outer(scale, scale), rhs / scale, rcond=RCOND)[0] / scale
-        g_k.copy(x)
-        for (g_j, _), c in zip(history[:-1], gamma):
-            x.axpy(c, g_j)
-            x.axpy(-c, g_k)
 
     def _message(self, iterations: int, reason: str) -> str:
         return (f"Newton did not converge after {iterations} iterations with kept factors ({reason}); "
                 "previous solution restored")
+
+
+class Secants:
+    """Secant pairs (s_i, y_i) = (Δx_i, ΔR_i), oldest first, as local arrays of the
+    Newton unknowns, and their Gram matrix Y^T Y, kept across solves (module docstring)."""
+
+    def __init__(self, comm, depth: int):
+        self.comm = comm
+        self.depth = depth
+        self.clear()
+
+    def clear(self) -> None:
+        self.s: list[np.ndarray] = []
+        self.y: list[np.ndarray] = []
+        self.gram = np.empty((0, 0))
+
+    def __len__(self) -> int:
+        return len(self.y)
+
+    def _dots(self, vectors, v) -> np.ndarray:
+        return self.comm.allreduce(np.array([u @ v for u in vectors]), op=MPI.SUM)
+
+    def coefficients(self, r: np.ndarray) -> np.ndarray:
+        """The γ that minimise |r − Y γ| (scaled: the pairs' sizes differ by decades)."""
+        if not self.y:
+            return np.empty(0)
+        rhs = self._dots(self.y, r)
+        scale = np.sqrt(np.maximum(np.diag(self.gram), np.finfo(float).tiny))
+        return np.linalg.lstsq(self.gram / np.outer(scale, scale), rhs / scale, rcond=RCOND)[0] / scale
+
+    def combine(self, gamma: np.ndarray) -> tuple:
+        """(Y γ, S γ), or zeros where there are no pairs."""
+        return (sum(c * y for c, y in zip(gamma, self.y)), sum(c * s for c, s in zip(gamma, self.s)))
+
+    def add(self, s: np.ndarray, y: np.ndarray) -> None:
+        y = np.array(y)
+        dots = self._dots(self.y + [y], y)
+        m = len(self.y)
+        gram = np.empty((m + 1, m + 1))
+        gram[:m, :m] = self.gram
+        gram[m, :] = gram[:, m] = dots
+        self.s.append(np.array(s))
+        self.y.append(y)
+        self.gram = gram
+        if len(self.y) > self.depth:
+            del self.s[0], self.y[0]
+            self.gram = self.gram[1:, 1:]
