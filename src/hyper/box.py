@@ -137,7 +137,8 @@ def in_cells(mesh, points, *, distance: float = INSIDE_DISTANCE) -> np.ndarray:
     """
     points = np.ascontiguousarray(points, dtype=mesh.geometry.x.dtype).reshape(-1, 3)
     owned = np.arange(mesh.topology.index_map(3).size_local, dtype=np.int32)
-    candidates = geometry.compute_collisions_points(geometry.bb_tree(mesh, 3, entities=owned), points)
+    tree = geometry.bb_tree(mesh, 3, entities=owned, padding=distance)
+    candidates = geometry.compute_collisions_points(tree, points)
     which = np.repeat(np.arange(len(points)), np.diff(candidates.offsets))
     hit = np.zeros(len(points), dtype=np.int8)
     if len(which):
