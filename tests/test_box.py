@@ -363,6 +363,8 @@ def test_job_remeasures_a_stored_run_by_both_rules(tmp_path, capsys):
     write_prism(tmp_path / "other.xdmf")
     assert cli.main(["box", str(out), "--mesh", str(tmp_path / "other.xdmf")]) == cli.EXIT_INPUT
     assert "the snapshots' mesh is not the run's" in capsys.readouterr().err
+    assert cli.main(["box", str(out)]) == cli.EXIT_INPUT
+    assert "ran on 'prism', not a built-in geometry; give its mesh with --mesh" in capsys.readouterr().err
     run.Outputs(out).fields.unlink()
     assert cli.main(["box", str(out), "--mesh", str(tmp_path / "prism.xdmf")]) == cli.EXIT_INPUT
     assert "run_fields.xdmf are not there" in capsys.readouterr().err

@@ -23,9 +23,9 @@ there and measured on one face of it:
 Under "zero" the box cannot see growth: the staircase's edge lies on box cells that
 touch no muscle cell, so u = 0 all along it, and ∫ cof(F) N · N dA (the in-plane
 Jacobian) depends on the edge's values alone: it is the reference area, whatever the
-growth. J |F⁻ᵀ N| = |cof(F) N| differs from it only by out-of-plane shear (second
-order) and where J < 0 (the field's steep fall across the rim). The original's reading
-is that of the extrapolated nodes on the edge.
+growth. Nanson's J |F⁻ᵀ N| = ±|cof(F) N| differs from it by out-of-plane shear (second
+order) and where J < 0 (the field's steep fall across the rim). What the original reads
+as growth comes from the values extrapolated to the edge.
 
 A staircase facet whose cell has every P2 node given the muscle's value is *inner*:
 there the box field is the muscle's polynomial (or, under "extrapolate", its
@@ -330,7 +330,8 @@ csa_ratio_box_zero) to an HDF5 file.
 
 def parser() -> cli.Parser:
     p = cli.Parser("box", JOB)
-    p.add_argument("result", type=Path, help="a growth result file (RESULT.h5, with RESULT_fields.xdmf beside it)")
+    p.add_argument("result", type=Path, metavar="RESULT.h5",
+                   help="a growth result file, with its RESULT_fields.xdmf beside it")
     p.add_argument("--mesh", type=Path, help="the run's own XDMF mesh, where it ran on one (grow --mesh)")
     p.add_argument("--mesh-unit", default="m", choices=tuple(run.MESH_UNITS), help="length unit of --mesh")
     p.add_argument("--output", type=cli.output(folder=False, suffixes=(".h5",)),
@@ -372,6 +373,8 @@ def remeasure(comm, result: Path, mesh_file: Path | None = None, unit: str = "m"
     else:
         from hyper import geometry as geo
 
+        if geometry not in geo.GEOMETRIES:
+            raise InputError(f"{result}: ran on {geometry!r}, not a built-in geometry; give its mesh with --mesh")
         run.check_geometry(comm, geometry, option=f"{result}'s geometry")
         mesh = geo.load(geometry, comm).mesh
     nodes, snapshots = io.read_point_field(fields, "u")
