@@ -10,8 +10,9 @@ import pytest
 from dolfinx import fem
 from mpi4py import MPI
 
-from hyper import box, cohort, grow, io, section
+from hyper import box, cohort, grow, io, run, section
 from hyper import geometry as geo
+from hyper.params import InputError
 
 # A prism [-A, A] × [-B, B] × [-L, L] (m), long along z: the box is 2.4 A × 2.4 B in 30 × 30
 # squares of 0.08 A × 0.08 B, and the prism's sides cross the middle of columns and rows
@@ -139,27 +140,32 @@ def nonlinear(x):
 
 
 @pytest.mark.mpi
-def test_parallel_equals_serial():
+@pytest.mark.parametrize("outside", box.OUTSIDE)
+def test_parallel_equals_serial(outside):
     comm = MPI.COMM_WORLD
     assert comm.size == 2
     values = {}
     for c in (MPI.COMM_SELF, comm):
         mesh = geo.load("cylinder", c).mesh
-        measure = box.BoxSection(mesh, displacement(mesh, nonlinear))
+        measure = box.BoxSection(mesh, displacement(mesh, nonlinear), outside=outside)
         picture = measure.picture()
         values[c.size] = (measure.centre, measure.axes, measure.areas0, measure.deformed_areas(),
-                          None if picture is None else np.sort(picture["ratio"]))
-    (c1, x1, a1, d1, p1), (c2, x2, a2, d2, p2) = values[1], values[2]
+                          None if picture is None else np.sort(picture["ratio"]), measure.outside_nodes)
+    (c1, x1, a1, d1, p1, n1), (c2, x2, a2, d2, p2, n2) = values[1], values[2]
     assert np.array_equal(c1, c2) and np.array_equal(x1, x2)  # the frame: the file's order on any ranks
     assert a2 == pytest.approx(a1, rel=1e-12)
-    assert abs(d1.sum() / a1.sum() - 1) > 1e-3 and d2 == pytest.approx(d1, rel=1e-11)
+    assert n1 == n2 and n1[1] > 0
+    assert abs(d1[0] / a1[0] - 1) > 1e-3 and d2 == pytest.approx(d1, rel=1e-11)  # the inner part moves
     if comm.rank == 0:
         assert p2 == pytest.approx(p1, rel=1e-11)
 
 
-def write_prism(path: Path):
-    """A prism muscle 2 × 3 × 10 cm as an XDMF file with the anatomical meshes' tags."""
+def write_prism(path: Path, turn: float = 0.0):
+    """A prism muscle 2 × 3 × 10 cm, turned by ``turn`` (rad) about its length, as an XDMF
+    file with the anatomical meshes' tags."""
     mesh = dolfinx.mesh.create_box(MPI.COMM_SELF, [[0, 0, 0], [0.02, 0.03, 0.1]], [2, 2, 5])
+    c, s = math.cos(turn), math.sin(turn)
+    mesh.geometry.x[:, :2] = mesh.geometry.x[:, :2] @ np.array([[c, s], [-s, c]])
     mesh.name = "Grid"
     mesh.topology.create_connectivity(2, 3)
     facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)
@@ -243,3 +249,122 @@ def test_a_resumed_run_records_both_measures_as_an_uninterrupted_one(tmp_path):
     for name in ("csa_ratio", "csa_ratio_cut", "csa_ratio_box", "volume_ratio", "kM"):
         np.testing.assert_array_equal(parts[name], whole[name], err_msg=name)
     assert whole["csa_ratio_box"][-1] < whole["csa_ratio_cut"][-1]
+
+
+# ------------------------------------------------------------ what the box does outside
+
+
+def in_plane_jacobian_area(measure) -> float:
+    """∫ cof(F) N · N dA over the staircase, F = I + ∇u of the box field as it is now."""
+    import ufl
+
+    F = ufl.Identity(3) + ufl.grad(measure.field)
+    N = ufl.FacetNormal(measure.mesh)
+    ds = ufl.Measure("ds", domain=measure.mesh, subdomain_data=measure.tags,
+                     metadata={"quadrature_degree": box.QUADRATURE_DEGREE})
+    return fem.assemble_scalar(fem.form(ufl.dot(ufl.cofac(F) * N, N) * ds((box.INNER, box.RIM))))
+
+
+def test_in_cells_is_a_point_in_cell_test_not_a_bounding_box_one():
+    mesh = prism(MPI.COMM_SELF)
+    d = box.INSIDE_DISTANCE
+    points = [[0, 0, 0], [A, 0.3 * B, 0], [A + 0.5 * d, 0, 0], [A + 3 * d, 0, 0], [-A, -B, -L], [A, B, L + 1e-9]]
+    assert box.in_cells(mesh, np.array(points)).tolist() == [True, True, True, False, True, False]
+    # a tetrahedron's bounding box holds points outside it: (1, 1, 1)/4 of the unit cube's corner one is in
+    # it, (0.9, 0.9, 0.9) only in its bounding box
+    tet = dolfinx.mesh.create_mesh(MPI.COMM_SELF, np.array([[0, 1, 2, 3]], dtype=np.int64),
+                                   dolfinx.fem.coordinate_element(dolfinx.mesh.CellType.tetrahedron, 1),
+                                   np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=float))
+    assert box.in_cells(tet, np.array([[0.25, 0.25, 0.25], [0.9, 0.9, 0.9]])).tolist() == [True, False]
+
+
+def test_outside_must_be_a_known_rule():
+    mesh = prism(MPI.COMM_SELF)
+    with pytest.raises(InputError, match=r"outside: expected one of extrapolate, zero, got 'nearest'"):
+        box.BoxSection(mesh, displacement(mesh, lambda x: np.zeros_like(x)), outside="nearest")
+
+
+def test_prism_has_nothing_to_extrapolate_and_reads_its_reference_area_by_both_rules():
+    # an axis-aligned prism's cells have bounding boxes inside it: no box node outside it is
+    # extrapolated to, and the staircase's edge (on cells that touch no muscle cell) has u = 0
+    mesh = prism(MPI.COMM_SELF)
+    u = displacement(mesh, uniform_growth(1.1))
+    measures = {rule: box.BoxSection(mesh, u, outside=rule) for rule in box.OUTSIDE}
+    for rule, m in measures.items():
+        assert m.outside_nodes[1] == 0
+        # ∫ cof(F) N · N dA depends on the edge's values alone: the reference area; here
+        # cof(F) N is along N (u has no part along the prism), so Nanson reads the same
+        assert m.deformed_area() / m.area0() == pytest.approx(1.0, abs=1e-12), rule
+    assert np.array_equal(measures["zero"].deformed_areas(), measures["extrapolate"].deformed_areas())
+
+
+def test_cylinder_zero_rim_takes_the_inner_growth_back_extrapolate_reads_more():
+    theta = 1.08
+    mesh = cylinder()
+    u = displacement(mesh, uniform_growth(theta))
+    measures = {rule: box.BoxSection(mesh, u, outside=rule) for rule in box.OUTSIDE}
+    s = math.sqrt(theta)
+    exact = section.nanson_density(np.diag([s, s, 1.0]), measures["zero"].axes[:, 0])
+    outside, extrapolated = measures["zero"].outside_nodes
+    assert measures["extrapolate"].outside_nodes == (outside, extrapolated) and 0 < extrapolated < outside
+    inner0 = {rule: m.areas0[0] for rule, m in measures.items()}
+    # the same staircase; the cells with an extrapolated node join the rim under "zero"
+    assert measures["zero"].area0() == pytest.approx(measures["extrapolate"].area0(), rel=1e-14)
+    assert inner0["zero"] < inner0["extrapolate"]
+    ratios = {rule: m.deformed_areas() / m.areas0 for rule, m in measures.items()}
+    for rule in box.OUTSIDE:  # where every node has the muscle's linear u, F = G exactly
+        assert ratios[rule][0] == pytest.approx(exact, rel=1e-12), rule
+
+    zero = measures["zero"]
+    zero.update()
+    # u = 0 on the whole edge: the in-plane Jacobian integrates to the reference area, so the
+    # rim gives back what the inner part grows, rim / rim0 = 1 - (ϑ' - 1) inner0 / rim0
+    assert in_plane_jacobian_area(zero) == pytest.approx(zero.area0(), rel=1e-12)
+    inner0, rim0 = zero.areas0
+    assert ratios["zero"][1] == pytest.approx(1 - (exact - 1) * inner0 / rim0, abs=1e-4)
+    total = {rule: m.deformed_area() / m.area0() for rule, m in measures.items()}
+    assert total["zero"] == pytest.approx(1.0, abs=1e-5)  # Nanson differs by the out-of-plane part only
+    # extrapolated values on the edge: the staircase reads growth, still less than ϑ
+    measures["extrapolate"].update()
+    assert in_plane_jacobian_area(measures["extrapolate"]) / zero.area0() > 1.05
+    assert 1.05 < total["extrapolate"] < theta
+
+
+def test_job_remeasures_a_stored_run_by_both_rules(tmp_path, capsys):
+    from hyper import cli
+
+    # turned, the prism's cells have bounding boxes that reach out of it: box nodes there
+    # are extrapolated to
+    write_prism(tmp_path / "prism.xdmf", turn=0.5)
+    (tmp_path / "one.toml").write_text(PROTOCOL)
+    out = tmp_path / "run.h5"
+    assert grow.main(["--mesh", str(tmp_path / "prism.xdmf"), "--protocol", str(tmp_path / "one.toml"),
+                      "--growth-dt", "24", "--output", str(out)], MPI.COMM_SELF) == 0
+    recorded = io.read_series(out)
+    capsys.readouterr()
+    assert cli.main(["box", str(out), "--mesh", str(tmp_path / "prism.xdmf"), "--output",
+                     str(tmp_path / "box.h5")]) == 0
+    printed = capsys.readouterr().out
+    series = io.read_series(tmp_path / "box.h5")
+    assert series["t"].tolist() == [0.0, 24.5, 48.0]  # the snapshots: the first state, every 24 h, the last
+    at = np.searchsorted(recorded["t"], series["t"])
+    assert recorded["t"][at].tolist() == series["t"].tolist()
+    # the snapshots hold the nodal values of the run's P2 u, which growth leaves near linear here
+    box_run = recorded["csa_ratio_box"][at]
+    np.testing.assert_allclose(series["csa_ratio_box_extrapolate"], box_run, rtol=1e-6)
+    assert box_run[-1] - 1 > 0.1 * (recorded["csa_ratio_cut"][-1] - 1)  # the extrapolation reads growth
+    # with u = 0 at every outside node the box reads its reference area, to second order
+    np.testing.assert_allclose(series["csa_ratio_box_zero"], 1.0, atol=1e-9)
+    assert "no muscle cell, " in printed and " of them inside a muscle cell's bounding box" in printed
+    assert f"{series['csa_ratio_box_zero'][-1]:10.6f}" in printed.splitlines()[-3]
+    assert "at t = 48 h the box reads CSA" in printed
+
+    # the snapshots must be of the mesh given
+    write_prism(tmp_path / "other.xdmf")
+    assert cli.main(["box", str(out), "--mesh", str(tmp_path / "other.xdmf")]) == cli.EXIT_INPUT
+    assert "the snapshots' mesh is not the run's" in capsys.readouterr().err
+    assert cli.main(["box", str(out)]) == cli.EXIT_INPUT
+    assert "ran on 'prism', not a built-in geometry; give its mesh with --mesh" in capsys.readouterr().err
+    run.Outputs(out).fields.unlink()
+    assert cli.main(["box", str(out), "--mesh", str(tmp_path / "prism.xdmf")]) == cli.EXIT_INPUT
+    assert "run_fields.xdmf are not there" in capsys.readouterr().err

@@ -10,29 +10,46 @@ there and measured on one face of it:
    measuring surface is the box's face at -THICKNESS/2 along the axis, restricted to
    those cells: a staircase that covers the section and overhangs it at the rim;
 3. the muscle's displacement is interpolated into P2 on the box
-   (`interpolate_nonmatching`): box nodes outside the muscle get u = 0, except those
-   inside the bounding box of a muscle cell, to which DOLFINx 0.11 extrapolates the
-   closest cell's polynomial (DOLFINx issue #4450; the original's numbers, CSA +3.84 %
-   on BFLH_VHF_Left, come out with it);
+   (`interpolate_nonmatching`). What the box nodes outside the muscle get is
+   ``outside`` (`OUTSIDE`):
+   - "extrapolate" (the default, what the original code got): u = 0, except at nodes
+     inside the bounding box of a muscle cell, to which DOLFINx 0.11 extrapolates the
+     closest cell's polynomial (DOLFINx issue #4450; the original's numbers, CSA
+     +3.84 % on BFLH_VHF_Left, come out with it);
+   - "zero" (what MODEL.md §9 says): u = 0 at every node that lies in no muscle cell,
+     decided by the distance from the node to the cells (`in_cells`);
 4. CSA = ∫ J |F⁻ᵀ N| dA over the staircase, F = I + ∇u of the box field.
 
+Under "zero" the box cannot see growth: the staircase's edge lies on box cells that
+touch no muscle cell, so u = 0 all along it, and ∫ cof(F) N · N dA (the in-plane
+Jacobian) depends on the edge's values alone: it is the reference area, whatever the
+growth. Nanson's J |F⁻ᵀ N| = ±|cof(F) N| differs from it by out-of-plane shear (second
+order) and where J < 0 (the field's steep fall across the rim). What the original reads
+as growth comes from the values extrapolated to the edge.
+
 A staircase facet whose cell has every P2 node given the muscle's value is *inner*:
-there the box field is the muscle's polynomial (or its extrapolation), and a uniform
-growth reads exactly. The others are the *rim*: the displacement drops to zero across
-them, so they read as shrinking while the section grows. `BoxSection` keeps the two
-apart (`INNER`, `RIM`) so that this can be seen and tested.
+there the box field is the muscle's polynomial (or, under "extrapolate", its
+extrapolation), and a uniform growth reads exactly. The others are the *rim*: the
+displacement drops to zero across them, so they read as shrinking while the section
+grows. `BoxSection` keeps the two apart (`INNER`, `RIM`) so that this can be seen and
+tested; under "zero" the rim is larger (the cells with an extrapolated node join it).
 """
 
 from __future__ import annotations
 
-import dolfinx
+import sys
+from pathlib import Path
+
 import dolfinx_solver  # noqa: F401  (must precede dolfinx)
 import numpy as np
 import ufl
-from dolfinx import fem, geometry
+from dolfinx import fem, geometry, la
+from dolfinx import mesh as dmesh
 from mpi4py import MPI
 
-from hyper import growth, section
+from hyper import cli, growth, io, run, section
+from hyper.log import info
+from hyper.params import InputError
 
 THICKNESS = 1.0e-3  # m, along the first principal axis
 CELLS = (2, 30, 30)  # hexahedra through the thickness and along the second and third axes
@@ -42,6 +59,9 @@ TOUCH = 1e-13  # m, GJK distance up to which a box cell touches a muscle cell
 # (it gave the form no degree); the inner facets are exact at any degree.
 QUADRATURE_DEGREE = 15
 INNER, RIM = 1, 2  # facet tags of the staircase
+# what the box field is at box nodes outside the muscle (see the module's docstring)
+OUTSIDE = ("extrapolate", "zero")
+INSIDE_DISTANCE = 1e-12  # m, distance from a muscle cell up to which a point lies in it (round-off)
 
 
 def file_order_vertices(mesh, comm=None) -> np.ndarray:
@@ -76,8 +96,8 @@ def box_frame(points, *, padding: float = PADDING, thickness: float = THICKNESS)
 
 def box_mesh(comm, centre, axes, half, cells=CELLS):
     """The box mesh on ``comm`` and its local facets on the face at -half[0]."""
-    box = dolfinx.mesh.create_box(comm, [-half, half], list(cells), dolfinx.mesh.CellType.tetrahedron)
-    face = dolfinx.mesh.locate_entities_boundary(box, 2, lambda x: np.isclose(x[0], -half[0], rtol=0,
+    box = dmesh.create_box(comm, [-half, half], list(cells), dmesh.CellType.tetrahedron)
+    face = dmesh.locate_entities_boundary(box, 2, lambda x: np.isclose(x[0], -half[0], rtol=0,
                                                                             atol=1e-9 * half[0]))
     box.geometry.x[:] = centre + box.geometry.x @ axes.T
     return box, face
@@ -108,9 +128,36 @@ def touching(box, muscle) -> np.ndarray:
     return out
 
 
+def in_cells(mesh, points, *, distance: float = INSIDE_DISTANCE) -> np.ndarray:
+    """Which of ``points`` (n, 3), the same on every rank, lie in a cell of ``mesh``
+    (within ``distance`` m of one): a bool per point, the same on every rank.
+
+    Bounding boxes pick the candidate cells, the exact distance from the point to the
+    cell decides. Collective over the mesh's communicator.
+    """
+    points = np.ascontiguousarray(points, dtype=mesh.geometry.x.dtype).reshape(-1, 3)
+    owned = np.arange(mesh.topology.index_map(3).size_local, dtype=np.int32)
+    tree = geometry.bb_tree(mesh, 3, entities=owned, padding=distance)
+    candidates = geometry.compute_collisions_points(tree, points)
+    which = np.repeat(np.arange(len(points)), np.diff(candidates.offsets))
+    hit = np.zeros(len(points), dtype=np.int8)
+    if len(which):
+        near = geometry.squared_distance(mesh, 3, candidates.array, points[which]) <= distance**2
+        hit[which[near]] = 1
+    mesh.comm.Allreduce(MPI.IN_PLACE, hit, op=MPI.MAX)
+    return hit.astype(bool)
+
+
+def check_outside(outside: str) -> str:
+    if outside not in OUTSIDE:
+        raise InputError(f"expected one of {', '.join(OUTSIDE)}, got {outside!r}", field="outside")
+    return outside
+
+
 class BoxSection:
     """The box measure of a tetrahedral mesh's cross-section, for the displacement ``u``
-    (a vector Lagrange function on ``mesh``) as it is at each call.
+    (a vector Lagrange function on ``mesh``) as it is at each call; ``outside`` (one of
+    `OUTSIDE`) what the box field is at box nodes outside the muscle.
 
     Built once: the box on the mesh's communicator, its staircase facets tagged INNER or
     RIM, the P2 box field and the interpolation data, the forms. Every public method is
@@ -118,7 +165,8 @@ class BoxSection:
     """
 
     def __init__(self, mesh, u, *, cells=CELLS, padding: float = PADDING, thickness: float = THICKNESS,
-                 degree: int = QUADRATURE_DEGREE):
+                 degree: int = QUADRATURE_DEGREE, outside: str = "extrapolate"):
+        self.outside = check_outside(outside)
         comm = mesh.comm
         self.comm = comm
         self.muscle = mesh
@@ -141,14 +189,28 @@ class BoxSection:
         bottom = np.count_nonzero(np.abs(depth) <= 1e-9 * self.half[0], axis=1) == 3
         self._cells = local[kept & bottom]
 
-        # inner: every P2 node of the cell gets the muscle's value (an interpolated 1 is 1 there, 0 elsewhere)
         self.V = fem.functionspace(box, ("Lagrange", 2, (3,)))
         self._data = fem.create_interpolation_data(self.V, u.function_space, self._cells)
-        Q = fem.functionspace(box, ("Lagrange", 2))
+        Q = fem.functionspace(box, ("Lagrange", 2))  # V's nodes, numbered as V's blocks
+        # the nodes of the measured cells in no muscle cell; "zero" sets them to 0 after
+        # each interpolation, on every rank alike (the test is global)
+        nodes = np.unique(Q.dofmap.list[self._cells])
+        start = sum(comm.allgather(len(nodes))[:comm.rank])
+        points = np.concatenate(comm.allgather(Q.tabulate_dof_coordinates()[nodes]))
+        out = ~in_cells(mesh, points)[start:start + len(nodes)]
+        self._zeroed = nodes[out] if self.outside == "zero" else np.empty(0, dtype=np.int32)
+
+        # inner: every P2 node of the cell gets the muscle's value (an interpolated 1 is 1 there, 0 elsewhere)
         one = fem.Function(fem.functionspace(mesh, ("Lagrange", 1)))
         one.x.array[:] = 1.0
         found = fem.Function(Q)
         found.interpolate_nonmatching(one, self._cells, self._data)  # the same points as V's
+        extrapolated = out & (found.x.array[nodes] > 0.5)
+        numbers = Q.dofmap.index_map.local_to_global(nodes.astype(np.int32))
+        # (outside nodes, those of them DOLFINx extrapolates to), each node once
+        self.outside_nodes = tuple(len(np.unique(np.concatenate(comm.allgather(numbers[which]))))
+                                   for which in (out, extrapolated))
+        found.x.array[self._zeroed] = 0.0
         inside = np.all(found.x.array[Q.dofmap.list[local]] > 0.5, axis=1)
 
         box.topology.create_connectivity(2, 3)
@@ -158,7 +220,7 @@ class BoxSection:
         facets = face[on]
         tags = np.where(inside[cell_of[on]], INNER, RIM).astype(np.int32)
         order = np.argsort(facets)
-        self.tags = dolfinx.mesh.meshtags(box, 2, facets[order], tags[order])
+        self.tags = dmesh.meshtags(box, 2, facets[order], tags[order])
 
         self.field = fem.Function(self.V, name="u_box")
         ds = ufl.Measure("ds", domain=box, subdomain_data=self.tags, metadata={"quadrature_degree": degree})
@@ -178,9 +240,11 @@ class BoxSection:
         return float(self.areas0.sum())
 
     def update(self) -> None:
-        """Interpolate the muscle's displacement into the box field (zero outside)."""
+        """Interpolate the muscle's displacement into the box field (outside the muscle:
+        as ``outside`` says)."""
         self.u.x.scatter_forward()
         self.field.interpolate_nonmatching(self.u, self._cells, self._data)
+        self.field.x.array.reshape(-1, 3)[self._zeroed] = 0.0
 
     def deformed_areas(self) -> np.ndarray:
         """(inner, rim): Nanson's deformed area of each part of the staircase."""
@@ -205,14 +269,14 @@ class BoxSection:
         box = self.mesh
         ref, now = (fem.assemble_vector(f) for f in self._facet_forms)
         for b in (ref, now):
-            b.scatter_reverse(dolfinx.la.InsertMode.add)
+            b.scatter_reverse(la.InsertMode.add)
             b.scatter_forward()
         facets, tags = self.tags.indices, self.tags.values
         mine = facets < box.topology.index_map(2).size_local  # each facet once, on its owner
         facets, tags = facets[mine], tags[mine]
         facet_cell = box.topology.connectivity(2, 3)
         cells = np.array([facet_cell.links(f)[0] for f in facets], dtype=np.int32)
-        nodes = dolfinx.mesh.entities_to_geometry(box, 2, facets)
+        nodes = dmesh.entities_to_geometry(box, 2, facets)
         plane = (box.geometry.x[nodes] - self.centre) @ self.axes[:, 1:]
         ratio = now.array[cells] / ref.array[cells]
         parts = self.comm.gather((plane.reshape(-1, 3, 2), tags == INNER, ratio), root=0)
@@ -243,3 +307,127 @@ def cut_outline(mesh, origin, normal, frame_origin, frame_axes) -> np.ndarray | 
     once = counts[inverse.ravel()] == 1
     edges = np.stack([a[once], b[once]], axis=1)
     return (edges - frame_origin) @ frame_axes
+
+
+# ------------------------------------------------------------------------------ the job
+
+JOB = """hyper box: the original code's box CSA (hyper.box, MODEL.md §9) of a stored growth
+run, re-measured on its saved displacement snapshots by each rule for the box nodes
+outside the muscle ("extrapolate", what DOLFINx 0.11 does and the original got; "zero",
+what MODEL.md §9 says).
+
+    hyper box results/grow/BFLH_VHF_Left_mwf.h5
+    hyper box results/mine/my_muscle_mwf.h5 --mesh my_muscle.xdmf --mesh-unit mm --output box.h5
+
+RESULT.h5 is a grow or cohort result; its snapshots are RESULT_fields.xdmf's u (every
+--snapshot-every hours of the run, and its last state), on the result's built-in
+geometry or --mesh. The snapshots hold u in P1, the nodal values of the run's P2
+displacement, so "extrapolate" re-measures the run's own csa_ratio_box (shown beside it)
+to about 1e-4, not exactly. --output writes the series (t, csa_ratio_box_extrapolate,
+csa_ratio_box_zero) to an HDF5 file.
+"""
+
+
+def parser() -> cli.Parser:
+    p = cli.Parser("box", JOB)
+    p.add_argument("result", type=Path, metavar="RESULT.h5",
+                   help="a growth result file, with its RESULT_fields.xdmf beside it")
+    p.add_argument("--mesh", type=Path, help="the run's own XDMF mesh, where it ran on one (grow --mesh)")
+    p.add_argument("--mesh-unit", default="m", choices=tuple(run.MESH_UNITS), help="length unit of --mesh")
+    p.add_argument("--output", type=cli.output(folder=False, suffixes=(".h5",)),
+                   help="an HDF5 file for the re-measured series (none: the table alone)")
+    return p
+
+
+def matched_rows(space, nodes) -> np.ndarray:
+    """For each local node of the Lagrange ``space``, the row of ``nodes`` (n, 3), a
+    snapshot's mesh points, at its position. InputError where they are not the same mesh.
+    Collective."""
+    from scipy.spatial import cKDTree
+
+    distance, rows = cKDTree(nodes).query(space.tabulate_dof_coordinates())
+    far = space.mesh.comm.allreduce(float(distance.max(initial=0.0)), op=MPI.MAX)
+    if far > 1e-9 * np.ptp(nodes, axis=0).max():
+        raise InputError(f"the snapshots' mesh is not the run's: a node is {far:g} m from every snapshot node "
+                         "(another geometry, a refined mesh, or --mesh-unit)")
+    return rows
+
+
+def remeasure(comm, result: Path, mesh_file: Path | None = None, unit: str = "m") -> dict:
+    """The box CSA ratio of each saved snapshot of the growth result ``result`` by each
+    rule of `OUTSIDE`: ``t`` (h), ``csa_ratio_box_<rule>``, ``recorded`` (the run's
+    csa_ratio_box at those times, NaN where it has none), and ``area0`` (m², by rule),
+    ``outside_nodes`` (outside, extrapolated), ``geometry``. Collective over ``comm``."""
+    import h5py
+
+    if not result.is_file() or not io.is_complete(result):
+        raise InputError(f"{result}: not a complete result file")
+    with h5py.File(result, "r") as f:
+        geometry = str(f.attrs.get("geometry", ""))
+    series = io.read_series(result)
+    fields = run.Outputs(result).fields
+    if not fields.is_file():
+        raise InputError(f"{result}: its snapshots {fields} are not there")
+    if mesh_file is not None:
+        mesh = run.MeshFile(mesh_file, unit).load(comm).mesh
+    else:
+        from hyper import geometry as geo
+
+        if geometry not in geo.GEOMETRIES:
+            raise InputError(f"{result}: ran on {geometry!r}, not a built-in geometry; give its mesh with --mesh")
+        run.check_geometry(comm, geometry, option=f"{result}'s geometry")
+        mesh = geo.load(geometry, comm).mesh
+    nodes, snapshots = io.read_point_field(fields, "u")
+    u = fem.Function(fem.functionspace(mesh, ("Lagrange", 1, (3,))))  # the snapshots' space
+    rows = matched_rows(u.function_space, nodes)
+    measures = {rule: BoxSection(mesh, u, outside=rule) for rule in OUTSIDE}
+    out = {"t": np.array([t for t, _ in snapshots]), "geometry": geometry,
+           "area0": {rule: m.area0() for rule, m in measures.items()},
+           "outside_nodes": measures["zero"].outside_nodes}
+    ratios = {rule: [] for rule in OUTSIDE}
+    for _, values in snapshots:
+        u.x.array.reshape(-1, 3)[:] = values[rows]  # owned and ghost nodes alike
+        for rule, m in measures.items():
+            ratios[rule].append(m.deformed_area() / m.area0())
+    for rule in OUTSIDE:
+        out[f"csa_ratio_box_{rule}"] = np.array(ratios[rule])
+    recorded = np.full(len(out["t"]), np.nan)
+    if "csa_ratio_box" in series:
+        for i, t in enumerate(out["t"]):
+            at = np.flatnonzero(np.isclose(series["t"], t, rtol=0, atol=1e-9 * max(1.0, abs(t))))
+            if len(at):
+                recorded[i] = series["csa_ratio_box"][at[-1]]
+    out["recorded"] = recorded
+    return out
+
+
+def run_job(comm, args) -> int:
+    if args.mesh is None and args.mesh_unit != "m":
+        raise InputError("--mesh-unit declares the length unit of a --mesh file; there is none")
+    m = remeasure(comm, args.result, args.mesh, args.mesh_unit)
+    outside, extrapolated = m["outside_nodes"]
+    info(comm, f"{args.result} ({m['geometry']}): the staircase is {m['area0']['extrapolate'] * 1e4:.3f} cm²; "
+               f"{outside} of its box nodes lie in no muscle cell, {extrapolated} of them inside a muscle cell's "
+               "bounding box (extrapolated)")
+    info(comm, f"{'t (h)':>8} {'day':>6} {'extrapolate':>12} {'zero':>10} {'run recorded':>13}")
+    for i, t in enumerate(m["t"]):
+        info(comm, f"{t:8.1f} {t / 24:6.1f} {m['csa_ratio_box_extrapolate'][i]:12.6f} "
+                   f"{m['csa_ratio_box_zero'][i]:10.6f} {m['recorded'][i]:13.6f}")
+    last = {rule: 100 * (m[f"csa_ratio_box_{rule}"][-1] - 1) for rule in OUTSIDE}
+    info(comm, f"at t = {m['t'][-1]:g} h the box reads CSA {last['extrapolate']:+.2f} % (extrapolate), "
+               f"{last['zero']:+.2f} % (zero); the run recorded {100 * (m['recorded'][-1] - 1):+.2f} %")
+    if args.output is not None and comm.rank == 0:
+        names = ("t", "csa_ratio_box_extrapolate", "csa_ratio_box_zero")
+        io.write_series(args.output, {name: m[name] for name in names},
+                        attrs={"result": str(args.result.resolve()), "geometry": m["geometry"],
+                               "outside_nodes": outside, "extrapolated_nodes": extrapolated,
+                               **{f"csa0_box_{rule}_m2": area for rule, area in m["area0"].items()}},
+                        units={name: "h" if name == "t" else "1" for name in names})
+        info(comm, f"wrote {args.output}")
+    return cli.EXIT_OK
+
+
+main = cli.entry(parser, run_job, locks=lambda args: [args.output] if args.output is not None else [])
+
+if __name__ == "__main__":
+    sys.exit(main())

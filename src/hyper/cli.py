@@ -36,7 +36,7 @@ EXIT_TERMINATED = 128 + signal.SIGTERM  # 143, what a shell reports for a TERM-k
 
 # `hyper JOB` runs hyper.JOB.main; the benches keep their own dispatcher (hyper bench NAME).
 JOBS = ("grow", "cohort", "ensemble", "signaling", "sobol", "contraction", "fibers", "meshstats", "mesh", "slurm",
-        "calibrate", "dose", "inspect", "demo", "study", "reproduce", "bench")
+        "calibrate", "dose", "inspect", "demo", "study", "reproduce", "box", "bench")
 
 LOGGER = "hyper"
 

@@ -263,6 +263,39 @@ def atomic_xdmf(comm, path: str | Path) -> Iterator[Any]:
         comm.barrier()
 
 
+
+def read_point_field(path: str | Path, name: str) -> tuple[np.ndarray, list[tuple[float, np.ndarray]]]:
+    """The mesh's nodes (n, 3) and each snapshot (t, values (n, k)) of the nodal field
+    ``name`` in an XDMF file `atomic_xdmf` wrote (one grid per time), in time order.
+    InputError where the file or the field is not there."""
+    import xml.etree.ElementTree as ET
+
+    import h5py
+
+    path = Path(path)
+    try:
+        domain = ET.fromstring(path.read_text()).find("Domain")
+    except (OSError, ET.ParseError) as err:
+        raise InputError(f"{path}: not a readable XDMF file ({err})") from None
+    grids = [] if domain is None else domain.findall("Grid/Grid")
+
+    def data(item) -> np.ndarray:
+        file, _, dataset = item.text.strip().partition(":")
+        try:
+            with h5py.File(path.parent / file, "r") as f:
+                return f[dataset][()]
+        except (OSError, KeyError) as err:
+            raise InputError(f"{path}: cannot read {item.text.strip()} ({err})") from None
+
+    snapshots = []
+    for grid in grids:
+        for attribute in grid.findall("Attribute"):
+            if attribute.get("Name") == name and attribute.get("Center") == "Node":
+                snapshots.append((float(grid.find("Time").get("Value")), data(attribute.find("DataItem"))))
+    if not snapshots:
+        raise InputError(f"{path}: no snapshot of a nodal field {name!r}")
+    return data(grids[0].find("Geometry/DataItem")), sorted(snapshots, key=lambda s: s[0])
+
 # what --output may not end in: the name of another kind of file, taken for a folder by mistake
 OTHER_SUFFIXES = (".hdf5", ".xdmf", ".png", ".csv", ".json", ".toml", ".txt", ".npy")
 
