@@ -24,6 +24,7 @@ from hyper import fibers, growth
 from hyper import geometry as geo_mod
 from hyper import material as mat
 from hyper.mechanics import MechanicsProblem, SolverError, rigid_modes
+from hyper.params import InputError
 from test_material import nominal_stress
 
 PARAMS = mat.MaterialParams()
@@ -173,6 +174,23 @@ def test_options_database_overrides_the_dict_which_overrides_defaults():
     assert (max_it, rtol, atol) == (7, 1e-9, 1e-8)
     assert problem.snes.getKSP().getPC().getFactorSolverType() == "mumps"
     assert not db.hasName("test_opts_snes_rtol")  # defaults are not left behind in the database
+
+
+def test_mumps_controls_of_the_options_reach_the_factorisation():
+    """MUMPS reads -mat_mumps_ options when it factorises, after the options left the
+    database: they must reach the factor all the same, and a solve must use them."""
+    geometry = box_geometry(MPI.COMM_WORLD)
+    a0 = fibers.uniform_fiber_field(geometry.mesh, (0, 0, 1))
+    problem = MechanicsProblem(geometry, a0, petsc_options={"mat_mumps_icntl_7": 0, "mat_mumps_cntl_1": 0.25},
+                               options_prefix="test_mumps_")
+    problem.alpha.value = 0.5
+    problem.solve()
+    factor = problem.snes.getKSP().getPC().getFactorMatrix()
+    assert factor.getMumpsIcntl(7) == 0 and factor.getMumpsCntl(1) == 0.25
+    assert factor.getMumpsInfog(7) == 0  # the ordering MUMPS says it used: AMD
+    assert not PETSc.Options().hasName("test_mumps_mat_mumps_icntl_7")
+    with pytest.raises(InputError, match="mat_mumps_foo_3=1 is not a MUMPS control"):
+        MechanicsProblem(geometry, a0, petsc_options={"mat_mumps_foo_3": 1}, options_prefix="test_mumps_bad_")
 
 
 def _idealized_reaction(comm):

@@ -86,8 +86,12 @@ ITERATIVE_PETSC_OPTIONS = {
 # On the idealized shape refined once (78k unknowns, 2 ranks) GMRES needs 42 iterations
 # over 4 Newton steps at 1e-4, 290 at 1e-3, 635 at 1e-2 and fails at 1e-1; at 578k
 # unknowns and 1e-4, 95 over 4, with 0.60x LU's memory (python -m hyper.bench solvers).
-BLR_ICNTL = {35: 2, 37: 1}
 BLR_PRECISION = 1e-4
+
+
+def blr_controls(precision: float) -> dict:
+    return {"mat_mumps_icntl_35": 2, "mat_mumps_icntl_37": 1, "mat_mumps_cntl_7": precision}
+
 
 # Free rigid modes are those whose spring stiffness is below this fraction of the largest.
 FREE_MODE_RATIO = 1e-8
@@ -196,8 +200,9 @@ class MechanicsProblem:
         preset = ITERATIVE_PETSC_OPTIONS if linear_solver == "iterative" else {}
         _set_options(self.snes, options_prefix, {**DEFAULT_PETSC_OPTIONS, **preset, **(petsc_options or {})},
                      checked=tuple(petsc_options or ()))
-        if linear_solver == "iterative":
-            self._set_blr(blr_precision)
+        controls = {**(blr_controls(blr_precision) if linear_solver == "iterative" else {}),
+                    **{k: v for k, v in (petsc_options or {}).items() if k.startswith(READ_LATER)}}
+        self._set_mumps(controls)
 
         sigma = self.P * self.F.T / ufl.det(self.F)
         gamma1 = ds(geometry.ends[0])
@@ -267,10 +272,13 @@ class MechanicsProblem:
             self._blocks = (nest, A, B, BT)
         self._x, self._F = self._K.createVecs()
 
-    def _set_blr(self, precision: float) -> None:
-        """Ask MUMPS for BLR factors. MUMPS reads its -mat_mumps_ options at the first
-        factorisation, long after `_set_options` has taken them out of the database, so
-        the controls go straight to the factor object, made now for the purpose."""
+    def _set_mumps(self, controls: dict) -> None:
+        """Set MUMPS controls (``mat_mumps_icntl_N`` / ``mat_mumps_cntl_N`` keys) on the
+        factor object, made now for the purpose: MUMPS reads its -mat_mumps_ options at
+        the first factorisation, long after `_set_options` has taken them out of the
+        database (where they would reach the next solver made in this process)."""
+        if not controls:
+            return
         ksp = self.snes.getKSP()
         pc = ksp.getPC()
         if not _is_mumps_lu(pc):
@@ -278,9 +286,18 @@ class MechanicsProblem:
         ksp.setOperators(self._K, self._K)
         pc.setFactorSetUpSolverType()
         factor = pc.getFactorMatrix()
-        for key, value in BLR_ICNTL.items():
-            factor.setMumpsIcntl(key, value)
-        factor.setMumpsCntl(7, precision)
+        for key, value in controls.items():
+            kind, _, index = key.removeprefix("mat_mumps_").partition("_")
+            try:
+                if kind == "icntl":
+                    factor.setMumpsIcntl(int(index), int(value))
+                elif kind == "cntl":
+                    factor.setMumpsCntl(int(index), float(value))
+                else:
+                    raise ValueError(kind)
+            except (ValueError, PETSc.Error):
+                raise InputError(f"--petsc-option: {key}={value} is not a MUMPS control "
+                                 "(mat_mumps_icntl_N=integer or mat_mumps_cntl_N=number)") from None
 
     def linear_iterations(self) -> int:
         """Krylov iterations of the last solve (one per Newton step with LU)."""
