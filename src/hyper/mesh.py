@@ -29,9 +29,9 @@ Steps, each of which stops the job with one ``error:`` line (exit 2) and nothing
    (pytetwild), which made the shipped meshes, is more robust to broken surfaces, but
    step 2 refuses those, and it is slower. The size is
    chosen for ``--cells`` (up to two corrections while the count is off by more than 10 %).
-   Volume: gmsh's surface edges are chords of the STL, so the mesh would be 1.1-1.5 %
+   Volume: gmsh's surface edges are chords of the STL, so the mesh would be 1.2-1.8 %
    smaller than the surface at 8000 cells; the boundary nodes are then moved outward
-   along their normals by one distance (0.06-0.1 mm on the Visible Human surfaces,
+   along their normals by one distance (0.07-0.12 mm on the Visible Human surfaces,
    `fill_surface`) that gives the mesh the STL's enclosed volume.
    Quality: every cell positive with volume above 1e-9 of the bounding box's; the
    minimum dihedral angle is reported.
@@ -285,7 +285,7 @@ def fill_surface(x: np.ndarray, tets: np.ndarray, volume: float) -> tuple[np.nda
     that distance in mm) so that the mesh's volume is ``volume`` (the STL's).
 
     Why: gmsh puts its surface nodes on the STL, so its surface edges are chords and the
-    mesh is inscribed in the STL, 1.1-1.5 % short of its volume at 8000 cells (finer
+    mesh is inscribed in the STL, 1.2-1.8 % short of its volume at 8000 cells (finer
     surface meshes cost cells: sizing by curvature gave 10⁵ cells). One offset of about
     0.1 mm, a fiftieth of an edge, removes that bias without changing the cells' shape.
     The volume is cubic in the offset: Newton's method from 0 (two or three steps).

@@ -16,9 +16,10 @@ muscle, subject and side, with the group means. Definitions (MODEL.md §4):
   the plane through the centroid of the volume, normal to its principal axis of inertia.
   csa0 is what the growth model feeds back (MODEL.md §4), but the vertices' mean and axis
   move with where a mesher puts its vertices (fTetWild's meshes are denser near the
-  surface: their vertex plane lies 3-17 mm off the centroid and tilts 1-3°), whereas the
-  solid's frame is a property of the shape: two meshes of one surface agree on it to
-  0.2 mm and 0.1°. length_solid still depends on how the mesh rounds the two tips.
+  surface: on the shipped meshes the vertex plane lies 3-39 mm off the centroid and tilts
+  0.4-3.2° off the inertia axis), whereas the solid's frame is a property of the shape:
+  the shipped meshes and `hyper mesh`'s agree with the STL's own frame to 0.5 mm and 0.15°.
+  length_solid still depends on how the mesh rounds the two tips.
 
 Every quantity counts each vertex and cell once, whatever the number of ranks; rank 0
 writes. The paper's group means of the volume (Devold et al. 2026, Discussion) are
