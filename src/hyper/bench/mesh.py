@@ -100,7 +100,7 @@ def surface(path: Path) -> dict:
     moments = section.surface_solid_moments(points, triangles)
     origin, normal = section.inertia_plane(*moments)
     return {"volume_mm3": moments[0], "csa_solid_mm2": section.surface_cut_area(points, triangles, origin, normal),
-            "length_solid_mm": float(np.ptp(points @ normal)), "origin_mm": origin, "normal": normal}
+            "length_solid_mm": float(np.ptp(points @ normal))}
 
 
 def growth(geometry, a0, protocol: str = GROWTH_PROTOCOL) -> dict:
