@@ -15,7 +15,8 @@ from hyper import meshstats
 NAME = "BFLH_VHF_Left"
 # Computed once with this code (serial); cells/vertices are exact, the rest to rounding.
 FIXED = {"cells": 8512, "vertices": 2456, "volume_cm3": 181.83657317202798,
-         "csa0_cm2": 11.88134969606373, "length_cm": 25.208441354247114}
+         "csa0_cm2": 11.88134969606373, "length_cm": 25.208441354247114,
+         "csa_solid_cm2": 11.834320058051247, "length_solid_cm": 25.132514249037648}
 
 
 def close(a, b, rtol):
@@ -34,6 +35,8 @@ def test_one_mesh_against_fixed_numbers(serial_row):
     assert close(row["volume_cm3"], FIXED["volume_cm3"], 1e-10)
     assert close(row["csa0_cm2"], FIXED["csa0_cm2"], 1e-10)
     assert close(row["length_cm"], FIXED["length_cm"], 1e-12)
+    assert close(row["csa_solid_cm2"], FIXED["csa_solid_cm2"], 1e-10)
+    assert close(row["length_solid_cm"], FIXED["length_solid_cm"], 1e-10)
 
 
 def test_one_mesh_against_the_raw_file(serial_row):
@@ -51,6 +54,16 @@ def test_one_mesh_against_the_raw_file(serial_row):
     along = centred @ axis
     assert close(serial_row["length_cm"], (along.max() - along.min()) / 10.0, 1e-10)
     assert serial_row["vertices"] == len(used) == len(x)
+    # The solid's frame by a 4-point rule per cell, exact for the quadratic second moments.
+    volume = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])) / 6.0
+    a, b = (5 + 3 * 5**0.5) / 20, (5 - 5**0.5) / 20
+    points = [a * corners[:, i] + b * (corners.sum(axis=1) - corners[:, i]) for i in range(4)]
+    centroid = sum(volume @ p for p in points) / (4 * volume.sum())
+    inertia = sum(np.einsum("n,ni,nj->ij", volume, p - centroid, p - centroid) for p in points)
+    axis = np.linalg.eigh(inertia)[1][:, -1]
+    along = x @ axis
+    assert close(serial_row["length_solid_cm"], (along.max() - along.min()) / 10.0, 1e-10)
+    assert abs(axis @ np.linalg.eigh(centred.T @ centred)[1][:, -1]) < np.cos(np.radians(1))  # 2° from the vertices'
 
 
 def test_cli_group_means_match_the_paper(tmp_path):
@@ -93,5 +106,5 @@ def test_two_ranks_equal_serial():
     assert parallel["cells"] == serial["cells"] == FIXED["cells"]
     assert parallel["vertices"] == serial["vertices"] == FIXED["vertices"]
     assert parallel["length_cm"] == serial["length_cm"]  # the same vertices, the same plane
-    for key in ("volume_cm3", "csa0_cm2"):  # sums in another order
+    for key in ("volume_cm3", "csa0_cm2", "csa_solid_cm2", "length_solid_cm"):  # sums in another order
         assert close(parallel[key], serial[key], 1e-12)

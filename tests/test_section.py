@@ -124,6 +124,80 @@ def test_principal_plane_of_a_box_mesh():
     assert np.allclose(normal, [0, 0, 1], atol=1e-14)
 
 
+def graded_box(n=6):
+    """Tetrahedra (6 a hexahedron) filling [0, 2] x [0, 1] x [0, 1], with the vertex planes
+    along x crowded toward x = 0 (x = 2 s²): the vertices' mean is far from the centroid."""
+    s = np.linspace(0.0, 1.0, n + 1)
+    across = np.linspace(0.0, 1.0, 4)
+    x, y, z = np.meshgrid(2 * s**2, across, across, indexing="ij")
+    points = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+    index = np.arange(len(points)).reshape(x.shape)
+    kuhn = [(0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7)]
+    tets = []
+    for i in range(n):
+        for j in range(3):
+            for k in range(3):
+                corner = [index[i + a, j + b, k + c] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
+                tets += [[corner[v] for v in t] for t in kuhn]
+    return points, np.array(tets)
+
+
+def test_solid_plane_is_the_centroid_and_inertia_axis_whatever_the_vertices():
+    points, tets = graded_box()
+    volume, first, second = section.solid_moments(points[tets])
+    assert close(volume, 2.0)
+    # The box's second moments about the origin: ∫x² = 8/3, ∫y² = ∫z² = 2/3, ∫xy = 1, ∫yz = 1/2.
+    assert np.allclose(first, [2.0, 1.0, 1.0], rtol=1e-13)
+    assert np.allclose(second, [[8 / 3, 1, 1], [1, 2 / 3, 0.5], [1, 0.5, 2 / 3]], rtol=1e-13)
+    origin, normal = section.inertia_plane(volume, first, second)
+    assert np.allclose(origin, [1.0, 0.5, 0.5], atol=1e-14)
+    assert np.allclose(normal, [1, 0, 0], atol=1e-14)
+    vertex_origin, _ = section.principal_plane(points)
+    assert vertex_origin[0] < 0.8  # the vertices' mean follows the crowding: 2 mean(s²) = 0.72
+    # The solid's plane halves the volume; its cut is the box's 1 x 1 section.
+    _, tri = section.cut_triangles(points[tets], origin, normal)
+    assert close(section.triangle_areas(tri).sum(), 1.0)
+
+
+def test_solid_plane_of_a_box_mesh_on_any_ranks():
+    mesh = dolfinx.mesh.create_box(MPI.COMM_WORLD, [[0, 0, 0], [1, 2, 5]], [2, 3, 6])
+    origin, normal = section.solid_plane(mesh)
+    assert np.allclose(origin, [0.5, 1.0, 2.5], atol=1e-13)
+    assert np.allclose(normal, [0, 0, 1], atol=1e-13)
+
+
+def prism_surface(around=48, radius=20.0, length=100.0):
+    """A closed, outward regular 48-gon prism along z (a cylinder as an STL has it)."""
+    phi = 2 * np.pi * np.arange(around) / around
+    ring = np.column_stack([radius * np.cos(phi), radius * np.sin(phi)])
+    points = np.vstack([np.column_stack([ring, np.zeros(around)]), np.column_stack([ring, np.full(around, length)]),
+                        [[0, 0, 0], [0, 0, length]]])
+    bottom, top = 2 * around, 2 * around + 1
+    tris = []
+    for i in range(around):
+        j = (i + 1) % around
+        tris += [[i, j, j + around], [i, j + around, i + around], [bottom, j, i], [top, around + i, around + j]]
+    return points, np.array(tris)
+
+
+def test_a_surface_gives_its_solid_moments_and_exact_cuts():
+    points, tris = prism_surface()
+    polygon = 0.5 * 48 * 20.0**2 * math.sin(2 * math.pi / 48)
+    shift = np.array([300.0, -40.0, 700.0])  # far from the coordinates' origin, as a Visible Human muscle is
+    volume, first, second = section.surface_solid_moments(points + shift, tris)
+    assert close(volume, polygon * 100.0, 1e-13)
+    origin, normal = section.inertia_plane(volume, first, second)
+    assert np.allclose(origin, shift + [0, 0, 50], rtol=0, atol=1e-9)
+    assert np.allclose(normal, [0, 0, 1], atol=1e-12)
+    for z in (50.0, 3.0, 97.5):
+        assert close(section.surface_cut_area(points, tris, [0, 0, z], [0, 0, -1]), polygon, 1e-12)
+    # Tilted by 30° about x through the middle, the plane still crosses the sides only: area / cos 30°.
+    tilted = [0, -math.sin(math.radians(30)), math.cos(math.radians(30))]
+    assert close(section.surface_cut_area(points, tris, [0, 0, 50], tilted), polygon / math.cos(math.radians(30)),
+                 1e-12)
+    assert section.surface_cut_area(points, tris, [0, 0, 150], [0, 0, 1]) == 0.0
+
+
 # --- exact cut areas ------------------------------------------------------------------------
 
 

@@ -29,6 +29,10 @@ Steps, each of which stops the job with one ``error:`` line (exit 2) and nothing
    (pytetwild), which made the shipped meshes, is more robust to broken surfaces, but
    step 2 refuses those, and it is slower. The size is
    chosen for ``--cells`` (up to two corrections while the count is off by more than 10 %).
+   Volume: gmsh's surface edges are chords of the STL, so the mesh would be 1.2-1.8 %
+   smaller than the surface at 8000 cells; the boundary nodes are then moved outward
+   along their normals by one distance (0.07-0.12 mm on the Visible Human surfaces,
+   `fill_surface`) that gives the mesh the STL's enclosed volume.
    Quality: every cell positive with volume above 1e-9 of the bounding box's; the
    minimum dihedral angle is reported.
 4. Ends, the rule: project the vertices on the first principal axis (``--axis``
@@ -74,6 +78,7 @@ FEATURE_DEG = 60.0
 ORIGIN_TOWARD = (0.0, 0.0, 1.0)
 MIN_VOLUME = 1e-9  # of the bounding box's volume: a cell below it is degenerate
 ARRAYS = ("x", "tets", "facets", "tags")  # what `build` returns besides numbers
+OFFSET_STEPS, OFFSET_RTOL = 5, 1e-9  # fill_surface: Newton steps, and the volume's relative tolerance
 CELLS_PER_H3 = 9.0  # cells per volume/h³ after optimization, measured on the TA: the first guess of h
 
 
@@ -275,6 +280,42 @@ def gmsh_volume(points: np.ndarray, triangles: np.ndarray, size: float) -> tuple
     return coords.reshape(-1, 3)[used], compact.reshape(-1, 4)
 
 
+def fill_surface(x: np.ndarray, tets: np.ndarray, volume: float) -> tuple[np.ndarray, float]:
+    """(x with the boundary nodes moved outward along their normals by one common distance,
+    that distance in mm) so that the mesh's volume is ``volume`` (the STL's).
+
+    Why: gmsh puts its surface nodes on the STL, so its surface edges are chords and the
+    mesh is inscribed in the STL, 1.2-1.8 % short of its volume at 8000 cells (finer
+    surface meshes cost cells: sizing by curvature gave 10⁵ cells). One offset of about
+    0.1 mm, a fiftieth of an edge, removes that bias without changing the cells' shape.
+    The volume is cubic in the offset: Newton's method from 0 (two or three steps).
+    """
+    tets = np.where((signed_volumes(x, tets) < 0)[:, None], tets[:, [0, 2, 1, 3]], tets)
+    facets = boundary_facets(tets)
+    corners = x[facets]
+    area_normal = 0.5 * np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normal = np.zeros_like(x)
+    for i in range(3):
+        np.add.at(normal, facets[:, i], area_normal)
+    nodes = np.unique(facets)
+    normal = normal[nodes] / np.linalg.norm(normal[nodes], axis=1)[:, None]
+    offset, moved = 0.0, x
+    for _ in range(OFFSET_STEPS):
+        moved = x.copy()
+        moved[nodes] += offset * normal
+        c = moved[facets]
+        gap = volume - enclosed_volume(moved, facets)
+        if abs(gap) <= OFFSET_RTOL * volume:
+            break
+        # dV/d(offset) = the surface's area-weighted mean of n_vertex·n_facet, times its area
+        area = 0.5 * np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
+        shift = np.zeros_like(x)
+        shift[nodes] = normal
+        slope = float(np.einsum("fij,fj->", shift[facets], area) / 3.0)
+        offset += gap / slope
+    return moved, offset
+
+
 def signed_volumes(x: np.ndarray, tets: np.ndarray) -> np.ndarray:
     a = x[tets]
     return np.linalg.det(a[:, 1:] - a[:, :1]) / 6.0
@@ -469,8 +510,11 @@ def build(args) -> dict:
     check_size(path, points, args.unit)
     check_surface(path, points, triangles)
     checked = time.perf_counter()
-    x, tets = tetrahedralize(points * UNITS_MM[args.unit], triangles, args.cells)
+    points_mm = points * UNITS_MM[args.unit]
+    x, tets = tetrahedralize(points_mm, triangles, args.cells)
+    x, offset = fill_surface(x, tets, enclosed_volume(points_mm, triangles))
     tets, quality = check_quality(x, tets)
+    quality["surface_offset_mm"] = offset
     facets = boundary_facets(tets)
     tags, rule = find_ends(x, facets, band=args.end_band, axis=args.axis, origin_toward=args.origin_toward)
     areas = facet_areas(x, facets)

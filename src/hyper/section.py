@@ -42,6 +42,96 @@ def principal_plane(points) -> tuple[np.ndarray, np.ndarray]:
     return origin, normal
 
 
+def solid_moments(tet_coords, *, signed: bool = False) -> tuple[float, np.ndarray, np.ndarray]:
+    """(V, ∫x dV (3,), ∫x xᵀ dV (3, 3)) of the solid filled by tetrahedra (n, 4, 3), exactly.
+
+    A tetrahedron with corners v_i has ∫x dV = V Σv_i / 4 and ∫x xᵀ dV =
+    V (Σ v_i v_iᵀ + s sᵀ) / 20 with s = Σ v_i. ``signed``: each cell counts with its
+    signed volume (cones from a point to an oriented closed surface fill its inside);
+    otherwise with its absolute volume (a mesh, whatever its cells' orientation).
+    """
+    x = np.asarray(tet_coords, dtype=float)
+    volume = np.linalg.det(x[:, 1:] - x[:, :1]) / 6.0
+    if not signed:
+        volume = np.abs(volume)
+    s = x.sum(axis=1)
+    first = volume @ s / 4.0
+    second = (np.einsum("n,nia,nib->ab", volume, x, x) + np.einsum("n,na,nb->ab", volume, s, s)) / 20.0
+    return float(volume.sum()), first, second
+
+
+def inertia_plane(volume: float, first, second) -> tuple[np.ndarray, np.ndarray]:
+    """(origin, unit normal): the plane through the centroid of a solid, normal to its
+    first principal axis (largest second moment of the volume about the centroid), from
+    ``solid_moments``' three numbers. The normal's largest component is positive.
+
+    Unlike ``principal_plane`` this is a property of the shape, not of where a mesher put
+    its vertices: any mesh filling the same solid gives the same plane.
+    """
+    centroid = np.asarray(first, dtype=float) / volume
+    covariance = np.asarray(second, dtype=float) / volume - np.outer(centroid, centroid)
+    variance, axes = np.linalg.eigh(covariance)
+    if variance[2] - variance[1] <= 1e-12 * variance[2]:
+        raise ValueError(f"no unique first principal axis (variances {variance})")
+    normal = axes[:, 2]
+    if normal[np.argmax(np.abs(normal))] < 0:
+        normal = -normal
+    return centroid, normal
+
+
+def solid_plane(mesh) -> tuple[np.ndarray, np.ndarray]:
+    """``inertia_plane`` of a mesh's cells (each owned cell once); collective."""
+    n_owned = mesh.topology.index_map(mesh.topology.dim).size_local
+    moments = solid_moments(mesh.geometry.x[mesh.geometry.dofmaps[0][:n_owned]])
+    volume, first, second = (mesh.comm.allreduce(m, op=MPI.SUM) for m in moments)
+    return inertia_plane(volume, first, second)
+
+
+def surface_solid_moments(points, triangles) -> tuple[float, np.ndarray, np.ndarray]:
+    """``solid_moments`` of the inside of a closed, outward-oriented triangle surface:
+    signed cones from the points' mean (near the solid, so little cancels) to each triangle."""
+    pts = np.asarray(points, dtype=float)
+    apex = pts.mean(axis=0)
+    corners = pts[np.asarray(triangles)] - apex
+    cones = np.concatenate([np.zeros((len(corners), 1, 3)), corners], axis=1)
+    volume, first, second = solid_moments(cones, signed=True)
+    # Back from the apex to the coordinates' origin.
+    second = second + np.outer(first, apex) + np.outer(apex, first) + volume * np.outer(apex, apex)
+    return volume, first + volume * apex, second
+
+
+def surface_cut_area(points, triangles, origin, normal) -> float:
+    """The area enclosed by the cut of a closed, consistently oriented triangle surface by a plane.
+
+    Each triangle crossing the plane gives a segment from the point where its boundary
+    (in the triangle's order) goes up through the plane to the point where it goes down;
+    the segments form the oriented loops of the cut, whose enclosed area is
+    |½ Σ (a × b)·n| (holes count negative). Above is d > 0, as in ``cut_triangles``.
+    """
+    pts = np.asarray(points, dtype=float)
+    tri = np.asarray(triangles)
+    normal = np.asarray(normal, dtype=float) / np.linalg.norm(normal)
+    d = signed_distance(pts, np.asarray(origin, dtype=float), normal)
+    above = d[tri] > 0
+    start, end = tri, np.roll(tri, -1, axis=1)
+    up = ~above & np.roll(above, -1, axis=1)  # edge i from below to above
+    down = above & ~np.roll(above, -1, axis=1)
+    crossing = up.any(axis=1)
+
+    def point(mask):
+        """The cut point on each crossing triangle's masked edge, computed from its above end
+        so that the two triangles sharing the edge get the same point."""
+        i = np.argmax(mask[crossing], axis=1)
+        rows = np.flatnonzero(crossing)
+        a, b = start[rows, i], end[rows, i]
+        hi, lo = np.where(d[a] > 0, a, b), np.where(d[a] > 0, b, a)
+        t = d[hi] / (d[hi] - d[lo])
+        return pts[hi] + t[:, None] * (pts[lo] - pts[hi])
+
+    a, b = point(up), point(down)
+    return float(abs(0.5 * (np.cross(a, b) @ normal).sum()))
+
+
 def signed_distance(x, origin, normal) -> np.ndarray:
     """(x - origin)·normal over the last axis of ``x``.
 

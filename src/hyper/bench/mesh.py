@@ -1,21 +1,32 @@
 """hyper mesh against the shipped meshes: each Visible Human surface that a shipped mesh
-was made from (fTetWild, by the paper) is meshed again by `hyper mesh`, timed, and compared:
+was made from (fTetWild, by the paper) is meshed again by `hyper mesh`, timed, and both
+meshes are compared with the surface itself (the STL, the fair target: the shipped mesh is
+not exactly its volume either) and with each other:
 
     time        STL -> checked surface -> tetrahedra -> tags -> Stokes fibres (1 rank)
     cells, min dihedral angle (both meshes)
-    volume, CSA0, length   relative difference (hyper.meshstats' definitions; CSA0's plane
-                is each mesh's own: through the mean of its vertices, normal to their
-                principal axis, so it moves with the vertex distribution)
+    volume      of each mesh against the STL's enclosed volume
+    CSA, length by the solid's frame (hyper.meshstats csa_solid, length_solid): the cut by
+                the plane through the volume's centroid, normal to its principal axis of
+                inertia, and the extent along that axis; the STL's by its own frame
+                (``section.surface_solid_moments``, ``section.surface_cut_area``)
+    CSA0        the simulation's (meshstats csa0: the plane of the vertices' mean and
+                principal axis, MODEL.md §4), new against shipped, and the shipped mesh's
+                CSA0 against its csa_solid (how far the vertex plane is from the shape's)
     CSA at the shipped plane   the new mesh cut by the shipped mesh's CSA0 plane
     end areas   of tags 1 and 2, new / shipped
     fibre angle volume-weighted mean over the shipped cells of the angle between the two
                 fields (the new field taken at the nearest new cell centroid)
+    --growth    the 9-week `mwf` growth on both meshes (1 rank, the default settings and
+                parameters, each with its Stokes fibres): CSA (the simulation's plane) and
+                volume increase in percentage points, and the CSA increase measured on the
+                solid's plane at the end of the same run
 
 The origin is put at the shipped tag 1 (``--origin-toward`` from the shipped tag-2 end
 to the tag-1 end), so both flows enter at the same end. Writes results/bench/mesh.json
 and the meshes under results/bench/mesh/ (not meshes/: they are a check, not geometries).
 
-    python -m hyper.bench mesh [--geometries TA_VHF_Left …]
+    python -m hyper.bench mesh [--geometries TA_VHF_Left …] [--growth]
 """
 
 from __future__ import annotations
@@ -33,6 +44,7 @@ from hyper import geometry as geo
 from hyper.params import InputError
 
 SURFACES = Path(__file__).resolve().parents[3].parent / "shared" / "surfaces"
+GROWTH_PROTOCOL = "mwf"
 
 
 def shipped(name: str) -> dict:
@@ -79,18 +91,54 @@ def fibre_angle(comm, name: str, new_folder: Path) -> float:
     return float(np.degrees(np.average(np.arccos(np.clip(cosine, 0.0, 1.0)), weights=old_cells[2])))
 
 
+def surface(path: Path) -> dict:
+    """Volume (mm³), CSA (mm²) and length (mm) of an STL by its solid's frame."""
+    from hyper import mesh as hm
+    from hyper import section
+
+    points, triangles = hm.read_stl(path)
+    moments = section.surface_solid_moments(points, triangles)
+    origin, normal = section.inertia_plane(*moments)
+    return {"volume_mm3": moments[0], "csa_solid_mm2": section.surface_cut_area(points, triangles, origin, normal),
+            "length_solid_mm": float(np.ptp(points @ normal))}
+
+
+def growth(geometry, a0, protocol: str = GROWTH_PROTOCOL) -> dict:
+    """Percent increase of the CSA (the simulation's plane), the volume and the CSA on the
+    solid's plane after ``protocol`` on ``geometry`` (default settings and parameters)."""
+    from dolfinx import fem
+
+    from hyper import protocols, section
+    from hyper.coupled import CoupledModel, GrowthSettings
+    from hyper.material import MaterialParams
+
+    model = CoupledModel(geometry, a0, protocols.named(protocol), material=MaterialParams(),
+                         settings=GrowthSettings())
+    *_, last = model.run()
+    # The displacement alone, to measure Nanson's area on another plane of the same run.
+    space, dofs = model.problem.w.function_space.sub(0).collapse()
+    u = fem.Function(space)
+    u.x.array[:] = model.problem.w.x.array[dofs]
+    solid = section.CutSection(geometry.mesh, *section.solid_plane(geometry.mesh),
+                               degree=geometry.quadrature_degree)
+    return {"csa_pct": 100 * (last.csa_ratio - 1), "volume_pct": 100 * (last.volume_ratio - 1),
+            "csa_solid_pct": 100 * (solid.deformed_area(u) / solid.area0() - 1)}
+
+
 def parser() -> cli.Parser:
     p = cli.Parser("bench mesh", __doc__)
     made = [n for n in geo.ANATOMICAL if (SURFACES / f"{Path(geo.GEOMETRIES[n]).parent.name}.stl").is_file()]
     p.add_argument("--geometries", nargs="+", metavar="ID", default=made, help="shipped meshes with a surface")
     p.add_argument("--surfaces", type=Path, default=SURFACES, help="folder of the STL surfaces")
     p.add_argument("--output", type=Path, default=Path("results/bench"), help="folder for mesh.json and the meshes")
+    p.add_argument("--growth", action="store_true", help=f"also run the 9-week {GROWTH_PROTOCOL!r} growth on both "
+                   "meshes (about 30 s each on 1 core)")
     return p
 
 
 def run(comm, args) -> int:
+    from hyper import fibers, meshstats
     from hyper import mesh as hm
-    from hyper import meshstats
     from hyper.io import atomic_path
     from hyper.log import info
 
@@ -98,11 +146,11 @@ def run(comm, args) -> int:
     for name in args.geometries:
         if name not in geo.ANATOMICAL:
             raise InputError(f"--geometries: {name!r} is not a shipped anatomical mesh")
-        surface = args.surfaces / f"{Path(geo.GEOMETRIES[name]).parent.name}.stl"
+        path = args.surfaces / f"{Path(geo.GEOMETRIES[name]).parent.name}.stl"
         old = shipped(name)
         folder = args.output / "mesh" / name
         start = time.perf_counter()
-        status = hm.main([str(surface), "--output", str(folder), "--force",
+        status = hm.main([str(path), "--output", str(folder), "--force",
                           "--origin-toward", *map(str, old["toward"])], comm=comm)
         seconds = time.perf_counter() - start
         if status != cli.EXIT_OK:
@@ -110,23 +158,46 @@ def run(comm, args) -> int:
         record = json.loads((folder / "mesh.json").read_text())
         new = record["statistics"]
         ref = meshstats.statistics(geo.load(name, comm))
+        stl = surface(path)
+        target = {"volume_cm3": stl["volume_mm3"] / 1e3, "csa_solid_cm2": stl["csa_solid_mm2"] / 1e2,
+                  "length_solid_cm": stl["length_solid_mm"] / 10}
         row = {"geometry": name, "seconds": seconds, "cells": new["cells"], "cells_shipped": old["cells"],
                "min_dihedral_deg": record["quality"]["min_dihedral_deg"],
                "min_dihedral_deg_shipped": old["min_dihedral_deg"],
-               **{f"{k}_diff": new[k] / ref[k] - 1 for k in ("volume_cm3", "csa0_cm2", "length_cm")},
+               "surface_offset_mm": record["quality"].get("surface_offset_mm", 0.0),
+               "stl": target,
+               **{f"{k}_diff": new[k] / target[k] - 1 for k in target},
+               **{f"{k}_diff_shipped": ref[k] / target[k] - 1 for k in target},
+               **{f"{k}_diff_new_shipped": new[k] / ref[k] - 1 for k in (*target, "csa0_cm2", "length_cm")},
+               "csa0_vs_solid_shipped": ref["csa0_cm2"] / ref["csa_solid_cm2"] - 1,
                "csa_shipped_plane_diff": csa_at_shipped_plane(comm, name, folder),
                "end_area_ratio": [a / b for a, b in zip(record["end_area_mm2"], old["end_area_mm2"])],
                "fibre_angle_deg": fibre_angle(comm, name, folder)}
-        rows.append(row)
         info(comm, f"{name:<15} {seconds:5.1f} s {row['cells']:>6}/{old['cells']:<5} cells, dihedral "
-                   f"{row['min_dihedral_deg']:4.1f}/{old['min_dihedral_deg']:4.1f}°  volume "
-                   f"{100 * row['volume_cm3_diff']:+5.2f} %  CSA0 {100 * row['csa0_cm2_diff']:+5.2f} %  length "
-                   f"{100 * row['length_cm_diff']:+5.2f} %  CSA at shipped plane "
-                   f"{100 * row['csa_shipped_plane_diff']:+5.2f} %  ends x{row['end_area_ratio'][0]:.2f} "
+                   f"{row['min_dihedral_deg']:4.1f}/{old['min_dihedral_deg']:4.1f}°; against the STL (new, shipped): "
+                   + "  ".join(f"{label} {100 * row[k + '_diff']:+5.2f} {100 * row[k + '_diff_shipped']:+5.2f} %"
+                               for label, k in (("volume", "volume_cm3"), ("CSA", "csa_solid_cm2"),
+                                                ("length", "length_solid_cm")))
+                   + f"; CSA0 new/shipped {100 * row['csa0_cm2_diff_new_shipped']:+5.2f} %, shipped CSA0/CSA "
+                   f"{100 * row['csa0_vs_solid_shipped']:+5.2f} %; ends x{row['end_area_ratio'][0]:.2f} "
                    f"x{row['end_area_ratio'][1]:.2f}  fibres {row['fibre_angle_deg']:.1f}°")
+        if args.growth:
+            meshes = {"shipped": geo.load(name, comm)}
+            meshes["new"] = geo.load_file(folder / f"{name}.xdmf", comm, name=name, scale=geo.MM)
+            grown = {k: growth(g, fibers.load(g, None if k == "shipped" else folder / fibers.FILE_NAME))
+                     for k, g in meshes.items()}
+            row["growth"] = {"protocol": GROWTH_PROTOCOL, **grown,
+                             "difference_pp": {k: grown["new"][k] - grown["shipped"][k] for k in grown["new"]}}
+            d = row["growth"]["difference_pp"]
+            info(comm, f"{name:<15} {GROWTH_PROTOCOL}: CSA {grown['shipped']['csa_pct']:+.3f} -> "
+                       f"{grown['new']['csa_pct']:+.3f} % ({d['csa_pct']:+.3f} pp), volume "
+                       f"{grown['shipped']['volume_pct']:+.3f} -> {grown['new']['volume_pct']:+.3f} % "
+                       f"({d['volume_pct']:+.3f} pp), CSA on the solid's plane {grown['shipped']['csa_solid_pct']:+.3f}"
+                       f" -> {grown['new']['csa_solid_pct']:+.3f} % ({d['csa_solid_pct']:+.3f} pp)")
+        rows.append(row)
     if comm.rank == 0:
         with atomic_path(args.output / "mesh.json") as tmp:
-            tmp.write_text(json.dumps({"rows": rows}, indent=2) + "\n")
+            tmp.write_text(json.dumps({"rows": rows}, indent=2, default=float) + "\n")
     info(comm, f"wrote {args.output / 'mesh.json'}")
     return cli.EXIT_OK
 
