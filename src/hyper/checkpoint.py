@@ -220,8 +220,9 @@ def model_state(model: CoupledModel) -> tuple[np.ndarray, dict, dict]:
     Per-cell arrays have one row per owned cell. The mixed solution is stored as
     each cell's own dof values in the element's order: that order follows the cell's
     vertices as the mesh file lists them, so it is the same on any partition (P2 has
-    one dof per edge, so no dof transformation enters). Ḡ and A are per quadrature
-    point of the cell, whose points are placed by the same vertex order.
+    one dof per edge, so no dof transformation enters). Ḡ is per quadrature point of
+    the cell, whose points are placed by the same vertex order; what the next growth
+    increment needs besides (`hyper.growth.GrowthField.directions`) follows from w.
     """
     problem, growth, jacobian = model.problem, model.growth, model.jacobian
     cells = growth.cells
@@ -230,7 +231,6 @@ def model_state(model: CoupledModel) -> tuple[np.ndarray, dict, dict]:
     per_cell = {
         "w": problem.w.x.array[wdofs],
         "Gbar": growth.Gbar,
-        "A": growth.A,
     }
     glob = {
         "multipliers": np.asarray(problem.multipliers, dtype=float),
@@ -297,7 +297,7 @@ def restore_model(model: CoupledModel, rows: Callable[[str], np.ndarray | None],
     w.x.array[wdofs] = rows("w")
     w.x.scatter_forward()
     problem.multipliers = np.array(glob["multipliers"], dtype=float)
-    growth.set(np.array(rows("Gbar")[:nowned]), np.array(rows("A")[:nowned]))
+    growth.set(np.array(rows("Gbar")[:nowned]))  # after w: the fibre directions come from it
 
     # per-cell parameters (random fields) come from the state: they are part of it
     names = [f"params.{f.name}" for f in dataclasses.fields(model.params)]
