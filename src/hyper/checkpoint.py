@@ -100,7 +100,9 @@ def write(comm, path: Path, original: np.ndarray, per_cell: Mapping[str, np.ndar
     arrays with one row per owned cell; ``glob``: values equal on every rank.
     """
     names = sorted(per_cell)
-    parts = comm.gather((np.asarray(original, dtype=np.int64), [np.asarray(per_cell[k]) for k in names]), root=0)
+    mine = (np.asarray(original, dtype=np.int64), [np.asarray(per_cell[k]) for k in names])
+    # one rank: no gather, whose pickling was half of a checkpoint's CPU (0.1 s of 30 MB)
+    parts = [mine] if comm.size == 1 else comm.gather(mine, root=0)
     error = None
     if comm.rank == 0:
         try:
