@@ -189,12 +189,17 @@ class GrowthField:
         self.directions = (self.a0, self.a0)
         self._previous = self.Gbar
         self.function = fem.Function(self.space, name="Gbar")
+        # the owned points numbered in order (quadrature spaces): a copy instead of a scatter by index
+        self._in_order = bool(np.array_equal(self.dofs.ravel(), np.arange(self.dofs.size)))
         self._write(self.Gbar)
         self._F_expr = None
 
     def _write(self, Gbar) -> None:
         values = self.function.x.array.reshape(-1, 9)
-        values[self.dofs.ravel()] = Gbar.reshape(-1, 9)
+        if self._in_order:
+            values[: self.dofs.size] = Gbar.reshape(-1, 9)
+        else:
+            values[self.dofs.ravel()] = Gbar.reshape(-1, 9)
         self.function.x.scatter_forward()
 
     def set(self, Gbar) -> None:
