@@ -188,6 +188,7 @@ class GrowthField:
         # F = I: both directions are a0
         self.directions = (self.a0, self.a0)
         self._previous = self.Gbar
+        self._cell_det = (None, None)  # (the Ḡ it is of, det Ḡ per cell)
         self.function = fem.Function(self.space, name="Gbar")
         # the owned points numbered in order (quadrature spaces): a copy instead of a scatter by index
         self._in_order = bool(np.array_equal(self.dofs.ravel(), np.arange(self.dofs.size)))
@@ -243,12 +244,17 @@ class GrowthField:
 
     def cell_det(self) -> np.ndarray:
         """det Ḡ averaged over each owned cell (the volume growth per cell; with DG1
-        fields, the mean of its vertex values)."""
+        fields, the mean of its vertex values). Read-only: computed once per Ḡ (which is
+        replaced, never changed in place), as the Newton solve and the snapshot both ask."""
         G = self.Gbar
-        det = (G[..., 0, 0] * (G[..., 1, 1] * G[..., 2, 2] - G[..., 1, 2] * G[..., 2, 1])
-               - G[..., 0, 1] * (G[..., 1, 0] * G[..., 2, 2] - G[..., 1, 2] * G[..., 2, 0])
-               + G[..., 0, 2] * (G[..., 1, 0] * G[..., 2, 1] - G[..., 1, 1] * G[..., 2, 0]))
-        return det @ self.weights / self.weights.sum()
+        if self._cell_det[0] is not G:
+            det = (G[..., 0, 0] * (G[..., 1, 1] * G[..., 2, 2] - G[..., 1, 2] * G[..., 2, 1])
+                   - G[..., 0, 1] * (G[..., 1, 0] * G[..., 2, 2] - G[..., 1, 2] * G[..., 2, 0])
+                   + G[..., 0, 2] * (G[..., 1, 0] * G[..., 2, 1] - G[..., 1, 1] * G[..., 2, 0]))
+            det = det @ self.weights / self.weights.sum()
+            det.flags.writeable = False
+            self._cell_det = (G, det)
+        return self._cell_det[1]
 
 
 def nanson_area_density(F, N):
