@@ -37,6 +37,15 @@ def uniform_growth(theta):
     return lambda x: np.array([s * x[0], s * x[1], 0.0 * x[2]])
 
 
+def test_inside_a_tetrahedron_by_its_barycentric_coordinates():
+    tet = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    flat = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
+    tets = np.array([tet, tet, tet, tet, flat])
+    points = np.array([[0.2, 0.2, 0.2], [0.5, 0.5, 0.1], [0.0, 0.3, 0.3], [-0.1, 0.2, 0.2], [0.3, 0.3, 0.0]])
+    # inside; beyond the slanted face; on a face (not strictly inside); outside; a degenerate tetrahedron
+    assert box.inside(tets, points).tolist() == [True, False, False, False, False]
+
+
 def test_prism_staircase_is_the_faces_of_the_touching_cells():
     mesh = prism(MPI.COMM_SELF)
     u = displacement(mesh, lambda x: np.zeros_like(x))

@@ -13,6 +13,7 @@ import pytest
 from hyper import signaling as S
 from hyper.params import InputError
 from hyper.protocols import Protocol, Session, named
+from hyper.signaling.model import lambert_w0
 
 P0 = S.SignalingParams()
 Y0 = S.rest_state()
@@ -121,6 +122,15 @@ def test_a2_closed_form_matches_the_integral_of_the_bump():
     assert 15.0 < duration < 16.5
     assert S.g(duration - t1, th) == pytest.approx(S.g(-t1, th), rel=1e-14)
     assert np.all(a2[t > 10.0 + duration] == P0.a20)
+
+
+def test_lambert_w0_is_scipys():
+    from scipy.special import lambertw
+
+    for u in -np.geomspace(1.05, 60.0, 400):
+        z = u * np.exp(u)
+        assert lambert_w0(z) == pytest.approx(float(lambertw(z, 0).real), rel=4e-15, abs=1e-300)
+    assert lambert_w0(-1.0 / np.e + 1e-12) == pytest.approx(-1.0, abs=3e-6)
 
 
 def test_a1_is_the_session_stimulus():

@@ -119,7 +119,12 @@ def touching(box, muscle) -> np.ndarray:
     pairs = geometry.compute_collisions_trees(geometry.bb_tree(muscle, 3, entities=owned),
                                               geometry.bb_tree(box, 3))
     xm, xb = cell_coordinates(muscle, owned), cell_coordinates(box, np.arange(n_box))
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    # A box cell whose centroid lies inside a muscle cell touches it (distance 0): decided
+    # for all pairs at once, so GJK (20 µs a pair in Python, 0.6 s of an anatomical run's
+    # set-up) only decides the rest.
     touch = np.zeros(n_box, dtype=bool)
+    touch[pairs[inside(xm[pairs[:, 0]], xb[pairs[:, 1]].mean(axis=1)), 1]] = True
     for m, b in pairs:
         if not touch[b] and np.linalg.norm(geometry.compute_distance_gjk(xm[m], xb[b])) <= TOUCH:
             touch[b] = True
@@ -152,6 +157,16 @@ def check_outside(outside: str) -> str:
     if outside not in OUTSIDE:
         raise InputError(f"expected one of {', '.join(OUTSIDE)}, got {outside!r}", field="outside")
     return outside
+
+
+def inside(tets, points, margin: float = 1e-9) -> np.ndarray:
+    """Whether each point (n, 3) lies inside its tetrahedron (n, 4, 3) with every
+    barycentric coordinate above ``margin`` (False for a degenerate one)."""
+    x0 = tets[:, 0]
+    edges = np.transpose(tets[:, 1:] - x0[:, None, :], (0, 2, 1))  # columns x_i - x0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = growth.solve(edges, points - x0)
+    return np.all(lam > margin, axis=1) & (1.0 - lam.sum(axis=1) > margin)
 
 
 class BoxSection:

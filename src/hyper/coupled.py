@@ -404,13 +404,13 @@ class CoupledModel:
     def _step(self, theta, t0: float, t1: float) -> tuple[int, int]:
         """One growth step; if it cannot be solved, the state before it comes back."""
         w, mult = self.problem.w.x.array.copy(), self.problem.multipliers.copy()
-        Gbar, A = self.growth.Gbar, self.growth.A  # replaced, never changed in place
+        Gbar = self.growth.Gbar  # replaced, never changed in place
         try:
             return self._grow(theta)
         except SolverError as err:
             self.problem.w.x.array[:] = w
             self.problem.multipliers = mult
-            self.growth.set(Gbar, A)
+            self.growth.set(Gbar)
             if self.settings.newton == "kept":
                 self.jacobian.forget()
             raise GrowthFailure(

@@ -91,14 +91,38 @@ def cumulative_update(Gbar, A, G):
     return inverse(A) @ (G @ A @ Gbar)
 
 
-def transverse_update(Gbar, A, theta, a0):
-    """`cumulative_update` for G = `transverse_growth`(ϑ, a0), by its structure
-    G = √ϑ I + (1 - √ϑ) a0⊗a0: Ḡ_new = √ϑ Ḡ + (1 - √ϑ) (A⁻¹a0) ⊗ (Ḡᵀ Aᵀ a0),
-    a few array operations per point instead of a 3×3 solve and three products."""
+def transverse_update(Gbar, pulled, pushed, theta):
+    """`cumulative_update` for G = `transverse_growth`(ϑ, a0), from the fibre directions
+    F⁻¹a0 (``pulled``) and Fᵀa0 (``pushed``) of the last equilibrium F = A Ḡ:
+    A⁻¹ G A Ḡ = Ḡ F⁻¹ G F = √ϑ Ḡ + (1 - √ϑ) (Ḡ F⁻¹a0) ⊗ (Fᵀa0), a few array
+    operations per point where A⁻¹ G A Ḡ takes two inverses and three products."""
     s = np.sqrt(np.asarray(theta, dtype=float))[..., None, None]
-    left = (inverse(A) @ a0[..., None])[..., 0]
-    right = np.einsum("...ji,...j->...i", Gbar, np.einsum("...ji,...j->...i", A, a0))
-    return s * Gbar + (1.0 - s) * left[..., :, None] * right[..., None, :]
+    left = np.einsum("...ij,...j->...i", Gbar, pulled)
+    out = np.multiply((1.0 - s) * left[..., :, None], pushed[..., None, :])
+    out += s * Gbar
+    return out
+
+
+def fibre_directions(F, a0):
+    """(F⁻¹a0, Fᵀa0) for stacks of deformation gradients F and fibres a0 (..., 3): what
+    `transverse_update` needs of the last equilibrium."""
+    return solve(F, a0), np.einsum("...ji,...j->...i", F, a0)
+
+
+def solve(M, v):
+    """M⁻¹v for stacks of 3×3 tensors and 3-vectors, by the adjugate (`inverse`), with
+    no inverse formed: half the work of inverse(M) @ v."""
+    a, b, c = M[..., 0, 0], M[..., 0, 1], M[..., 0, 2]
+    d, e, f = M[..., 1, 0], M[..., 1, 1], M[..., 1, 2]
+    g, h, i = M[..., 2, 0], M[..., 2, 1], M[..., 2, 2]
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    c0, c1, c2 = e * i - f * h, f * g - d * i, d * h - e * g  # the first column of the adjugate
+    out = np.empty(np.shape(v))
+    out[..., 0] = c0 * x + (c * h - b * i) * y + (b * f - c * e) * z
+    out[..., 1] = c1 * x + (a * i - c * g) * y + (c * d - a * f) * z
+    out[..., 2] = c2 * x + (b * g - a * h) * y + (a * e - b * d) * z
+    out /= (a * c0 + b * c1 + c * c2)[..., None]
+    return out
 
 
 def elastic_part(F, Gbar):
@@ -121,12 +145,16 @@ def inverse(M):
 
 
 class GrowthField:
-    """Total growth Ḡ and elastic tensor A at the quadrature points of a mesh.
+    """Total growth Ḡ at the quadrature points of a mesh, and what its next increment
+    needs of the last equilibrium.
 
     Ḡ lives in a DOLFINx quadrature space of the same degree as the forms, so the
-    mechanics sees exactly the tensors computed here; A is only needed here and stays
-    a numpy array. Both are kept for the owned cells; ghost values of Ḡ come from a
-    scatter. Arrays are laid out (owned cell, quadrature point, 3, 3).
+    mechanics sees exactly the tensors computed here. The elastic tensor A = F Ḡ⁻¹ of
+    MODEL.md §4 enters an increment only through A⁻¹ G A Ḡ = Ḡ F⁻¹ G F, so the field
+    keeps the fibre directions F⁻¹a0 and Fᵀa0 of the last equilibrium instead of A: they
+    follow from the solution (`set` reads them from it), and an increment costs no
+    inverse of Ḡ or A. Arrays are kept for the owned cells, laid out (owned cell,
+    quadrature point, 3, 3) and (…, 3); ghost values of Ḡ come from a scatter.
 
     ``fields="dg1"`` (`GROWTH_FIELDS`): the same tensors at the four vertices of each
     cell instead, Ḡ a cell-wise linear (DG1) function that the forms interpolate (the
@@ -157,26 +185,43 @@ class GrowthField:
         self.a0 = fib / np.linalg.norm(fib, axis=-1, keepdims=True)
         eye = np.broadcast_to(np.eye(3), (len(self.cells), nq, 3, 3))
         self.Gbar = eye.copy()
-        self.A = eye.copy()
+        # F = I: both directions are a0
+        self.directions = (self.a0, self.a0)
         self._previous = self.Gbar
+        self._cell_det = (None, None)  # (the Ḡ it is of, det Ḡ per cell)
         self.function = fem.Function(self.space, name="Gbar")
+        # the owned points numbered in order (quadrature spaces): a copy instead of a scatter by index
+        self._in_order = bool(np.array_equal(self.dofs.ravel(), np.arange(self.dofs.size)))
         self._write(self.Gbar)
         self._F_expr = None
 
     def _write(self, Gbar) -> None:
         values = self.function.x.array.reshape(-1, 9)
-        values[self.dofs.ravel()] = Gbar.reshape(-1, 9)
+        if self._in_order:
+            values[: self.dofs.size] = Gbar.reshape(-1, 9)
+        else:
+            values[self.dofs.ravel()] = Gbar.reshape(-1, 9)
         self.function.x.scatter_forward()
 
-    def set(self, Gbar, A) -> None:
-        """Take over Ḡ and A (a saved state, or the one before a failed step)."""
-        self.Gbar, self.A = Gbar, A
+    def set(self, Gbar) -> None:
+        """Take over Ḡ (a saved state, or the one before a failed step) with the
+        equilibrium now in the mechanics' solution."""
+        self.Gbar = Gbar
         self._previous = Gbar
         self._write(Gbar)
+        self.directions = fibre_directions(self._deformation(), self.a0)
 
     def set_deformation(self, F) -> None:
-        """Give the UFL deformation gradient whose values update A after each solve."""
+        """Give the UFL deformation gradient whose values the next increment reads after each solve."""
         self._F_expr = fem.Expression(F, self.points)
+
+    def _deformation(self) -> np.ndarray:
+        nq = self.points.shape[0]
+        return self._F_expr.eval(self.mesh, self.cells).reshape(-1, nq, 3, 3)
+
+    def elastic_tensor(self) -> np.ndarray:
+        """A = F Ḡ⁻¹ at every point, from the mechanics' current solution."""
+        return elastic_part(self._deformation(), self.Gbar)
 
     def grow(self, theta) -> None:
         """Apply one increment with area multiplier ϑ (scalar, or one value per owned cell)."""
@@ -184,7 +229,7 @@ class GrowthField:
         if theta.ndim == 1:
             theta = theta[:, None]
         self._previous = self.Gbar
-        self.Gbar = transverse_update(self.Gbar, self.A, theta, self.a0)
+        self.Gbar = transverse_update(self.Gbar, *self.directions, theta)
         self._write(self.Gbar)
 
     def revert(self) -> None:
@@ -193,20 +238,23 @@ class GrowthField:
         self._write(self.Gbar)
 
     def accept(self) -> None:
-        """Take the new equilibrium: A = F Ḡ⁻¹ at every quadrature point."""
-        nq = self.points.shape[0]
-        F = self._F_expr.eval(self.mesh, self.cells).reshape(-1, nq, 3, 3)
-        self.A = elastic_part(F, self.Gbar)
+        """Take the new equilibrium: its fibre directions at every quadrature point."""
+        self.directions = fibre_directions(self._deformation(), self.a0)
         self._previous = self.Gbar
 
     def cell_det(self) -> np.ndarray:
         """det Ḡ averaged over each owned cell (the volume growth per cell; with DG1
-        fields, the mean of its vertex values)."""
+        fields, the mean of its vertex values). Read-only: computed once per Ḡ (which is
+        replaced, never changed in place), as the Newton solve and the snapshot both ask."""
         G = self.Gbar
-        det = (G[..., 0, 0] * (G[..., 1, 1] * G[..., 2, 2] - G[..., 1, 2] * G[..., 2, 1])
-               - G[..., 0, 1] * (G[..., 1, 0] * G[..., 2, 2] - G[..., 1, 2] * G[..., 2, 0])
-               + G[..., 0, 2] * (G[..., 1, 0] * G[..., 2, 1] - G[..., 1, 1] * G[..., 2, 0]))
-        return det @ self.weights / self.weights.sum()
+        if self._cell_det[0] is not G:
+            det = (G[..., 0, 0] * (G[..., 1, 1] * G[..., 2, 2] - G[..., 1, 2] * G[..., 2, 1])
+                   - G[..., 0, 1] * (G[..., 1, 0] * G[..., 2, 2] - G[..., 1, 2] * G[..., 2, 0])
+                   + G[..., 0, 2] * (G[..., 1, 0] * G[..., 2, 1] - G[..., 1, 1] * G[..., 2, 0]))
+            det = det @ self.weights / self.weights.sum()
+            det.flags.writeable = False
+            self._cell_det = (G, det)
+        return self._cell_det[1]
 
 
 def nanson_area_density(F, N):
