@@ -435,8 +435,7 @@ def run(comm, args) -> int:
               "dimensions": dimensions, "failure": failure, "collected": collect(args.output),
               "versions": io.versions(), "wall_s": time.perf_counter() - start}
     args.output.mkdir(parents=True, exist_ok=True)
-    with io.atomic_path(args.output / "atlas.json") as tmp:
-        tmp.write_text(json.dumps(result, indent=2, default=float) + "\n")
+    common.write_json(args.output / "atlas.json", result)
     _charts(args.output, result)
     for name, rows in dimensions.items():
         for row in rows:

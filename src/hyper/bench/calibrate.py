@@ -15,7 +15,6 @@ Writes results/bench/calibrate.json.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -87,8 +86,7 @@ def run(comm, args) -> int:
         print(f"fit by coupled runs: {result['fit_coupled']}; the ODE model is {result['speedup']:.0f}x faster",
               flush=True)
     if comm.rank == 0:
-        with io.atomic_path(args.output / "calibrate.json") as tmp:
-            tmp.write_text(json.dumps(result, indent=2, default=float) + "\n")
+        common.write_json(args.output / "calibrate.json", result)
     print(f"wrote {args.output / 'calibrate.json'}")
     return 0
 

@@ -35,6 +35,15 @@ def add_worker_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, help=argparse.SUPPRESS)
 
 
+def write_json(path: Path, result: dict) -> None:
+    """A benchmark's result file, written atomically: a killed bench leaves the previous
+    file (or none), never half of one."""
+    from hyper import io
+
+    with io.atomic_path(Path(path)) as tmp:
+        tmp.write_text(json.dumps(result, indent=2, default=float) + "\n")
+
+
 def write_worker_result(comm, path: Path, result: dict) -> None:
     if comm.rank == 0:
         Path(path).write_text(json.dumps(result, default=float))

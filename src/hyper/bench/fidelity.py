@@ -17,7 +17,6 @@ error. Writes results/bench/fidelity.json.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from hyper import cli
@@ -99,8 +98,7 @@ def run(comm, args) -> int:
         if "speedup_wall" in comparison:
             print(f"  choice is {comparison['speedup_wall']:.1f}x faster (wall), "
                   f"{comparison['speedup_cpu']:.1f}x (CPU) than the paper's settings", flush=True)
-    with io.atomic_path(args.output / "fidelity.json") as tmp:
-        tmp.write_text(json.dumps(result, indent=2, default=float) + "\n")
+    common.write_json(args.output / "fidelity.json", result)
     print(f"wrote {args.output / 'fidelity.json'}")
     return 0
 

@@ -32,7 +32,6 @@ growth_series.png (CSA and volume against time per Δtg). ``--quick`` leaves out
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import sys
@@ -488,7 +487,7 @@ def run(comm, args) -> int:
     }
     out = args.output
     out.mkdir(parents=True, exist_ok=True)
-    (out / "growth.json").write_text(json.dumps(result, indent=1))
+    common.write_json(out / "growth.json", result)
     pareto_chart(out / "growth.png", result)
     series_chart(out / "growth_series.png", result,
                  {r["label"]: series[r["label"]] for r in sweep if r["label"] in series})

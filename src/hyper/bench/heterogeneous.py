@@ -17,7 +17,6 @@ results/bench/heterogeneous.json and heterogeneous.png. Runs on any number of ra
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from pathlib import Path
@@ -136,8 +135,7 @@ def run(comm, args) -> int:
     result["machine"]["load_average_at_end"] = os.getloadavg()
     if comm.rank == 0:
         args.output.mkdir(parents=True, exist_ok=True)
-        with io.atomic_path(args.output / "heterogeneous.json") as path:
-            path.write_text(json.dumps(result, indent=2))
+        common.write_json(args.output / "heterogeneous.json", result)
         chart(result, args.output / "heterogeneous.png")
     t, s = result["throughput"], result["coupled"]
     info(comm, f"per-cell RK4 on {sum(t['cells_per_rank'])} cells ({comm.size} rank(s)): compiled "

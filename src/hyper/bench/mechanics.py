@@ -260,7 +260,7 @@ def run(comm, args) -> int:
     }
     out = args.output
     out.mkdir(parents=True, exist_ok=True)
-    (out / "mechanics.json").write_text(json.dumps(result, indent=1))
+    common.write_json(out / "mechanics.json", result)
     chart(out / "mechanics.png", result)
     print(f"wrote {out / 'mechanics.json'} and {out / 'mechanics.png'}")
     return 0

@@ -41,6 +41,7 @@ import numpy as np
 
 from hyper import cli
 from hyper import geometry as geo
+from hyper.bench import common
 from hyper.params import InputError
 
 SURFACES = Path(__file__).resolve().parents[3].parent / "shared" / "surfaces"
@@ -139,7 +140,6 @@ def parser() -> cli.Parser:
 def run(comm, args) -> int:
     from hyper import fibers, meshstats
     from hyper import mesh as hm
-    from hyper.io import atomic_path
     from hyper.log import info
 
     rows = []
@@ -196,8 +196,7 @@ def run(comm, args) -> int:
                        f" -> {grown['new']['csa_solid_pct']:+.3f} % ({d['csa_solid_pct']:+.3f} pp)")
         rows.append(row)
     if comm.rank == 0:
-        with atomic_path(args.output / "mesh.json") as tmp:
-            tmp.write_text(json.dumps({"rows": rows}, indent=2, default=float) + "\n")
+        common.write_json(args.output / "mesh.json", {"rows": rows})
     info(comm, f"wrote {args.output / 'mesh.json'}")
     return cli.EXIT_OK
 

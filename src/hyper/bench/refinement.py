@@ -25,7 +25,6 @@ rank. Writes results/bench/refinement.json and refinement.png.
 
 from __future__ import annotations
 
-import json
 import resource
 import time
 from pathlib import Path
@@ -168,8 +167,7 @@ def run(comm, args) -> int:
               "lu_memory": memory_limit(rows, args.memory_gib), "versions": io.versions()}
     if comm.rank == 0:
         args.output.mkdir(parents=True, exist_ok=True)
-        with io.atomic_path(args.output / "refinement.json") as tmp:
-            tmp.write_text(json.dumps(result, indent=2) + "\n")
+        common.write_json(args.output / "refinement.json", result)
         chart(args.output / "refinement.png", result)
         for key, value in result["forces"].items():
             if "order" in value:

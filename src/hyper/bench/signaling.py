@@ -18,7 +18,6 @@ OMP_NUM_THREADS=1: the throughput is per core.
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import time
@@ -26,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import cli, io, plot
+from hyper import cli, plot
 from hyper import signaling as S
 from hyper.bench import common
 from hyper.protocols import named
@@ -299,8 +298,7 @@ def run(comm, args) -> int:
 
     folder = args.output
     path = folder / "signaling.json"
-    with io.atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(result, indent=2))
+    common.write_json(path, result)
     charts = _charts(result, folder)
     print(f"wrote {path}, " + ", ".join(map(str, charts)))
     return 0

@@ -15,7 +15,6 @@ side, are what to read.
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -106,8 +105,7 @@ def run(comm, args) -> int:
         "backends": backends,
     }
     args.output.mkdir(parents=True, exist_ok=True)
-    with io.atomic_path(args.output / "sobol.json") as path:
-        path.write_text(json.dumps(result, indent=2))
+    common.write_json(args.output / "sobol.json", result)
 
     plt = plot.pyplot()
     fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.6))

@@ -26,7 +26,6 @@ series differences).
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 import tempfile
@@ -35,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper import cli, io, plot
+from hyper import cli, plot
 from hyper.bench import common
 from hyper.params import InputError
 
@@ -237,8 +236,7 @@ def run(comm, args) -> int:
               "wall_s": time.perf_counter() - started}
     out = args.output
     out.mkdir(parents=True, exist_ok=True)
-    with io.atomic_path(out / "speed.json") as tmp:
-        tmp.write_text(json.dumps(result, indent=1))
+    common.write_json(out / "speed.json", result)
     chart(out / "speed.png", result)
     print(f"wrote {out / 'speed.json'}, {out / 'speed.png'}")
     return 0
