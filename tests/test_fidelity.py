@@ -28,12 +28,12 @@ def rung(longest: float) -> float:
 def test_accuracy_1e3_of_the_growth_takes_one_step_per_period_and_the_rk4_step_of_the_formula():
     choice = choose(GROWTH, 1e-3)
     assert choice.model == "uniform"
-    assert choice.growth_dt == 168.0  # 7.17e-6 x 10 <= 5e-4
+    assert choice.growth_dt == 168.0  # 7.16e-6 x 10 <= 5e-4
     # half of 1e-3 for RK4: dt = 0.05 h (5e-4 / (2 x 4.9e-6))^(1/4) = 0.134 h -> 0.125 h
     longest = 0.05 * (0.5e-3 / (fidelity.SIGNALING_SAFETY * 4.9e-6)) ** 0.25
     assert longest == pytest.approx(0.1336, abs=1e-4)
     assert choice.signaling_dt == rung(longest) == 0.125
-    assert choice.predicted_error == pytest.approx(7.17e-6 + 4.9e-6 * 2.5**4)  # 1.99e-4
+    assert choice.predicted_error == pytest.approx(7.16e-6 + 4.9e-6 * 2.5**4)  # 1.99e-4
     assert choice.accuracy == 1e-3
     assert choice.describe() == ("uniform model, growth step 168 h, RK4 step 0.125 h; predicted error 0.0002 "
                                  "of the growth <= accuracy 0.001")
@@ -82,8 +82,8 @@ def test_an_accuracy_outside_0_to_half_is_refused(accuracy):
 
 
 @pytest.mark.parametrize("scene, accuracy, smallest", [
-    (GROWTH, 1e-9, "1.34e-06"),  # 10 x 6.68e-8 (growth step 1 h) / (1/2)
-    (GROWTH, 1e-6, "1.34e-06"),
+    (GROWTH, 1e-9, "1.27e-06"),  # 10 x 6.37e-8 (growth step 1 h) / (1/2)
+    (GROWTH, 1e-6, "1.27e-06"),
     (SIGNALING, 1e-9, "1.31e-09"),  # 2 x 4.1e-7 (0.01 / 0.05)^4
 ])
 def test_an_accuracy_tighter_than_the_tables_is_refused_with_the_smallest_supported(scene, accuracy, smallest):

@@ -837,7 +837,7 @@ def box_figure(output: Path, path: Path) -> Path | None:
 
 
 def idealized_figure(output: Path, path: Path, quick: bool) -> Path | None:
-    from hyper import plot, sequence
+    from hyper import measured, plot
 
     dt = QUICK_GROWTH_DT if quick else ORIGINAL_GROWTH_DT
     files = {
@@ -845,7 +845,8 @@ def idealized_figure(output: Path, path: Path, quick: bool) -> Path | None:
         "original": series_path(output, f"idealized_mwf_original_dt{dt:g}"),
     }
     results = {name: io.read_series(p) for name, p in files.items() if io.is_complete(p)}
-    return plot.growth_series(results, path, sequence.DATA) if results else None
+    data = measured.of_protocol(protocols.named("mwf"))
+    return plot.growth_series(results, path, [data] if data else []) if results else None
 
 
 # ------------------------------------------------------------------------- CLI
