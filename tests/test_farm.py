@@ -207,3 +207,16 @@ def test_mpi_invalid_ranks_per_job():
     comm = MPI.COMM_WORLD
     with pytest.raises(InputError, match="divide the number of MPI ranks"):
         farm.run(comm, toy_jobs(), Recorder(comm), ranks_per_job=3)
+
+
+@pytest.mark.mpi
+def test_mpi_groups_wait_for_each_others_compiles():
+    """Groups that compile the same form wait for the first one's cache file: longer than
+    DOLFINx's default 10 s, which a loaded machine exceeded."""
+    import dolfinx_solver  # noqa: F401
+    from dolfinx import jit
+
+    comm = MPI.COMM_WORLD
+    jobs = toy_jobs()
+    farm.run(comm, jobs, Recorder(comm))
+    assert jit.get_options()["timeout"] >= farm.JIT_WAIT_S == 600

@@ -172,6 +172,22 @@ def _skipped(comm, jobs: Sequence[Job], is_done) -> list[bool]:
     return answer
 
 
+# Groups compile the same forms at the same time: one compiles, the others wait for its
+# cache file, which on a loaded machine took longer than DOLFINx's 10 s (a full
+# `hyper reproduce` lost a contraction run to "JIT compilation timed out").
+JIT_WAIT_S = 600
+
+
+def _wait_for_compiles() -> None:
+    try:
+        import dolfinx_solver  # noqa: F401  (must precede dolfinx)
+        from dolfinx import jit
+    except ImportError:  # a farm of jobs without DOLFINx
+        return
+    value, doc = jit.DOLFINX_DEFAULT_JIT_OPTIONS["timeout"]
+    jit.DOLFINX_DEFAULT_JIT_OPTIONS["timeout"] = (max(value, JIT_WAIT_S), doc)
+
+
 def run(
     comm,
     jobs: Sequence[Job],
@@ -192,6 +208,8 @@ def run(
     farm's progress as jobs end, at most every ``progress_every`` s (and at the last).
     """
     _check_ranks_per_job(comm, ranks_per_job)
+    if comm.size // ranks_per_job > 1:
+        _wait_for_compiles()
     keys = [job.key for job in jobs]
     if len(set(keys)) != len(keys):
         dup = sorted({k for k in keys if keys.count(k) > 1})

@@ -748,8 +748,9 @@ BOX_NOTE = (
     "The box measure's number depends on DOLFINx's `interpolate_nonmatching` extrapolating the muscle's "
     "displacement into box nodes that lie outside the muscle but inside the bounding boxes of its cells "
     "(MODEL.md §9 says u = 0 outside); setting every outside node to 0 instead makes the box read +0.02 % "
-    "(the rim then collapses towards no change at all). The numbers here are those of the original code's "
-    "call, which extrapolates."
+    "on BFLH_VHF_Left (its staircase's edge then lies where u = 0, so the in-plane Jacobian integrates to "
+    "the reference area whatever the growth). The numbers here are those of the original code's call, which "
+    "extrapolates; `hyper box RESULT.h5` re-measures a stored run's snapshots by both rules."
 )
 
 
