@@ -68,3 +68,19 @@ def test_a_sigterm_stops_the_farm_with_exit_143_and_no_report(tmp_path):
     assert "stopped by SIGTERM" in rest and not (out / "REPORT.md").exists()
     kept = list((out / "runs").glob("*.ckpt.h5")) + list((out / "runs").glob("*.h5"))
     assert kept, "nothing kept"
+
+
+def test_the_idealized_figure_shows_both_runs_and_the_mwf_data(tmp_path, monkeypatch):
+    """The figure of the full and the quick report (a missing data set crashed the full one)."""
+    import numpy as np
+
+    t = np.linspace(0.0, 1512.0, 8)
+    series = {"t": t, "csa_ratio": 1 + 0.08 * t / 1512, "volume_ratio": 1 + 0.08 * t / 1512, "kM": 0.01 - 1e-6 * t}
+    read = []
+    monkeypatch.setattr(reproduce.io, "is_complete", lambda p: True)
+    monkeypatch.setattr(reproduce.io, "read_series", lambda p: read.append(p.name) or series)
+    for quick in (True, False):
+        path = reproduce.idealized_figure(tmp_path, tmp_path / f"fig{quick}.png", quick)
+        assert path.stat().st_size > 10_000
+    assert read == ["idealized_mwf_default.h5", f"idealized_mwf_original_dt{reproduce.QUICK_GROWTH_DT:g}.h5",
+                    "idealized_mwf_default.h5", f"idealized_mwf_original_dt{reproduce.ORIGINAL_GROWTH_DT:g}.h5"]
