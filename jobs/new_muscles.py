@@ -18,20 +18,24 @@ def series(path):
         return f["t"][()], f["csa_ratio"][()], f["volume_ratio"][()], float(f.attrs["csa0_m2"])
 
 
-# mwf per muscle group
+# per muscle group and protocol: the final CSA and volume increase, mean (min, max) over subjects and sides
+PROTOCOLS = ("mwf", "every3days", "weekly")
 g = defaultdict(lambda: ([], []))
-for p in sorted(glob.glob("results/cohort-new/runs/*_mwf.h5")):
-    name = p.split("/")[-1][:-7]
-    t, c, v, _ = series(p)
-    g[name.split("_")[0]][0].append(100 * (c[-1] - 1))
-    g[name.split("_")[0]][1].append(100 * (v[-1] - 1))
-print("| muscle | n | CSA mwf mean (min, max) | volume mwf mean (min, max) |")
+for protocol in PROTOCOLS:
+    for p in sorted(glob.glob(f"results/cohort-new/runs/*_{protocol}.h5")):
+        name = p.split("/")[-1][: -len(f"_{protocol}.h5")]
+        t, c, v, _ = series(p)
+        g[name.split("_")[0], protocol][0].append(100 * (c[-1] - 1))
+        g[name.split("_")[0], protocol][1].append(100 * (v[-1] - 1))
+heads = [f"{what} {p}" for what in ("CSA", "volume") for p in PROTOCOLS]
+print("| muscle | n | " + " | ".join(heads) + " |")
 for m in ("RF", "VL", "VM", "VI", "GM"):
-    c, v = map(np.array, g[m])
-    print(
-        f"| {m} | {len(c)} | +{c.mean():.2f} % (+{c.min():.2f}, +{c.max():.2f}) "
-        f"| +{v.mean():.2f} % (+{v.min():.2f}, +{v.max():.2f}) |"
-    )
+    cells = []
+    for which in (0, 1):
+        for protocol in PROTOCOLS:
+            x = np.array(g[m, protocol][which])
+            cells.append(f"+{x.mean():.2f} % (+{x.min():.2f}, +{x.max():.2f})" if len(x) else "–")
+    print(f"| {m} | {len(g[m, 'mwf'][0])} | " + " | ".join(cells) + " |")
 fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4), layout="constrained")
 
 
