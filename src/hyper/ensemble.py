@@ -20,7 +20,7 @@ growth displacement u as P1). Files:
 with LABEL e.g. uniform-noise_eps0.01. A run whose complete .h5 exists for the same run
 (hyper.run's digest: geometry, protocol, heterogeneity, seed, settings) is skipped, so a
 rerun only redoes what is missing (and the figures). Runs checkpoint and resume as
-hyper grow's do (RESULT.ckpt.h5 every 10 growth steps and at the first step boundary
+hyper grow's do (RESULT.ckpt.h5 every run.CHECKPOINT_EVERY growth steps and at the first step boundary
 after a SIGTERM; exit status 143, and the same command continues them).
 
 Roughness of a cell field f: R(f) = sqrt(mean over interior facets of

@@ -43,7 +43,9 @@ from hyper.material import MaterialParams
 from hyper.params import InputError, as_attributes
 from hyper.protocols import Protocol
 
-CHECKPOINT_EVERY = 10  # growth steps; writing one took 0.3 s on BFLH_VHF_Left (8512 cells, 30 MB), a step 7 s
+# growth steps; on BFLH_VHF_Left (8512 cells) a checkpoint with the Newton state takes 0.4 s
+# to write, longer than a step (0.35 s)
+CHECKPOINT_EVERY = 25
 SNAPSHOT_EVERY = 24.0  # h of simulated time: a 9-week run writes 64 snapshots
 SERIES = ("t", "csa_ratio", "volume_ratio", "kM", *signaling.STATES, "newton_iterations", "halvings", "wall_s")
 LINEAR_SOLVERS = ("lu", "iterative", "auto")
