@@ -141,7 +141,7 @@ def chart(path: Path, result: dict) -> None:
             if "failed" not in result["runs"][g][m]]
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.8))
     names = [name for name, _ in PHASES] + list(PETSC_EVENTS) + ["newton_other", "io_and_rest"]
-    labels = [f"{g}\n{m}" for g, m, _ in rows]
+    labels = ["{}\n{}".format(g.replace("_", "\n", 1), m) for g, m, _ in rows]  # muscle ids on two lines
     bottom = np.zeros(len(rows))
     for i, name in enumerate(names):
         values = np.array([r["phases_s"][name] for _, _, r in rows])
