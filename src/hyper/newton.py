@@ -107,11 +107,13 @@ class KeptFactors:
         self.secants = Secants(problem.comm, depth)
 
     def _assemble(self, x) -> None:
+        """A fresh matrix: secants of earlier ones would only spoil its exactness."""
         problem = self.problem
         with self.monitor.track("jacobian assembly"):
             problem.assemble_jacobian(x)
             self.point = (problem.w.x.array.copy(), self.growth_function.x.array.copy())
         self.assemblies += 1
+        self.secants.clear()
 
     def _factorise(self) -> None:
         # PETSc factorises only a matrix whose state changed since the last set-up
@@ -229,7 +231,6 @@ class KeptFactors:
         fresh = self.point is None  # factors assembled for this solve
         if fresh:
             self._assemble(x)
-            self.secants.clear()
         r = self._r
         norm0 = norm = self._residual(x, r)
         if not math.isfinite(norm0):
@@ -252,26 +253,28 @@ class KeptFactors:
             norm = self._residual(x, r)
             iterations += 1
             self.count += 1
-            if math.isfinite(norm):
-                self.secants.add(step, r.getArray(readonly=True) - r_old)
             if not math.isfinite(norm):
                 reason = "DIVERGED_FNORM_NAN"
-            elif norm <= tol:
-                return iterations
-            elif iterations >= max_it:
-                reason = "DIVERGED_MAX_IT"
-            elif divergence > 0 and norm > divergence * norm0:
-                reason = "DIVERGED_DTOL"
             else:
-                reason = None
+                self.secants.add(step, r.getArray(readonly=True) - r_old)
+                if norm <= tol:
+                    return iterations
+                if iterations >= max_it:
+                    reason = "DIVERGED_MAX_IT"
+                elif divergence > 0 and norm > divergence * norm0:
+                    reason = "DIVERGED_DTOL"
+                else:
+                    reason = None
             kept += 1
             if reason is None and (fresh or (kept < KEPT_ITERATIONS and norm < norm0)):
                 continue
             if fresh and reason is not None:
                 raise SolverError(self._message(iterations, reason))
+            # Slow (or failing) with factors of an earlier step: start again with the matrix
+            # assembled at the start. Not at the best iterate: a small residual may hide a
+            # large error in a soft motion, where a matrix would be a poor one.
             start.copy(x)
             self._assemble(x)
-            self.secants.clear()
             norm = self._residual(x, r)
             fresh = True
 
@@ -293,9 +296,6 @@ class Secants:
         self.s: list[np.ndarray] = []
         self.y: list[np.ndarray] = []
         self.gram = np.empty((0, 0))
-
-    def __len__(self) -> int:
-        return len(self.y)
 
     def _dots(self, vectors, v) -> np.ndarray:
         return self.comm.allreduce(np.array([u @ v for u in vectors]), op=MPI.SUM)
