@@ -33,13 +33,19 @@ def principal_plane(points) -> tuple[np.ndarray, np.ndarray]:
     pts = pts[np.lexsort(pts.T[::-1])]
     origin = pts.mean(axis=0)
     centred = pts - origin
-    variance, axes = np.linalg.eigh(centred.T @ centred / len(pts))
+    return origin, first_axis(centred.T @ centred / len(pts))
+
+
+def first_axis(covariance) -> np.ndarray:
+    """The unit eigenvector of the largest eigenvalue of a 3x3 covariance, its largest
+    component positive; ValueError where that eigenvalue is not unique."""
+    variance, axes = np.linalg.eigh(covariance)
     if variance[2] - variance[1] <= 1e-12 * variance[2]:
         raise ValueError(f"no unique first principal axis (variances {variance})")
     normal = axes[:, 2]
     if normal[np.argmax(np.abs(normal))] < 0:
         normal = -normal
-    return origin, normal
+    return normal
 
 
 def solid_moments(tet_coords, *, signed: bool = False) -> tuple[float, np.ndarray, np.ndarray]:
@@ -70,13 +76,7 @@ def inertia_plane(volume: float, first, second) -> tuple[np.ndarray, np.ndarray]
     """
     centroid = np.asarray(first, dtype=float) / volume
     covariance = np.asarray(second, dtype=float) / volume - np.outer(centroid, centroid)
-    variance, axes = np.linalg.eigh(covariance)
-    if variance[2] - variance[1] <= 1e-12 * variance[2]:
-        raise ValueError(f"no unique first principal axis (variances {variance})")
-    normal = axes[:, 2]
-    if normal[np.argmax(np.abs(normal))] < 0:
-        normal = -normal
-    return centroid, normal
+    return centroid, first_axis(covariance)
 
 
 def solid_plane(mesh) -> tuple[np.ndarray, np.ndarray]:
