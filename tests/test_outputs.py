@@ -17,21 +17,10 @@ from mpi4py import MPI
 
 from hyper import cli, grow, io, log, measured, protocols, run, study
 from hyper.params import InputError
+from test_reliability import PROTOCOL  # the short two-session protocol
 
 ROOT = Path(__file__).resolve().parents[1]
 
-PROTOCOL = """
-name = "short"
-end = 96.0
-[[session]]
-start = 0.0
-duration = 1.0
-intensity = 0.8
-[[session]]
-start = 48.0
-duration = 1.0
-intensity = 0.8
-"""
 # CSA change in percent after 2 and 4 days
 DATA = "day,csa_change_percent\n0,0\n2,0.5\n4,1.0\n"
 
