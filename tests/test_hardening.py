@@ -258,3 +258,42 @@ def test_every_job_that_writes_stops_at_once_on_an_output_another_run_holds(tmp_
         lock.release()
     assert "another run is writing this output" in capsys.readouterr().err
     assert not out.exists() or not any(p.suffix in (".h5", ".csv", ".png", ".json") for p in out.rglob("*"))
+
+
+def test_a_term_reaches_the_run_when_petsc_starts_after_the_handler():
+    """PETSc's own SIGTERM handler aborts the process; a job that starts PETSc after it
+    installed run.StopOnTerm (the farm imports DOLFINx late) must still get a stop flag.
+    A fresh process, as PETSc in this one started long ago."""
+    code = ("import os, signal\nfrom hyper.run import StopOnTerm\n"
+            "with StopOnTerm() as stop:\n"
+            "    import dolfinx_solver\n    from petsc4py import PETSc\n"
+            "    os.kill(os.getpid(), signal.SIGTERM)\n"
+            "    assert stop(), 'the TERM did not reach StopOnTerm'\n"
+            "print('stopped')\n")
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout == "stopped\n", done.stderr
+
+
+def test_a_term_stops_a_sobol_job_with_its_chunks_kept(tmp_path):
+    """What Slurm's warning does to `hyper sobol` on two ranks (two farm groups, whose
+    first DOLFINx import starts PETSc late): exit 143 with the finished chunks on disk,
+    not PETSc's abort, which test_slurm_real.py caught once. mpirun passes the TERM on."""
+    import signal
+    import time
+
+    chunks = tmp_path / "sobol" / "chunks"
+    mpirun = str(Path(sys.executable).parent / "mpirun")
+    job = subprocess.Popen([mpirun, "-n", "2", sys.executable, "-m", "hyper.sobol", "--samples", "32", "--chunk", "16", "--output",
+                            str(tmp_path / "sobol"), "--quiet"], cwd=ROOT, stderr=subprocess.PIPE, text=True,
+                           env={**os.environ, "OMP_NUM_THREADS": "1"})
+    try:
+        end = time.monotonic() + 60
+        while not list(chunks.glob("*/*.npz")):  # 60 chunks, about 0.15 s each
+            assert job.poll() is None and time.monotonic() < end, "no chunk written"
+            time.sleep(0.05)
+        job.send_signal(signal.SIGTERM)
+        rc, stderr = job.wait(timeout=60), job.stderr.read()
+    finally:
+        job.kill()
+    assert rc == cli.EXIT_TERMINATED, stderr
+    assert 1 <= len(list(chunks.glob("*/*.npz"))) < 60

@@ -154,6 +154,9 @@ def cluster(tmp_path_factory):
 # ------------------------------------------------------------------------------ helpers
 
 
+ENDED = ("COMPLETED", "FAILED", "TIMEOUT", "CANCELLED")
+
+
 def job(env, job_id: str) -> dict:
     """`scontrol show job` of one job (or array task) as a dict."""
     text = _run("scontrol", "-o", "show", "job", job_id, env=env).stdout
@@ -181,9 +184,11 @@ def warn(env, job_id: str) -> None:
 
 def requeued_then_released(env, job_id: str) -> None:
     """Wait for the job to stop and requeue itself, then start it as soon as Slurm allows."""
-    state = wait_until(f"job {job_id} requeued", lambda: (s := job(env, job_id))["JobState"] == "PENDING" and s,
-                       timeout=60)
-    assert state["Restarts"] == "1"
+    state = wait_until(f"job {job_id} requeued", lambda: (s := job(env, job_id))["JobState"] in
+                       ("PENDING", *ENDED) and s, timeout=60)
+    log = Path(state["StdOut"])
+    assert state["JobState"] == "PENDING" and state["Restarts"] == "1", (
+        f"{state['JobState']} instead of requeued; its log ends:\n{log.read_text()[-2000:] if log.is_file() else ''}")
     # slurmd refuses a job id it killed until the credential lifetime (cred_expire, here
     # CRED_EXPIRE_S) has passed ("Job credential revoked"); Slurm makes the job eligible
     # only then. Once it is, start it now rather than at the scheduler's next pass.
@@ -193,8 +198,7 @@ def requeued_then_released(env, job_id: str) -> None:
 
 
 def completed(env, job_id: str, timeout: float = 90) -> None:
-    state = wait_until(f"job {job_id} ended", lambda: (s := job(env, job_id))["JobState"] in
-                       ("COMPLETED", "FAILED", "TIMEOUT", "CANCELLED") and s, timeout)
+    state = wait_until(f"job {job_id} ended", lambda: (s := job(env, job_id))["JobState"] in ENDED and s, timeout)
     assert state["JobState"] == "COMPLETED" and state["ExitCode"] == "0:0", state
 
 

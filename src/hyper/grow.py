@@ -236,11 +236,6 @@ def answer_signaling(comm, args) -> int:
 
 
 def grow(comm, args, argv: list[str]) -> int:
-    # PETSc installs its own SIGTERM handler (which aborts) when it starts: start it
-    # before ours, so that ours is the one in place.
-    import dolfinx_solver  # noqa: F401
-    from petsc4py import PETSc  # noqa: F401
-
     with run.StopOnTerm() as stop:
         return sequence.carry_out(comm, plan_from(comm, args), stop, ["hyper", "grow", *argv])
 

@@ -318,6 +318,12 @@ class StopOnTerm:
         self.received = True
 
     def __enter__(self):
+        # PETSc installs a SIGTERM handler that aborts when it starts, which would replace
+        # ours if a job started it later (the farm's first DOLFINx import did, once): start
+        # it now, before ours.
+        with contextlib.suppress(ImportError):  # a job without PETSc (signaling only)
+            import dolfinx_solver  # noqa: F401  (must precede petsc4py)
+            from petsc4py import PETSc  # noqa: F401
         with contextlib.suppress(ValueError):  # not the main thread: no handler, no stop
             self._previous = signal.signal(signal.SIGTERM, self._handler)
         return self
