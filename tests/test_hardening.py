@@ -283,8 +283,9 @@ def test_a_term_stops_a_sobol_job_with_its_chunks_kept(tmp_path):
 
     chunks = tmp_path / "sobol" / "chunks"
     mpirun = str(Path(sys.executable).parent / "mpirun")
-    job = subprocess.Popen([mpirun, "-n", "2", sys.executable, "-m", "hyper.sobol", "--samples", "32", "--chunk", "16", "--output",
-                            str(tmp_path / "sobol"), "--quiet"], cwd=ROOT, stderr=subprocess.PIPE, text=True,
+    command = [mpirun, "-n", "2", sys.executable, "-m", "hyper.sobol", "--samples", "32", "--chunk", "16",
+               "--output", str(tmp_path / "sobol"), "--quiet"]
+    job = subprocess.Popen(command, cwd=ROOT, stderr=subprocess.PIPE, text=True,
                            env={**os.environ, "OMP_NUM_THREADS": "1"})
     try:
         end = time.monotonic() + 60
