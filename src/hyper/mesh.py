@@ -28,7 +28,9 @@ Steps, each of which stops the job with one ``error:`` line (exit 2) and nothing
    angle FEATURE_DEG); and it is fast (an 8000-cell muscle in about 3 s). fTetWild
    (pytetwild), which made the shipped meshes, is more robust to broken surfaces, but
    step 2 refuses those, and it is slower. The size is
-   chosen for ``--cells`` (up to two corrections while the count is off by more than 10 %).
+   chosen for ``--cells`` (up to CELL_CORRECTIONS more while the count is off by over 10 %),
+   and falls to a tenth of it at the two tips (the surface's extreme vertices along the
+   axis of step 4), which the target size alone rounds off (TIP_SIZE).
    Volume: gmsh's surface edges are chords of the STL, so the mesh would be 1.2-1.8 %
    smaller than the surface at 8000 cells; the boundary nodes are then moved outward
    along their normals by one distance (0.07-0.12 mm on the Visible Human surfaces,
@@ -80,6 +82,14 @@ MIN_VOLUME = 1e-9  # of the bounding box's volume: a cell below it is degenerate
 ARRAYS = ("x", "tets", "facets", "tags")  # what `build` returns besides numbers
 OFFSET_STEPS, OFFSET_RTOL = 5, 1e-9  # fill_surface: Newton steps, and the volume's relative tolerance
 CELLS_PER_H3 = 9.0  # cells per volume/h³ after optimization, measured on the TA: the first guess of h
+# Near the two tips the size falls to TIP_SIZE of the target, growing back over TIP_REACH
+# of the length: at the target size alone gmsh's remeshed surface rounds the thin tips off
+# (TA_VHF_Right 4.6 % short of its STL). Never below TIP_EDGE of the STL's median edge,
+# though: finer cells find no more shape than the surface has, and at a coarse surface's
+# tips they made slivers.
+TIP_SIZE, TIP_REACH, TIP_EDGE = 0.1, 0.1, 0.25
+TIP_BAND = 0.005  # share of the length: the points that make a tip (`extremes`)
+CELL_CORRECTIONS = 4  # meshes after the first, while the count is off --cells by over 10 %
 
 
 # ---------------------------------------------------------------------------- reading
@@ -234,21 +244,55 @@ def segment_hits_triangle(start, end, tri) -> np.ndarray:
 # ------------------------------------------------------------------------ tetrahedra
 
 
-def tetrahedralize(points_mm: np.ndarray, triangles: np.ndarray, cells: int) -> tuple[np.ndarray, np.ndarray]:
-    """(x (n, 3) mm, tetrahedra (m, 4)) near ``cells`` cells inside the surface (gmsh)."""
+def tetrahedralize(points_mm: np.ndarray, triangles: np.ndarray, cells: int,
+                   axis=None) -> tuple[np.ndarray, np.ndarray]:
+    """(x (n, 3) mm, tetrahedra (m, 4)) near ``cells`` cells inside the surface (gmsh),
+    finer at the tips: the surface's extreme vertices along ``axis`` (by default the first
+    principal axis of its vertices, as find_ends takes the mesh's)."""
     volume = enclosed_volume(points_mm, triangles)
+    tips = extremes(points_mm, axis)
+    corners = points_mm[triangles]
+    finest = TIP_EDGE * float(np.median(np.linalg.norm(corners - corners[:, [1, 2, 0]], axis=2)))
+    reach = TIP_REACH * float(np.linalg.norm(tips[1] - tips[0]))
     size = (CELLS_PER_H3 * volume / cells) ** (1.0 / 3.0)
-    x, tets = gmsh_volume(points_mm, triangles, size)
-    for _ in range(2):  # the count is not quite cubic in 1/h (the surface mesh counts too)
+    x, tets = gmsh_volume(points_mm, triangles, size, tips, finest, reach)
+    # The count is not cubic in 1/h (the surface and the tips count too): the exponent
+    # is measured from the last two meshes, a secant on log(count) against log(h).
+    slope, tried = -3.0, [(size, len(tets))]
+    for _ in range(CELL_CORRECTIONS):
         if abs(len(tets) / cells - 1.0) <= 0.1:
             break
-        size *= (len(tets) / cells) ** (1.0 / 3.0)
-        x, tets = gmsh_volume(points_mm, triangles, size)
+        if len(tried) > 1:
+            (h0, n0), (h1, n1) = tried[-2:]
+            if h1 != h0 and n1 != n0:
+                slope = min(-1.0, math.log(n1 / n0) / math.log(h1 / h0))
+        size *= (cells / len(tets)) ** (1.0 / slope)
+        x, tets = gmsh_volume(points_mm, triangles, size, tips, finest, reach)
+        tried.append((size, len(tets)))
     return x, tets
 
 
-def gmsh_volume(points: np.ndarray, triangles: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
+def principal_axis(x: np.ndarray) -> np.ndarray:
+    _, vectors = np.linalg.eigh(np.cov((x - x.mean(axis=0)).T))
+    return vectors[:, -1]
+
+
+def extremes(x: np.ndarray, axis=None) -> np.ndarray:
+    """The two tips of ``x`` along ``axis`` (the principal axis by default): the mean of the
+    points within TIP_BAND of the length from each extreme, the extreme point of a tapered
+    end, the middle of a flat one (a cylinder's cap, not a point of its rim)."""
+    along = x @ (principal_axis(x) if axis is None else np.asarray(axis, dtype=float))
+    width = TIP_BAND * (along.max() - along.min())
+    return np.array([x[along <= along.min() + width].mean(axis=0), x[along >= along.max() - width].mean(axis=0)])
+
+
+def gmsh_volume(points: np.ndarray, triangles: np.ndarray, size: float, tips: np.ndarray, finest: float,
+                reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """Tetrahedra of the surface at ``size``, falling to max(TIP_SIZE size, ``finest``) at
+    ``tips`` and back to ``size`` within ``reach`` (mm) of them."""
     import gmsh
+
+    tip_size = min(size, max(TIP_SIZE * size, finest))
 
     gmsh.initialize(interruptible=False)
     try:
@@ -262,8 +306,22 @@ def gmsh_volume(points: np.ndarray, triangles: np.ndarray, size: float) -> tuple
         gmsh.model.mesh.createGeometry()
         loop = gmsh.model.geo.addSurfaceLoop([tag for _, tag in gmsh.model.getEntities(2)])
         gmsh.model.geo.addVolume([loop])
+        points_at = [gmsh.model.geo.addPoint(*tip) for tip in tips]
         gmsh.model.geo.synchronize()
-        gmsh.option.setNumber("Mesh.MeshSizeMin", size)
+        field = gmsh.model.mesh.field
+        distance = field.add("Distance")
+        field.setNumbers(distance, "PointsList", points_at)
+        ramp = field.add("Threshold")
+        field.setNumber(ramp, "InField", distance)
+        field.setNumber(ramp, "SizeMin", tip_size)
+        field.setNumber(ramp, "SizeMax", size)
+        field.setNumber(ramp, "DistMin", 0.0)
+        field.setNumber(ramp, "DistMax", reach)
+        field.setAsBackgroundMesh(ramp)
+        # the field alone sets the size: not the STL's own points, nor the surface's spacing
+        gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+        gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
+        gmsh.option.setNumber("Mesh.MeshSizeMin", tip_size)
         gmsh.option.setNumber("Mesh.MeshSizeMax", size)
         gmsh.model.mesh.generate(3)
         gmsh.model.mesh.optimize("Netgen")
@@ -371,10 +429,7 @@ def find_ends(x: np.ndarray, facets: np.ndarray, *, band: float = END_BAND, axis
         raise InputError(f"--end-band: expected a share of the length in (0, 0.5), got {band:g}: the two ends "
                          "would touch")
     centre = x.mean(axis=0)
-    if axis is None:
-        _, vectors = np.linalg.eigh(np.cov((x - centre).T))
-        axis = vectors[:, -1]
-    axis = np.asarray(axis, dtype=float)
+    axis = principal_axis(x) if axis is None else np.asarray(axis, dtype=float)
     if not np.linalg.norm(axis) > 0:
         raise InputError("--axis: expected a nonzero direction")
     axis = axis / np.linalg.norm(axis)
@@ -511,7 +566,7 @@ def build(args) -> dict:
     check_surface(path, points, triangles)
     checked = time.perf_counter()
     points_mm = points * UNITS_MM[args.unit]
-    x, tets = tetrahedralize(points_mm, triangles, args.cells)
+    x, tets = tetrahedralize(points_mm, triangles, args.cells, args.axis)
     x, offset = fill_surface(x, tets, enclosed_volume(points_mm, triangles))
     tets, quality = check_quality(x, tets)
     quality["surface_offset_mm"] = offset
