@@ -118,3 +118,27 @@ def test_inspect_shows_the_groups_and_the_study(grown, capsys):
     order = [text.index(f"[{g}]") for g in ("signaling", "material", "protocol", "settings")]
     assert order == sorted(order) and "  sigma_act = 250000.0" in text
     assert "study (the study file that reruns this result):" in text and '  geometries = ["cylinder"]' in text
+
+
+def test_a_remade_mesh_or_fibre_file_is_another_run(tmp_path, monkeypatch):
+    # A cohort skips a run whose result has its digest: after `hyper mesh --force` or
+    # `make new-meshes` remade a geometry's files in place, the old result must not count.
+    import shutil
+
+    from hyper import protocols, run
+
+    name = "TA_VHF_Left"
+    spec = run.RunSpec(name, protocols.named("mwf"))
+    before = spec.digest()
+    folder = spec.input_files()[0].parent
+    copy = tmp_path / folder.name
+    shutil.copytree(folder, copy)
+    monkeypatch.setattr(geometry, "MESHES_DIR", tmp_path)
+    assert [p.parent for p in spec.input_files()] == [copy] * 3  # the mesh, its data and its fibres
+    assert spec.digest() == before  # the bytes count, not where they lie
+    for changed in (copy / "fibers.h5", copy / f"{folder.name}.h5"):
+        original = changed.read_bytes()
+        changed.write_bytes(original + b"\0")
+        assert spec.digest() != before, changed.name
+        changed.write_bytes(original)
+    assert spec.digest() == before

@@ -190,8 +190,12 @@ class RunSpec:
     def describe(self) -> dict:
         """What the digest hashes: geometry, protocol, parameters, settings, solver options."""
         described = {k: ("per cell" if isinstance(v, np.ndarray) else v) for k, v in as_attributes(self.params).items()}
+        # the files' bytes, not only the name: a mesh remade in place (`hyper mesh --force`,
+        # `make new-meshes`) is another run, not one whose result is already there
+        geometry = ({"name": self.geometry, "sha256": ckpt.file_digest(*self.input_files())}
+                    if self.mesh is None else self.mesh.identity())
         out = {
-            "geometry": self.geometry if self.mesh is None else self.mesh.identity(),
+            "geometry": geometry,
             "protocol": self.protocol.to_attributes(),
             "params": described,
             "settings": self.settings.model_attributes(),
@@ -222,6 +226,14 @@ class RunSpec:
         from hyper import geometry as geo
 
         return mesh_files(geo.MESHES_DIR / geo.GEOMETRIES[self.geometry])
+
+    def input_files(self) -> list[Path]:
+        """The files a built-in geometry's run reads: its mesh and, beside it, its Stokes fibres."""
+        from hyper import fibers
+
+        files = self.mesh_files()
+        stored = files[0].parent / fibers.FILE_NAME
+        return files + ([stored] if self.mesh is None and stored.is_file() else [])
 
     def load_geometry(self, comm):
         from hyper import geometry as geo
