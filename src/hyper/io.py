@@ -269,7 +269,6 @@ def atomic_xdmf(comm, path: str | Path) -> Iterator[Any]:
         comm.barrier()
 
 
-
 def read_point_field(path: str | Path, name: str) -> tuple[np.ndarray, list[tuple[float, np.ndarray]]]:
     """The mesh's nodes (n, 3) and each snapshot (t, values (n, k)) of the nodal field
     ``name`` in an XDMF file `atomic_xdmf` wrote (one grid per time), in time order.
@@ -301,6 +300,7 @@ def read_point_field(path: str | Path, name: str) -> tuple[np.ndarray, list[tupl
     if not snapshots:
         raise InputError(f"{path}: no snapshot of a nodal field {name!r}")
     return data(grids[0].find("Geometry/DataItem")), sorted(snapshots, key=lambda s: s[0])
+
 
 # what --output may not end in: the name of another kind of file, taken for a folder by mistake
 OTHER_SUFFIXES = (".hdf5", ".xdmf", ".png", ".csv", ".json", ".toml", ".txt", ".npy")

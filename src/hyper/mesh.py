@@ -248,8 +248,8 @@ def segment_hits_triangle(start, end, tri) -> np.ndarray:
 def tetrahedralize(points_mm: np.ndarray, triangles: np.ndarray, cells: int,
                    axis=None) -> tuple[np.ndarray, np.ndarray]:
     """(x (n, 3) mm, tetrahedra (m, 4)) near ``cells`` cells inside the surface (gmsh),
-    finer at the tips: the surface's extreme vertices along ``axis`` (by default the first
-    principal axis of its vertices, as find_ends takes the mesh's)."""
+    finer at its two tips (`extremes` along ``axis``; by default the first principal axis
+    of its vertices, as find_ends takes the mesh's)."""
     volume = enclosed_volume(points_mm, triangles)
     tips = extremes(points_mm, axis)
     corners = points_mm[triangles]

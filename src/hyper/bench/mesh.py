@@ -157,7 +157,8 @@ def run(comm, args) -> int:
             raise InputError(f"{name}: hyper mesh failed (exit {status})")
         record = json.loads((folder / "mesh.json").read_text())
         new = record["statistics"]
-        ref = meshstats.statistics(geo.load(name, comm))
+        shipped_geometry = geo.load(name, comm)
+        ref = meshstats.statistics(shipped_geometry)
         stl = surface(path)
         target = {"volume_cm3": stl["volume_mm3"] / 1e3, "csa_solid_cm2": stl["csa_solid_mm2"] / 1e2,
                   "length_solid_cm": stl["length_solid_mm"] / 10}
@@ -182,7 +183,7 @@ def run(comm, args) -> int:
                    f"{100 * row['csa0_vs_solid_shipped']:+5.2f} %; ends x{row['end_area_ratio'][0]:.2f} "
                    f"x{row['end_area_ratio'][1]:.2f}  fibres {row['fibre_angle_deg']:.1f}°")
         if args.growth:
-            meshes = {"shipped": geo.load(name, comm)}
+            meshes = {"shipped": shipped_geometry}
             meshes["new"] = geo.load_file(folder / f"{name}.xdmf", comm, name=name, scale=geo.MM)
             grown = {k: growth(g, fibers.load(g, None if k == "shipped" else folder / fibers.FILE_NAME))
                      for k, g in meshes.items()}

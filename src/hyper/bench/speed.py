@@ -6,8 +6,8 @@ Each geometry runs the same coupled run (``hyper.run.execute``, as ``hyper grow`
 snapshots and checkpoints written to a scratch folder) twice, each in its own process,
 one after the other: with ``newton = "lagged"`` (SNES Newton, the Jacobian reassembled
 every 10 iterations and after a failed solve: the algorithm before issue 17) and with
-``newton = "kept"`` (`hyper.newton`: a predictor, Anderson iterations with LU factors
-kept across steps). Recorded per run: time to the first growth step (wall and CPU from
+``newton = "kept"`` (`hyper.newton`: a predictor, and iterations with LU factors and
+secant pairs kept across steps). Recorded per run: time to the first growth step (wall and CPU from
 the call of ``execute`` to the start of the first step's work: mesh, fibres, forms,
 solver and section set-up, the first snapshot; the form cache is warm after the first
 run of a geometry), the
