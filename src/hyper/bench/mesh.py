@@ -14,6 +14,9 @@ not exactly its volume either) and with each other:
                 principal axis, MODEL.md §4), new against shipped, and the shipped mesh's
                 CSA0 against its csa_solid (how far the vertex plane is from the shape's)
     CSA at the shipped plane   the new mesh cut by the shipped mesh's CSA0 plane
+    CSA0 vs STL the new mesh's CSA0 against the STL's CSA by its solid's frame
+    vertex plane of each mesh: how far (mm) along the solid's axis the CSA0 plane lies from
+                the centroid, and its tilt (°) from the inertia axis
     end areas   of tags 1 and 2, new / shipped
     fibre angle volume-weighted mean over the shipped cells of the angle between the two
                 fields (the new field taken at the nearest new cell centroid)
@@ -66,27 +69,35 @@ def shipped(name: str) -> dict:
             "end_area_mm2": [float(area[tags == t].sum()) for t in (1, 2)], "toward": centroid[0] - centroid[1]}
 
 
-def csa_at_shipped_plane(comm, name: str, new_folder: Path) -> float:
+def csa_at_shipped_plane(old: geo.Geometry, new: geo.Geometry) -> float:
     """(new mesh's cut area / shipped CSA0) - 1, both cut by the shipped mesh's CSA0 plane."""
     from hyper import section
 
-    old = geo.load(name, comm)
     origin, normal = section.principal_plane(section.global_vertices(old.mesh))
-    new = geo.load_file(new_folder / f"{new_folder.name}.xdmf", comm, name=new_folder.name, scale=geo.MM)
     shipped_area = section.CutSection(old.mesh, origin, normal).area0()
     return section.CutSection(new.mesh, origin, normal).area0() / shipped_area - 1
 
 
-def fibre_angle(comm, name: str, new_folder: Path) -> float:
+def vertex_plane(geometry: geo.Geometry) -> dict:
+    """Where the simulation's CSA0 plane (the vertices' mean and principal axis, MODEL.md §4)
+    lies against the solid's (centroid, inertia axis): the distance of its origin along the
+    solid's axis (mm) and the angle between the two normals (°)."""
+    from hyper import section
+
+    origin, normal = section.principal_plane(section.global_vertices(geometry.mesh))
+    solid_origin, solid_normal = section.solid_plane(geometry.mesh)
+    return {"offset_mm": float(abs((origin - solid_origin) @ solid_normal)) / geo.MM,
+            "tilt_deg": float(np.degrees(np.arccos(min(1.0, abs(float(normal @ solid_normal))))))}
+
+
+def fibre_angle(old: geo.Geometry, new: geo.Geometry, new_fibres: Path) -> float:
     """Mean angle (°) between the shipped fibres and the new ones, weighted by the shipped cells' volume."""
     from scipy.spatial import cKDTree
 
     from hyper import fibers
 
-    old = geo.load(name, comm)
     old_cells = fibers.cell_fibers(old, fibers.load(old))
-    new = geo.load_file(new_folder / f"{new_folder.name}.xdmf", comm, name=new_folder.name, scale=geo.MM)
-    new_cells = fibers.cell_fibers(new, fibers.load(new, new_folder / fibers.FILE_NAME))
+    new_cells = fibers.cell_fibers(new, fibers.load(new, new_fibres))
     _, nearest = cKDTree(new_cells[0]).query(old_cells[0])
     cosine = np.abs(np.einsum("ij,ij->i", old_cells[1], new_cells[1][nearest]))
     return float(np.degrees(np.average(np.arccos(np.clip(cosine, 0.0, 1.0)), weights=old_cells[2])))
@@ -157,8 +168,9 @@ def run(comm, args) -> int:
             raise InputError(f"{name}: hyper mesh failed (exit {status})")
         record = json.loads((folder / "mesh.json").read_text())
         new = record["statistics"]
-        shipped_geometry = geo.load(name, comm)
-        ref = meshstats.statistics(shipped_geometry)
+        meshes = {"shipped": geo.load(name, comm),
+                  "new": geo.load_file(folder / f"{name}.xdmf", comm, name=name, scale=geo.MM)}
+        ref = meshstats.statistics(meshes["shipped"])
         stl = surface(path)
         target = {"volume_cm3": stl["volume_mm3"] / 1e3, "csa_solid_cm2": stl["csa_solid_mm2"] / 1e2,
                   "length_solid_cm": stl["length_solid_mm"] / 10}
@@ -171,9 +183,11 @@ def run(comm, args) -> int:
                **{f"{k}_diff_shipped": ref[k] / target[k] - 1 for k in target},
                **{f"{k}_diff_new_shipped": new[k] / ref[k] - 1 for k in (*target, "csa0_cm2", "length_cm")},
                "csa0_vs_solid_shipped": ref["csa0_cm2"] / ref["csa_solid_cm2"] - 1,
-               "csa_shipped_plane_diff": csa_at_shipped_plane(comm, name, folder),
+               "csa_shipped_plane_diff": csa_at_shipped_plane(meshes["shipped"], meshes["new"]),
+               "csa0_vs_stl": new["csa0_cm2"] / target["csa_solid_cm2"] - 1,
+               "vertex_plane": {k: vertex_plane(g) for k, g in meshes.items()},
                "end_area_ratio": [a / b for a, b in zip(record["end_area_mm2"], old["end_area_mm2"])],
-               "fibre_angle_deg": fibre_angle(comm, name, folder)}
+               "fibre_angle_deg": fibre_angle(meshes["shipped"], meshes["new"], folder / fibers.FILE_NAME)}
         info(comm, f"{name:<15} {seconds:5.1f} s {row['cells']:>6}/{old['cells']:<5} cells, dihedral "
                    f"{row['min_dihedral_deg']:4.1f}/{old['min_dihedral_deg']:4.1f}°; against the STL (new, shipped): "
                    + "  ".join(f"{label} {100 * row[k + '_diff']:+5.2f} {100 * row[k + '_diff_shipped']:+5.2f} %"
@@ -183,8 +197,6 @@ def run(comm, args) -> int:
                    f"{100 * row['csa0_vs_solid_shipped']:+5.2f} %; ends x{row['end_area_ratio'][0]:.2f} "
                    f"x{row['end_area_ratio'][1]:.2f}  fibres {row['fibre_angle_deg']:.1f}°")
         if args.growth:
-            meshes = {"shipped": shipped_geometry}
-            meshes["new"] = geo.load_file(folder / f"{name}.xdmf", comm, name=name, scale=geo.MM)
             grown = {k: growth(g, fibers.load(g, None if k == "shipped" else folder / fibers.FILE_NAME))
                      for k, g in meshes.items()}
             row["growth"] = {"protocol": GROWTH_PROTOCOL, **grown,
