@@ -112,7 +112,7 @@ def touching(box, muscle) -> np.ndarray:
     """Which cells of ``box`` (a mesh on COMM_SELF, all its cells) touch a cell of
     ``muscle`` owned by this rank: a bool per box cell, in the box's original numbering.
 
-    Bounding boxes pick the candidate pairs, GJK decides.
+    Bounding boxes pick the candidate pairs, exact tests or GJK decide.
     """
     n_box = box.topology.index_map(3).size_local
     owned = np.arange(muscle.topology.index_map(3).size_local, dtype=np.int32)
@@ -120,16 +120,39 @@ def touching(box, muscle) -> np.ndarray:
                                               geometry.bb_tree(box, 3))
     xm, xb = cell_coordinates(muscle, owned), cell_coordinates(box, np.arange(n_box))
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    # A box cell whose centroid lies inside a muscle cell touches it (distance 0): decided
-    # for all pairs at once, so GJK (20 µs a pair in Python, 0.6 s of an anatomical run's
-    # set-up) only decides the rest.
+    # Cheap exact tests first, for all pairs at once, each only on the pairs of box cells
+    # still undecided: a box cell touches a muscle cell (distance 0) where its centroid, or
+    # a vertex of either cell, lies inside the other; a pair is apart where a face plane of
+    # either cell separates them by more than TOUCH. GJK (40 µs a pair in Python) decides
+    # the few left: about 60 of 73,000 pairs on BFLH_VHF_Left, where it decided 5,300 after
+    # the centroid test alone (0.5 s of a run's set-up).
     touch = np.zeros(n_box, dtype=bool)
-    touch[pairs[inside(xm[pairs[:, 0]], xb[pairs[:, 1]].mean(axis=1)), 1]] = True
-    for m, b in pairs:
+    tests = [lambda m, b: inside(m, b.mean(axis=1))]
+    tests += [lambda m, b, k=k: inside(m, b[:, k]) | inside(b, m[:, k]) for k in range(4)]
+    for test in tests:
+        pairs = pairs[~touch[pairs[:, 1]]]
+        touch[pairs[test(xm[pairs[:, 0]], xb[pairs[:, 1]]), 1]] = True
+    pairs = pairs[~touch[pairs[:, 1]]]
+    for m, b in pairs[~separated(xm[pairs[:, 0]], xb[pairs[:, 1]], TOUCH)]:
         if not touch[b] and np.linalg.norm(geometry.compute_distance_gjk(xm[m], xb[b])) <= TOUCH:
             touch[b] = True
     out = np.zeros(n_box, dtype=bool)
     out[np.asarray(box.topology.original_cell_index)[:n_box]] = touch
+    return out
+
+
+def separated(a, b, gap: float) -> np.ndarray:
+    """Whether the tetrahedra a and b (n, 4, 3) lie more than ``gap`` apart across a face
+    plane of either: a sufficient test of distance > gap, exact wherever it says so."""
+    out = np.zeros(len(a), dtype=bool)
+    for tet in (a, b):
+        for i, j, k in ((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3)):
+            normal = np.cross(tet[:, j] - tet[:, i], tet[:, k] - tet[:, i])
+            length = np.linalg.norm(normal, axis=1)
+            pa = np.einsum("nvk,nk->nv", a, normal)
+            pb = np.einsum("nvk,nk->nv", b, normal)
+            margin = gap * length
+            out |= (pa.max(axis=1) + margin < pb.min(axis=1)) | (pb.max(axis=1) + margin < pa.min(axis=1))
     return out
 
 
@@ -147,8 +170,14 @@ def in_cells(mesh, points, *, distance: float = INSIDE_DISTANCE) -> np.ndarray:
     which = np.repeat(np.arange(len(points)), np.diff(candidates.offsets))
     hit = np.zeros(len(points), dtype=np.int8)
     if len(which):
-        near = geometry.squared_distance(mesh, 3, candidates.array, points[which]) <= distance**2
-        hit[which[near]] = 1
+        # a point inside a candidate is at distance 0: the exact distance (a GJK each,
+        # 0.3 s of an anatomical run's set-up for all candidates) only for the others
+        cells = np.asarray(candidates.array, dtype=np.int32)
+        hit[which[inside(cell_coordinates(mesh, cells), points[which])]] = 1
+        rest = hit[which] == 0
+        if np.any(rest):
+            near = geometry.squared_distance(mesh, 3, cells[rest], points[which[rest]]) <= distance**2
+            hit[which[rest][near]] = 1
     mesh.comm.Allreduce(MPI.IN_PLACE, hit, op=MPI.MAX)
     return hit.astype(bool)
 
