@@ -92,6 +92,38 @@ def axis_distance(tets) -> np.ndarray:
     return np.where(inside, 0.0, dist)
 
 
+def test_separated_tetrahedra_are_apart_by_gjk_and_touching_ones_never_separated():
+    rng = np.random.default_rng(7)
+    a = rng.uniform(0, 1, (4000, 4, 3))
+    b = rng.uniform(0, 1, (4000, 4, 3)) + rng.uniform(-0.9, 0.9, (4000, 1, 3))
+    distance = np.array([np.linalg.norm(dolfinx.geometry.compute_distance_gjk(p, q)) for p, q in zip(a, b)])
+    gap = 0.05
+    apart = box.separated(a, b, gap)
+    assert np.all(distance[apart] > gap)
+    # a sufficient test that still decides most pairs that are apart, and no touching one
+    assert np.count_nonzero(apart) > 0.6 * np.count_nonzero(distance > gap)
+    assert not np.any(apart[distance <= 1e-14])
+    assert np.count_nonzero(distance <= 1e-14) > 200
+
+
+def test_touching_cells_are_those_gjk_finds_for_every_candidate_pair():
+    mesh = cylinder()
+    centre, axes, half = box.box_frame(mesh.geometry.x, padding=box.PADDING, thickness=box.THICKNESS)
+    serial, _ = box.box_mesh(MPI.COMM_SELF, centre, axes, half)
+    n = serial.topology.index_map(3).size_local
+    owned = np.arange(mesh.topology.index_map(3).size_local, dtype=np.int32)
+    pairs = dolfinx.geometry.compute_collisions_trees(dolfinx.geometry.bb_tree(mesh, 3, entities=owned),
+                                                      dolfinx.geometry.bb_tree(serial, 3))
+    xm, xb = box.cell_coordinates(mesh, owned), box.cell_coordinates(serial, np.arange(n))
+    brute = np.zeros(n, dtype=bool)
+    for m, c in np.asarray(pairs).reshape(-1, 2):
+        brute[c] |= np.linalg.norm(dolfinx.geometry.compute_distance_gjk(xm[m], xb[c])) <= box.TOUCH
+    expected = np.zeros(n, dtype=bool)
+    expected[np.asarray(serial.topology.original_cell_index)[:n]] = brute
+    assert np.array_equal(box.touching(serial, mesh), expected)
+    assert 100 < np.count_nonzero(expected) < n
+
+
 def test_cylinder_staircase_is_the_faces_of_the_touching_cells():
     mesh = cylinder()
     u = displacement(mesh, lambda x: np.zeros_like(x))
