@@ -27,7 +27,7 @@ as measured). Both follow the machine, where the goals in seconds do not.
 The series are compared as |x_kept − x_lagged| / (x_lagged,end − 1) at every step, for
 x = CSA/CSA0 and V/V0: the difference as a fraction of the growth.
 
-Writes results/bench/speed.json and speed.png (phases, iterations and factorisations,
+Writes results/bench/speed.json and speed.png (phases with each run's floor, iterations and factorisations,
 series differences).
 """
 
@@ -168,8 +168,11 @@ def chart(path: Path, result: dict) -> None:
         bottom += values
     for k, (_, _, r) in enumerate(rows):
         axes[0].annotate(f"CPU {r['cpu_s']:.1f} s", (k, bottom[k]), ha="center", va="bottom", fontsize=7)
+        axes[0].hlines(r["floor_s"], k - 0.4, k + 0.4, colors="k", linestyles="--", lw=1.2,
+                       label="floor with kept factors" if k == 0 else None)
     axes[0].set_ylabel("wall time of the time loop (s)")
-    axes[0].legend(fontsize=7)
+    axes[0].set_ylim(0, 1.5 * bottom.max())  # room for the legend above the bars
+    axes[0].legend(fontsize=7, ncol=2, loc="upper left")
     axes[0].tick_params(axis="x", labelsize=7)
     x = np.arange(len(rows))
     axes[1].bar(x - 0.2, [r["newton_iterations"] for _, _, r in rows], 0.4, label="Newton iterations")
