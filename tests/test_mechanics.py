@@ -269,3 +269,70 @@ def test_taylor_hood_unknowns_counts_the_space_without_building_it():
     geometry = geo_mod.load("cylinder", MPI.COMM_WORLD)
     problem = MechanicsProblem(geometry, fibers.fiber_field(geometry))
     assert taylor_hood_unknowns(geometry.mesh) == problem.num_dofs - len(problem.rigid.modes)
+
+
+def _taylor_remainders(comm) -> tuple[np.ndarray, np.ndarray]:
+    """|R(x + εv) − R(x)| and |R(x + εv) − R(x) − ε K v| for ε = 1e-2 / 2^k, at a state
+    x off equilibrium of a box under activation and non-uniform growth, along a smooth
+    direction v in every block (displacement, pressure, multipliers)."""
+    geometry = box_geometry(comm)
+    mesh = geometry.mesh
+    a0 = fibers.uniform_fiber_field(mesh, (0.3, 0.0, 1.0))
+    theta = fem.Function(fem.functionspace(mesh, ("DG", 0)))
+    theta.interpolate(lambda x: 1.0 + 0.05 * (1.0 + np.sin(40.0 * x[2])) * (1.0 + 50.0 * x[0]))
+    unit = a0 / ufl.sqrt(ufl.dot(a0, a0))
+    problem = MechanicsProblem(geometry, a0, growth=growth.transverse_growth_ufl(theta, unit), petsc_options=TIGHT)
+    assert len(problem.multipliers) > 0  # the box leaves rigid motions to the multipliers
+    for alpha in (0.0, 0.25, 0.5):  # growth alone, then activation in steps: at once they diverge
+        problem.alpha.value = alpha
+        problem.solve()
+
+    def direction(scale_u, scale_p, phase):
+        w = fem.Function(problem.W)
+        w.sub(0).interpolate(lambda x: scale_u * np.vstack([np.sin(30 * x[2] + phase), x[0] * 50 * np.cos(phase),
+                                                            np.cos(20 * x[2] + 100 * x[1])]))
+        w.sub(1).interpolate(lambda x: scale_p * np.cos(25 * x[2] + 80 * x[0] + phase))
+        out = problem.solution_vector.duplicate()
+        out.getArray()[: problem.owned_size] = w.x.array[: problem.owned_size]
+        out.getArray()[problem.owned_size:] = 1e-3 * (1.0 + phase)
+        return out
+
+    x = problem.solution_vector.duplicate()
+    problem.load_state(x)
+    x.axpy(1.0, direction(2e-4, 2e3, 0.3))  # off equilibrium: R(x) is not zero
+    v = direction(1e-3, 1e4, 1.1)
+    r0, r, Kv = x.duplicate(), x.duplicate(), x.duplicate()
+    problem.assemble_residual(x, r0)
+    problem.assemble_jacobian(x)
+    problem.jacobian_matrix.mult(v, Kv)
+    first, second = [], []
+    for eps in 1e-2 / 2.0 ** np.arange(4):
+        y = x.copy()
+        y.axpy(eps, v)
+        problem.assemble_residual(y, r)
+        r.axpy(-1.0, r0)
+        first.append(r.norm())
+        r.axpy(-eps, Kv)
+        second.append(r.norm())
+    return np.array(first), np.array(second)
+
+
+def _check_taylor(comm):
+    first, second = _taylor_remainders(comm)
+    rate_first = np.log2(first[:-1] / first[1:])
+    rate_second = np.log2(second[:-1] / second[1:])
+    assert np.all(np.abs(rate_first - 1.0) < 0.05), rate_first
+    assert np.all(np.abs(rate_second - 2.0) < 0.05), rate_second
+    assert second[0] < 0.1 * first[0]
+
+
+def test_newton_matrix_is_the_derivative_of_the_residual():
+    """Taylor test: the kept-factor iteration and SNES both rely on the assembled Newton
+    matrix (growth, activation, the current-normal springs, the multiplier blocks) being
+    the exact derivative of the residual: the remainder falls as ε², not ε."""
+    _check_taylor(MPI.COMM_WORLD)
+
+
+@pytest.mark.mpi
+def test_newton_matrix_is_the_derivative_of_the_residual_in_parallel():
+    _check_taylor(MPI.COMM_WORLD)
