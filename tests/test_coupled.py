@@ -62,6 +62,25 @@ def test_uniform_growth_of_a_cylinder_is_stress_free_and_exact(fields):
     np.testing.assert_allclose(A, np.broadcast_to(np.eye(3), A.shape), atol=1e-10)
 
 
+def test_the_compiled_fibre_directions_are_those_of_the_deformation_gradient():
+    """What a growth step reads of the last equilibrium, F⁻¹a0 and Fᵀa0 with unit a0,
+    comes from one compiled expression: the same as from F at the quadrature points."""
+    g = geo.load("cylinder", MPI.COMM_SELF)
+    a0 = 1.7 * fibers.fiber_field(g)  # not unit: the directions are of the unit fibre
+    field = growth.GrowthField(g.mesh, a0, g.quadrature_degree)
+    problem = MechanicsProblem(g, a0, growth=field.function)
+    field.set_deformation(problem.F)
+    u = np.asarray(problem.w.function_space.sub(0).collapse()[1]).ravel()
+    problem.w.x.array[u] = 5e-5 * np.random.default_rng(1).standard_normal(len(u))
+    problem.w.x.scatter_forward()
+    field.accept()
+    F = field.elastic_tensor() @ field.Gbar  # Ḡ = I: F itself
+    assert np.abs(F - np.eye(3)).max() > 0.1  # a real deformation
+    pulled, pushed = growth.fibre_directions(F, field.a0)
+    np.testing.assert_allclose(field.directions[0], pulled, rtol=0, atol=1e-12 * np.abs(pulled).max())
+    np.testing.assert_allclose(field.directions[1], pushed, rtol=0, atol=1e-12 * np.abs(pushed).max())
+
+
 def short_protocol() -> Protocol:
     return Protocol((Session(0.0, 1.0, 0.8), Session(48.0, 1.0, 0.8)), end=96.0, name="short")
 

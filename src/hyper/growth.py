@@ -109,6 +109,13 @@ def fibre_directions(F, a0):
     return solve(F, a0), np.einsum("...ji,...j->...i", F, a0)
 
 
+def fibre_directions_ufl(F, a0):
+    """`fibre_directions` as one UFL vector (F⁻¹a, Fᵀa) of six components, a = a0/|a0|."""
+    a = a0 / ufl.sqrt(ufl.dot(a0, a0))
+    pulled, pushed = ufl.inv(F) * a, F.T * a
+    return ufl.as_vector([pulled[i] for i in range(3)] + [pushed[i] for i in range(3)])
+
+
 def solve(M, v):
     """M⁻¹v for stacks of 3×3 tensors and 3-vectors, by the adjugate (`inverse`), with
     no inverse formed: half the work of inverse(M) @ v."""
@@ -193,7 +200,8 @@ class GrowthField:
         # the owned points numbered in order (quadrature spaces): a copy instead of a scatter by index
         self._in_order = bool(np.array_equal(self.dofs.ravel(), np.arange(self.dofs.size)))
         self._write(self.Gbar)
-        self._F_expr = None
+        self._a0_ufl, self._F_ufl = a0, None  # the fibres, and F of `set_deformation`
+        self._directions_expr = self._F_expr = None
 
     def _write(self, Gbar) -> None:
         values = self.function.x.array.reshape(-1, 9)
@@ -209,19 +217,25 @@ class GrowthField:
         self.Gbar = Gbar
         self._previous = Gbar
         self._write(Gbar)
-        self.directions = fibre_directions(self._deformation(), self.a0)
+        self.directions = self._fibre_directions()
 
     def set_deformation(self, F) -> None:
         """Give the UFL deformation gradient whose values the next increment reads after each solve."""
-        self._F_expr = fem.Expression(F, self.points)
+        self._F_ufl = F
+        # in the compiled kernel: on BFLH_VHF_Left half the time of evaluating F, then F⁻¹a0 and Fᵀa0 in numpy
+        self._directions_expr = fem.Expression(fibre_directions_ufl(F, self._a0_ufl), self.points)
 
-    def _deformation(self) -> np.ndarray:
+    def _fibre_directions(self) -> tuple[np.ndarray, np.ndarray]:
         nq = self.points.shape[0]
-        return self._F_expr.eval(self.mesh, self.cells).reshape(-1, nq, 3, 3)
+        both = self._directions_expr.eval(self.mesh, self.cells).reshape(-1, nq, 6)
+        return both[..., :3], both[..., 3:]
 
     def elastic_tensor(self) -> np.ndarray:
         """A = F Ḡ⁻¹ at every point, from the mechanics' current solution."""
-        return elastic_part(self._deformation(), self.Gbar)
+        if self._F_expr is None:
+            self._F_expr = fem.Expression(self._F_ufl, self.points)
+        nq = self.points.shape[0]
+        return elastic_part(self._F_expr.eval(self.mesh, self.cells).reshape(-1, nq, 3, 3), self.Gbar)
 
     def grow(self, theta) -> None:
         """Apply one increment with area multiplier ϑ (scalar, or one value per owned cell)."""
@@ -239,7 +253,7 @@ class GrowthField:
 
     def accept(self) -> None:
         """Take the new equilibrium: its fibre directions at every quadrature point."""
-        self.directions = fibre_directions(self._deformation(), self.a0)
+        self.directions = self._fibre_directions()
         self._previous = self.Gbar
 
     def cell_det(self) -> np.ndarray:
