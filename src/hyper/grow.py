@@ -8,14 +8,13 @@
 
 Writes per run an HDF5 time series (t, CSA and volume ratios, kM, the signaling states,
 Newton iterations, step cuts) with its provenance as attributes, an XDMF file of
-snapshots (u, det Ḡ, fibres) for ParaView and the paper's Fig. 4C–E analog (--plot).
-On a mesh without a tagged mid-section (the anatomical ones) both CSA measures are
-recorded, csa_ratio_cut (the exact plane cut) and csa_ratio_box (the original code's
-box staircase, MODEL.md §9); csa_ratio is the one --csa-method feeds back. --plot-box
-draws the box's inner and rim facets at the end of each run, with the exact cut.
-snapshots (u, det Ḡ, fibres; every --snapshot-every simulated hours and the last state,
-one temporal series that ParaView and meshio's TimeSeriesReader read whole) and the
-paper's Fig. 4C–E analog (--plot). Against measured CSA (--data, or the protocol's own
+snapshots for ParaView (u, det Ḡ, fibres; every --snapshot-every simulated hours and the
+last state, one temporal series that ParaView and meshio's TimeSeriesReader read whole)
+and the paper's Fig. 4C–E analog (--plot). On a mesh without a tagged mid-section (the
+anatomical ones) both CSA measures are recorded, csa_ratio_cut (the exact plane cut) and
+csa_ratio_box (the original code's box staircase, MODEL.md §9); csa_ratio is the one
+--csa-method feeds back. --plot-box draws the box's inner and rim facets at the end of
+each run, with the exact cut. Against measured CSA (--data, or the protocol's own
 data set: DeFreitas for mwf) the run's RMSE in percentage points of CSA change and its
 difference at the last measured time are printed, stored (the result's `data` group)
 and the data drawn on the figure.
