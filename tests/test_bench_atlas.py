@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from hyper.bench import atlas
+from hyper.commands.bench import atlas
 
 
 def test_growth_step_volume_is_theta_squared_and_cutting_extends_the_range():

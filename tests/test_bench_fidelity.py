@@ -2,7 +2,7 @@
 
 import pytest
 
-from hyper.bench import fidelity as bench
+from hyper.commands.bench import fidelity as bench
 
 
 def test_cases_run_the_choice_the_paper_and_a_converged_reference():

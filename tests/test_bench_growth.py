@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from hyper.bench.growth import (
+from hyper.commands.bench.growth import (
     cheapest_within,
     checked_dts,
     dt_label,
@@ -14,7 +14,7 @@ from hyper.bench.growth import (
     parser,
     relative_effect,
 )
-from hyper.params import InputError
+from hyper.core.params import InputError
 
 
 def test_errors_are_relative_to_the_growth_not_to_the_ratio():

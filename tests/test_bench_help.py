@@ -4,7 +4,7 @@ import importlib
 
 import pytest
 
-from hyper import bench
+from hyper.commands import bench
 
 # argparse's own entries, which have no default to show
 NO_DEFAULT = ("-h, --help", "--version")
@@ -23,7 +23,7 @@ def option_entries(text: str) -> list[str]:
 
 @pytest.mark.parametrize("name", bench.available())
 def test_every_option_has_a_help_string_and_its_default(name):
-    text = importlib.import_module(f"hyper.bench.{name}").parser().format_help()
+    text = importlib.import_module(f"hyper.commands.bench.{name}").parser().format_help()
     entries = option_entries(text)
     assert len(entries) > len(NO_DEFAULT)
     bare = [e for e in entries if not e.startswith(NO_DEFAULT) and "(default:" not in e]
@@ -34,7 +34,7 @@ def test_the_readme_lists_every_benchmark():
     import re
     from pathlib import Path
 
-    from hyper import bench
+    from hyper.commands import bench
 
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     listed = re.search(r"python -m hyper\.bench \{([a-z,]+)\}", readme).group(1).split(",")

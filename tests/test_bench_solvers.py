@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from hyper import material as mat
-from hyper.bench import refinement, solvers
+from hyper.commands.bench import refinement, solvers
+from hyper.model import material as mat
 
 
 def test_memory_fit_recovers_a_power_law_through_the_two_largest_runs():

@@ -10,9 +10,14 @@ import pytest
 from dolfinx import fem
 from mpi4py import MPI
 
-from hyper import box, cohort, grow, io, run, section
-from hyper import geometry as geo
-from hyper.params import InputError
+from hyper.analysis import cohort
+from hyper.commands import grow
+from hyper.core.params import InputError
+from hyper.fem import boxsection as box
+from hyper.fem import geometry as geo
+from hyper.fem import section
+from hyper.runs import driver as run
+from hyper.runs import io
 
 # A prism [-A, A] × [-B, B] × [-L, L] (m), long along z: the box is 2.4 A × 2.4 B in 30 × 30
 # squares of 0.08 A × 0.08 B, and the prism's sides cross the middle of columns and rows
@@ -271,8 +276,9 @@ def test_plot_box_needs_a_mesh_without_a_tagged_section(tmp_path, capsys):
 
 
 def test_a_resumed_run_records_both_measures_as_an_uninterrupted_one(tmp_path):
-    from hyper import protocols, run, signaling
-    from hyper.coupled import GrowthSettings
+    from hyper.fem.coupled import GrowthSettings
+    from hyper.model import protocols, signaling
+    from hyper.runs import driver as run
 
     write_prism(tmp_path / "prism.xdmf")
     (tmp_path / "one.toml").write_text(PROTOCOL)
@@ -372,7 +378,7 @@ def test_cylinder_zero_rim_takes_the_inner_growth_back_extrapolate_reads_more():
 
 
 def test_job_remeasures_a_stored_run_by_both_rules(tmp_path, capsys):
-    from hyper import cli
+    from hyper.commands import cli
 
     # turned, the prism's cells have bounding boxes that reach out of it: box nodes there
     # are extrapolated to

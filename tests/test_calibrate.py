@@ -1,9 +1,10 @@
-"""hyper calibrate and the ODE growth model it fits on (hyper.surrogate)."""
+"""hyper calibrate and the ODE growth model it fits on (hyper.model.surrogate)."""
 
 import numpy as np
 import pytest
 
-from hyper import calibrate, protocols, signaling, surrogate
+from hyper.analysis import calibrate
+from hyper.model import protocols, signaling, surrogate
 
 MWF = protocols.named("mwf")
 FACTOR = surrogate.SECTION_FACTOR["idealized"]
@@ -51,7 +52,7 @@ def test_the_ode_growth_model_equals_the_coupled_idealized_run(name):
     """Within SURROGATE_ERROR of the 9-week growth, at every growth-step end (same steps)."""
     from mpi4py import MPI
 
-    from hyper import run
+    from hyper.runs import driver as run
 
     protocol = protocols.named(name)
     model, *_ = run.build(MPI.COMM_WORLD, run.RunSpec("idealized", protocol))

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from hyper import cohort, run
-from hyper.coupled import GrowthSettings
+from hyper.analysis import cohort
+from hyper.fem.coupled import GrowthSettings
+from hyper.runs import driver as run
 
 SHORT_PROTOCOL = """name = "short"
 end = 96.0
@@ -246,7 +247,7 @@ class StopAfter:
 
 @pytest.mark.mpi
 def test_mpi_interrupted_run_resumes_to_the_uninterrupted_result(tmp_path):
-    from hyper import protocols
+    from hyper.model import protocols
 
     comm = MPI.COMM_WORLD
     folder = shared_tmp(comm, tmp_path)

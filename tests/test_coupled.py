@@ -7,15 +7,16 @@ import ufl
 from dolfinx import fem
 from mpi4py import MPI
 
-from hyper import fibers, growth, material, signaling
-from hyper import geometry as geo
-from hyper.coupled import CoupledModel, GrowthSettings
-from hyper.mechanics import MechanicsProblem
-from hyper.params import InputError
-from hyper.protocols import Protocol, Session
+from hyper.core.params import InputError
+from hyper.fem import fibers, growthfield
+from hyper.fem import geometry as geo
+from hyper.fem.coupled import CoupledModel, GrowthSettings
+from hyper.fem.mechanics import MechanicsProblem
+from hyper.model import growth, material, signaling
+from hyper.model.protocols import Protocol, Session
 
 
-@pytest.mark.parametrize("fields", growth.GROWTH_FIELDS)
+@pytest.mark.parametrize("fields", growthfield.GROWTH_FIELDS)
 def test_uniform_growth_of_a_cylinder_is_stress_free_and_exact(fields):
     """Axial fibres and uniform ϑ: growth is compatible, so the body grows without stress.
 
@@ -25,11 +26,11 @@ def test_uniform_growth_of_a_cylinder_is_stress_free_and_exact(fields):
     """
     g = geo.load("cylinder", MPI.COMM_SELF)
     a0 = fibers.fiber_field(g)
-    field = growth.GrowthField(g.mesh, a0, g.quadrature_degree, fields)
+    field = growthfield.GrowthField(g.mesh, a0, g.quadrature_degree, fields)
     assert field.Gbar.shape[1] == (4 if fields == "dg1" else 14)  # vertices, or degree-4 points
     problem = MechanicsProblem(g, a0, growth=field.function)
     field.set_deformation(problem.F)
-    section = growth.FacetSection(g, problem.F)
+    section = growthfield.FacetSection(g, problem.F)
     v0 = problem.volume()
 
     thetas = (1.05, 1.03)
@@ -67,7 +68,7 @@ def test_the_compiled_fibre_directions_are_those_of_the_deformation_gradient():
     comes from one compiled expression: the same as from F at the quadrature points."""
     g = geo.load("cylinder", MPI.COMM_SELF)
     a0 = 1.7 * fibers.fiber_field(g)  # not unit: the directions are of the unit fibre
-    field = growth.GrowthField(g.mesh, a0, g.quadrature_degree)
+    field = growthfield.GrowthField(g.mesh, a0, g.quadrature_degree)
     problem = MechanicsProblem(g, a0, growth=field.function)
     field.set_deformation(problem.F)
     u = np.asarray(problem.w.function_space.sub(0).collapse()[1]).ravel()
@@ -101,7 +102,7 @@ def test_dg1_growth_fields_give_the_quadrature_answer_for_uniform_growth():
     g = geo.load("cylinder", MPI.COMM_SELF)
     a0 = fibers.fiber_field(g)
     series = {}
-    for fields in growth.GROWTH_FIELDS:
+    for fields in growthfield.GROWTH_FIELDS:
         model = CoupledModel(g, a0, short_protocol(), params=GROWING,
                              settings=GrowthSettings(growth_dt=24.0, growth_fields=fields))
         series[fields] = np.array([[r.csa_ratio, r.volume_ratio, r.kM] for r in model.run()])
@@ -138,8 +139,8 @@ def test_two_ranks_reproduce_the_serial_csa_series():
 def test_a_monitor_times_the_phases_and_an_integrator_replaces_the_signaling():
     """What a benchmark plugs in (a recording monitor, another ODE integrator) sees every
     phase and every period, and changes nothing in the answer."""
-    from hyper.bench.common import Timings
-    from hyper.coupled import PHASES
+    from hyper.commands.bench.common import Timings
+    from hyper.fem.coupled import PHASES
 
     g = geo.load("cylinder", MPI.COMM_SELF)
     a0 = fibers.fiber_field(g)
@@ -195,7 +196,7 @@ def test_left_point_grows_by_f_at_the_step_start_times_the_step():
 
 
 def test_settings_presets_and_their_digests():
-    from hyper import presets
+    from hyper.runs import presets
 
     default = GrowthSettings()
     assert set(default.model_attributes()) == {"growth_dt", "signaling_dt", "feedback", "grow_during_sessions",
@@ -216,7 +217,8 @@ def test_settings_presets_and_their_digests():
 
 
 def test_grow_and_cohort_take_the_original_preset_and_explicit_switches(tmp_path):
-    from hyper import cohort, grow
+    from hyper.analysis import cohort
+    from hyper.commands import grow
 
     out = ["--geometry", "cylinder", "--output", str(tmp_path / "run.h5")]
     original = grow.plan(MPI.COMM_SELF, [*out, "--settings", "original"]).settings

@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from hyper import dose, protocols
+from hyper.analysis import dose
+from hyper.model import protocols
 
 
 def test_three_sessions_a_week_is_mwf():

@@ -6,9 +6,9 @@ from pathlib import Path
 import pytest
 from mpi4py import MPI
 
-from hyper import farm
-from hyper.farm import Job
-from hyper.params import InputError
+from hyper.core.params import InputError
+from hyper.runs import farm
+from hyper.runs.farm import Job
 
 COSTS = [1, 5, 2, 2, 9, 1, 3, 1]
 

@@ -1,4 +1,4 @@
-"""Scene-adaptive fidelity (hyper.fidelity) and `python -m hyper.grow --accuracy / --ask signaling`."""
+"""Scene-adaptive fidelity (hyper.runs.fidelity) and `python -m hyper.grow --accuracy / --ask signaling`."""
 
 import json
 import math
@@ -11,9 +11,11 @@ import h5py
 import numpy as np
 import pytest
 
-from hyper import fidelity, protocols, run, signaling
-from hyper.fidelity import Scene, choose
-from hyper.params import InputError
+from hyper.core.params import InputError
+from hyper.model import protocols, signaling
+from hyper.runs import driver as run
+from hyper.runs import fidelity
+from hyper.runs.fidelity import Scene, choose
 
 ROOT = Path(__file__).resolve().parents[1]
 GROWTH = Scene("idealized", "mwf", heterogeneous=False, ask="growth")
@@ -108,8 +110,8 @@ def test_the_chosen_rk4_step_keeps_its_promise_on_mwf():
 def test_grow_keeps_its_defaults_without_accuracy(tmp_path):
     from mpi4py import MPI
 
-    from hyper import grow
-    from hyper.coupled import GrowthSettings
+    from hyper.commands import grow
+    from hyper.fem.coupled import GrowthSettings
 
     out = ["--geometry", "idealized", "--output", str(tmp_path / "run.h5")]
     fixed = grow.plan(MPI.COMM_WORLD, out)
@@ -174,7 +176,7 @@ def test_the_linear_solver_is_lu_while_it_fits_and_iterative_beyond():
 def test_grow_takes_the_linear_solver_asked_for_or_auto_with_accuracy(tmp_path):
     from mpi4py import MPI
 
-    from hyper import grow
+    from hyper.commands import grow
 
     out = ["--geometry", "idealized", "--output", str(tmp_path / "run.h5")]
     assert grow.plan(MPI.COMM_WORLD, out).linear_solver == "lu"

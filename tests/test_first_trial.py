@@ -4,7 +4,10 @@ import h5py
 import numpy as np
 import pytest
 
-from hyper import cli, cohort, plot, protocols, signaling
+from hyper.analysis import cohort
+from hyper.commands import cli
+from hyper.model import protocols, signaling
+from hyper.runs import plot
 
 
 def test_an_h5_job_refuses_a_png_output_and_writes_nothing(tmp_path, monkeypatch, capsys):
@@ -30,8 +33,8 @@ def test_one_colour_per_protocol_name_in_every_figure():
     # another name has one colour whatever its place, and none of the built-in ones
     assert plot.protocol_colour("tue-fri") == plot.protocol_colour("tue-fri")
     assert plot.protocol_colour("tue-fri") not in plot.PROTOCOL_COLOURS.values()
-    from hyper.signaling.integrators import run
-    from hyper.signaling.plot import figure_protocols
+    from hyper.model.signaling.integrators import run
+    from hyper.runs.signalingplot import figure_protocols
 
     runs = {"weekly": protocols.named("weekly"), "mwf": protocols.named("mwf")}
     results = {n: run(signaling.SignalingParams(), p, 0.1, 6.0) for n, p in runs.items()}

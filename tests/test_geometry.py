@@ -9,9 +9,9 @@ from dolfinx import mesh as dmesh
 from dolfinx.io import XDMFFile
 from mpi4py import MPI
 
-from hyper import fibers
-from hyper import geometry as g
-from hyper.params import InputError
+from hyper.core.params import InputError
+from hyper.fem import fibers
+from hyper.fem import geometry as g
 
 # Paper: group means of the baseline volumes (cm³), MODEL.md §5.
 PAPER_MEANS = {"BFLH": 252.4, "ST": 190.1, "TA": 132.4}

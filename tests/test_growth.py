@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from hyper import growth
+from hyper.model import growth
 
 rng = np.random.default_rng(7)
 

@@ -1,7 +1,7 @@
 """Every job refuses bad input alike: exit status 2, one `error:` line on stderr, nothing
 on stdout, and nothing written (the output folder absent, the input folder unchanged).
 
-The table runs each job in-process through `hyper.cli.main`, as `hyper JOB …` does; the
+The table runs each job in-process through `hyper.commands.cli.main`, as `hyper JOB …` does; the
 MPI cases run `mpirun -n 2 python -m hyper.JOB …` with a time limit, so that a job that
 leaves a rank waiting fails the test instead of hanging it.
 """
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from hyper import cli
+from hyper.commands import cli
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -241,7 +241,7 @@ LOCKED = {
 
 @pytest.mark.parametrize("job", sorted(LOCKED))
 def test_every_job_that_writes_stops_at_once_on_an_output_another_run_holds(tmp_path, capsys, job):
-    from hyper import checkpoint
+    from hyper.runs import checkpoint
 
     out = tmp_path / "out"
     argv = [a.format(out=out) for a in LOCKED[job]]
@@ -264,7 +264,7 @@ def test_a_term_reaches_the_run_when_petsc_starts_after_the_handler():
     """PETSc's own SIGTERM handler aborts the process; a job that starts PETSc after it
     installed run.StopOnTerm (the farm imports DOLFINx late) must still get a stop flag.
     A fresh process, as PETSc in this one started long ago."""
-    code = ("import os, signal\nfrom hyper.run import StopOnTerm\n"
+    code = ("import os, signal\nfrom hyper.runs.driver import StopOnTerm\n"
             "with StopOnTerm() as stop:\n"
             "    import dolfinx_solver\n    from petsc4py import PETSc\n"
             "    os.kill(os.getpid(), signal.SIGTERM)\n"

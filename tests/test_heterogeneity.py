@@ -8,12 +8,14 @@ from dolfinx import mesh as dmesh
 from mpi4py import MPI
 from scipy import optimize
 
-from hyper import ensemble, fibers, signaling
-from hyper import geometry as geo
-from hyper import heterogeneity as het
-from hyper.coupled import CoupledModel, GrowthSettings
-from hyper.params import InputError
-from hyper.protocols import Protocol, Session
+from hyper.analysis import ensemble
+from hyper.core.params import InputError
+from hyper.fem import fibers
+from hyper.fem import geometry as geo
+from hyper.fem.coupled import CoupledModel, GrowthSettings
+from hyper.model import heterogeneity as het
+from hyper.model import signaling
+from hyper.model.protocols import Protocol, Session
 
 # mTOR starts just above its threshold, so the muscle grows from the first hour.
 GROWING = signaling.SignalingParams(thetaM=0.46)
@@ -215,8 +217,9 @@ def test_an_ensemble_sample_stopped_by_sigterm_resumes_to_the_uninterrupted_resu
     """run.execute's checkpoints serve the per-cell state: parameters, one ODE per cell,
     the spread columns and the N snapshots come back, and the resumed series is the
     uninterrupted one, bit for bit."""
-    from hyper import protocols, run
-    from hyper.coupled import GrowthSettings
+    from hyper.fem.coupled import GrowthSettings
+    from hyper.model import protocols
+    from hyper.runs import driver as run
 
     comm = MPI.COMM_SELF
     (tmp_path / "short.toml").write_text(SHORT)
@@ -249,6 +252,6 @@ def test_an_ensemble_sample_stopped_by_sigterm_resumes_to_the_uninterrupted_resu
 
 
 def ckpt_status(path):
-    from hyper import checkpoint
+    from hyper.runs import checkpoint
 
     return checkpoint.read_status(path)["state"]

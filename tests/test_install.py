@@ -1,5 +1,5 @@
 """A non-editable install runs from an empty folder: `pip install .` copies the meshes,
-fibres, data, studies and templates into the package (hyper.resources finds them there).
+fibres, data, studies and templates into the package (hyper.core.resources finds them there).
 
 The installed copy goes into a temporary folder (pip install --no-deps --target, from a
 copy of the checkout's files, so that the build leaves nothing in the checkout), and runs
@@ -42,7 +42,7 @@ def installed(tmp_path_factory):
 
 def test_the_installed_package_carries_its_inputs(installed):
     target, env = installed
-    code = ("import hyper, hyper.geometry as g, hyper.resources as r, hyper.slurm as s; "
+    code = ("import hyper, hyper.fem.geometry as g, hyper.core.resources as r, hyper.slurm as s; "
             "print(hyper.__file__); print(g.MESHES_DIR); print(r.checkout()); "
             "print(all(p.is_file() for p in s.TEMPLATES.values()))")
     lines = subprocess.run([sys.executable, "-c", code], env=env, cwd=target.parent, capture_output=True,

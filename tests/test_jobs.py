@@ -12,8 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from hyper import io, slurm
-from hyper.params import InputError
+from hyper.commands import slurm
+from hyper.core.params import InputError
+from hyper.runs import io
 
 KINDS = ("cohort", "grow-array", "sobol")
 COMMAND = {"cohort": "hyper.cohort", "grow-array": "hyper.grow", "sobol": "hyper.sobol"}
@@ -295,7 +296,7 @@ def test_a_single_protocol_run_names_its_figure(tmp_path):
     # grow-array tasks of one geometry share the output folder: each figure is named per run
     from mpi4py import MPI
 
-    from hyper import grow
+    from hyper.commands import grow
 
     folder = ["--geometry", "cylinder", "--output", str(tmp_path)]
     assert grow.plan(MPI.COMM_SELF, [*folder, "--protocol", "weekly"]).plot == tmp_path / "cylinder_weekly_growth.png"

@@ -18,8 +18,8 @@ from dolfinx import mesh as dmesh
 from dolfinx.fem.petsc import NonlinearProblem
 from mpi4py import MPI
 
-from hyper import material as mat
-from hyper.params import InputError
+from hyper.core.params import InputError
+from hyper.model import material as mat
 
 PARAMS = mat.MaterialParams()
 

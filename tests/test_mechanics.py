@@ -20,11 +20,12 @@ from mpi4py import MPI
 from petsc4py import PETSc
 from scipy.optimize import brentq
 
-from hyper import fibers, growth
-from hyper import geometry as geo_mod
-from hyper import material as mat
-from hyper.mechanics import MechanicsProblem, SolverError, rigid_modes
-from hyper.params import InputError
+from hyper.core.params import InputError
+from hyper.fem import fibers
+from hyper.fem import geometry as geo_mod
+from hyper.fem.mechanics import MechanicsProblem, SolverError, rigid_modes
+from hyper.model import growth
+from hyper.model import material as mat
 from test_material import nominal_stress
 
 PARAMS = mat.MaterialParams()
@@ -234,7 +235,7 @@ def _lu_and_iterative(comm):
 
 
 def _check_iterative(comm):
-    from hyper.mechanics import BLR_PRECISION
+    from hyper.fem.mechanics import BLR_PRECISION
 
     out = _lu_and_iterative(comm)
     w_lu, v_lu, _, _, blr_lu, _ = out["lu"]
@@ -264,7 +265,7 @@ def test_unknown_linear_solver_is_refused():
 
 
 def test_taylor_hood_unknowns_counts_the_space_without_building_it():
-    from hyper.mechanics import taylor_hood_unknowns
+    from hyper.fem.mechanics import taylor_hood_unknowns
 
     geometry = geo_mod.load("cylinder", MPI.COMM_WORLD)
     problem = MechanicsProblem(geometry, fibers.fiber_field(geometry))

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hyper import cli
-from hyper import mesh as hm
-from hyper.params import InputError
+from hyper.commands import cli
+from hyper.core.params import InputError
+from hyper.fem import meshing as hm
 
 RADIUS, LENGTH = 20.0, 100.0  # mm
 AROUND, ALONG = 48, 10
@@ -142,8 +142,8 @@ def test_a_meshed_cylinder_has_the_analytic_volume_and_cut_area(meshed):
     import h5py
     from mpi4py import MPI
 
-    from hyper import fibers, section
-    from hyper import geometry as geo
+    from hyper.fem import fibers, section
+    from hyper.fem import geometry as geo
 
     record = json.loads((meshed / "mesh.json").read_text())
     stats = record["statistics"]
@@ -202,8 +202,8 @@ def test_a_real_surface_meshes_end_to_end(tmp_path):
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    from hyper import fibers
-    from hyper import geometry as geo
+    from hyper.fem import fibers
+    from hyper.fem import geometry as geo
 
     out = tmp_path / "TA_VHF_Right"
     assert hm.main([str(REAL), "--output", str(out), "--cells", "3000", "--quiet"]) == cli.EXIT_OK

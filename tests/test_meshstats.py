@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from hyper import geometry as geo
-from hyper import meshstats
+from hyper.fem import geometry as geo
+from hyper.fem import meshstats
 
 NAME = "BFLH_VHF_Left"
 # Computed once with this code (serial); cells/vertices are exact, the rest to rounding.

@@ -1,4 +1,4 @@
-"""Growth steps solved with kept factors (hyper.newton) land on the lagged SNES Newton's
+"""Growth steps solved with kept factors (hyper.fem.newton) land on the lagged SNES Newton's
 answers: the CSA and volume series agree within 1e-6 of the growth, with fewer
 factorisations."""
 
@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from hyper import fibers, signaling
-from hyper import geometry as geo
-from hyper.coupled import CoupledModel, GrowthSettings
-from hyper.protocols import Protocol, Session
+from hyper.fem import fibers
+from hyper.fem import geometry as geo
+from hyper.fem.coupled import CoupledModel, GrowthSettings
+from hyper.model import signaling
+from hyper.model.protocols import Protocol, Session
 
 # Three sessions in a week; mTOR starts just above its threshold, so every step grows.
 PROTOCOL = Protocol(tuple(Session(48.0 * k, 1.0, 0.8) for k in range(3)), end=144.0, name="three")
@@ -38,7 +39,7 @@ def test_kept_factors_reproduce_the_lagged_newton_series(name, growth_dt):
 
 
 def test_an_unknown_newton_method_is_refused():
-    from hyper.params import InputError
+    from hyper.core.params import InputError
 
     with pytest.raises(InputError, match="newton"):
         GrowthSettings(newton="broyden")

@@ -15,8 +15,13 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from hyper import cli, grow, io, log, measured, protocols, run, study
-from hyper.params import InputError
+from hyper.analysis import study
+from hyper.commands import cli, grow
+from hyper.core import log
+from hyper.core.params import InputError
+from hyper.model import protocols
+from hyper.runs import driver as run
+from hyper.runs import io, measured
 from test_reliability import PROTOCOL  # the short two-session protocol
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from hyper import io
-from hyper.params import InputError
-from hyper.protocols import NAMES, Protocol, Session, load, named, resolve
+from hyper.core.params import InputError
+from hyper.model.protocols import NAMES, Protocol, Session, load, named, resolve
+from hyper.runs import io
 
 
 @pytest.mark.parametrize(
@@ -170,7 +170,7 @@ def test_missing_file(tmp_path):
 
 
 def test_from_option_names_a_protocol_all_or_a_file(tmp_path):
-    from hyper.protocols import PAPER, from_option
+    from hyper.model.protocols import PAPER, from_option
 
     assert from_option("weekly") == [named("weekly")]
     assert [p.name for p in from_option("all")] == list(PAPER) == ["mwf", "every3days", "weekly"]

@@ -8,7 +8,11 @@ import hashlib
 import h5py
 import pytest
 
-from hyper import cli, geometry, io, material, study
+from hyper.analysis import study
+from hyper.commands import cli
+from hyper.fem import geometry
+from hyper.model import material
+from hyper.runs import io
 
 SHORT = 'name = "short"\nend = 48.0\n[[session]]\nstart = 0.0\nduration = 1.0\nintensity = 0.8\n'
 
@@ -58,7 +62,9 @@ def test_inspect_refuses_what_is_not_a_result(tmp_path, capsys):
 
 
 def test_every_series_name_the_jobs_write_has_a_unit():
-    from hyper import ensemble, run, signaling
+    from hyper.analysis import ensemble
+    from hyper.model import signaling
+    from hyper.runs import driver as run
 
     names = [*run.SERIES, *ensemble.STD, "final_x", "final_u", "final_N", "final_detGbar", *signaling.STATES]
     assert all(io.unit(name) != "unspecified" for name in names)
@@ -82,7 +88,8 @@ def test_a_result_records_its_material_and_the_study_that_reruns_it(grown, tmp_p
 
 
 def test_material_parameters_change_the_run(grown):
-    from hyper import protocols, run
+    from hyper.model import protocols
+    from hyper.runs import driver as run
 
     out, _ = grown
     plain = run.RunSpec("cylinder", protocols.load(out.parent / "short.toml"))
@@ -125,7 +132,8 @@ def test_a_remade_mesh_or_fibre_file_is_another_run(tmp_path, monkeypatch):
     # `make new-meshes` remade a geometry's files in place, the old result must not count.
     import shutil
 
-    from hyper import protocols, run
+    from hyper.model import protocols
+    from hyper.runs import driver as run
 
     name = "TA_VHF_Left"
     spec = run.RunSpec(name, protocols.named("mwf"))

@@ -21,8 +21,10 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from hyper import checkpoint as ckpt
-from hyper import cli, grow, io, run
+from hyper.commands import cli, grow
+from hyper.runs import checkpoint as ckpt
+from hyper.runs import driver as run
+from hyper.runs import io
 
 ROOT = Path(__file__).resolve().parents[1]
 PYTHON = sys.executable
@@ -273,7 +275,7 @@ def test_grow_array_script_stops_requeues_and_resumes(inputs, tmp_path):
     here and kills it on a TERM of its own; scancel --signal signals the task; scontrol
     records): Slurm's warning (USR1 to the batch shell) stops the run at a step boundary with
     its checkpoint, the task is requeued, and the requeued script resumes the run to the end."""
-    from hyper import slurm
+    from hyper.commands import slurm
 
     fake = tmp_path / "fake"
     fake.mkdir()
@@ -321,9 +323,10 @@ def test_grow_array_script_stops_requeues_and_resumes(inputs, tmp_path):
 def heterogeneous_model(comm):
     """The cylinder with a per-cell synthesis rate (a field over the mesh file's cells):
     growth, Ḡ, A and the stress then differ from cell to cell and point to point."""
-    from hyper import fibers, protocols, signaling
-    from hyper import geometry as geo
-    from hyper.coupled import CoupledModel, GrowthSettings
+    from hyper.fem import fibers
+    from hyper.fem import geometry as geo
+    from hyper.fem.coupled import CoupledModel, GrowthSettings
+    from hyper.model import protocols, signaling
 
     g = geo.load("cylinder", comm)
     original = np.asarray(g.mesh.topology.original_cell_index)[: g.mesh.topology.index_map(3).size_local]

@@ -4,7 +4,7 @@ import json
 
 from mpi4py import MPI
 
-from hyper import reproduce
+from hyper.analysis import reproduce
 
 
 def test_signaling_report(tmp_path):

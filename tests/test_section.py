@@ -12,7 +12,7 @@ import pytest
 from dolfinx import fem
 from mpi4py import MPI
 
-from hyper import section
+from hyper.fem import section
 
 CYLINDER = Path(__file__).resolve().parents[1] / "meshes" / "muscle-cylinder" / "muscle-cylinder.msh"
 

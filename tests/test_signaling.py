@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hyper import signaling as S
-from hyper.params import InputError
-from hyper.protocols import Protocol, Session, named
-from hyper.signaling.model import lambert_w0
+from hyper.core.params import InputError
+from hyper.model import signaling as S
+from hyper.model.protocols import Protocol, Session, named
+from hyper.model.signaling.model import lambert_w0
 
 P0 = S.SignalingParams()
 Y0 = S.rest_state()
@@ -272,7 +272,7 @@ def test_c_backend_equals_numpy_bit_for_bit(mixed_batch):
 def test_auto_takes_c_for_batches_only(monkeypatch):
     if S.c_backend_error() is not None:
         pytest.skip(f"no C backend here: {S.c_backend_error()}")
-    from hyper.signaling import compiled
+    from hyper.model.signaling import compiled
 
     sizes = []
     run = compiled.run
@@ -286,7 +286,7 @@ def test_auto_takes_c_for_batches_only(monkeypatch):
 
 
 def test_auto_falls_back_to_numpy_without_a_compiler(monkeypatch, tmp_path, mixed_batch):
-    from hyper.signaling import compiled
+    from hyper.model.signaling import compiled
 
     monkeypatch.setattr(compiled, "_KERNEL", {})  # forget the kernel built so far
     monkeypatch.setenv("HYPER_CACHE_DIR", str(tmp_path))
@@ -436,7 +436,7 @@ def test_failed_members_are_masked_the_others_untouched():
 
 
 def test_cli_writes_series_and_figure(tmp_path, capsys):
-    from hyper import io
+    from hyper.runs import io
 
     out = tmp_path / "sig"
     assert S.main(["--protocol", "all", "--output", str(out), "--plot", str(out / "f.png"), "--sample-every", "2"]) == 0
@@ -505,7 +505,7 @@ def test_batch_split_over_ranks_equals_serial():
 def test_ranks_building_the_kernel_at_once_get_the_same_bits(monkeypatch, tmp_path):
     from mpi4py import MPI
 
-    from hyper.signaling import compiled
+    from hyper.model.signaling import compiled
 
     comm = MPI.COMM_WORLD
     cache = Path(comm.bcast(str(tmp_path) if comm.rank == 0 else None, root=0)) / "cache"

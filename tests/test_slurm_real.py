@@ -28,7 +28,7 @@ import h5py
 import numpy as np
 import pytest
 
-from hyper import slurm
+from hyper.commands import slurm
 
 PYTHON = sys.executable
 SRC = Path(slurm.__file__).resolve().parents[1]

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from hyper import signaling as S
-from hyper import sobol
-from hyper.protocols import Protocol, Session, named
+from hyper.analysis import sobol
+from hyper.model import signaling as S
+from hyper.model.protocols import Protocol, Session, named
 
 ISHIGAMI = sobol.ishigami_problem()
 
@@ -289,7 +289,7 @@ def test_the_default_base_sample_count_is_a_power_of_two():
 
 
 def test_the_problem_from_options_and_from_a_file(tmp_path):
-    from hyper import protocols
+    from hyper.model import protocols
 
     args = sobol.parser().parse_args(["--parameters", "kM", "kF", "--range", "0.8", "1.25", "--protocol", "weekly",
                                       "--at", "200"])

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from hyper import signaling as S
-from hyper import sobol, surrogate
-from hyper.protocols import Protocol, named
+from hyper.analysis import sobol
+from hyper.model import signaling as S
+from hyper.model import surrogate
+from hyper.model.protocols import Protocol, named
 
 GAIN = sobol.gain_problem()
 RHO = surrogate.section_factor("idealized")

@@ -10,10 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hyper import cli, cohort, io, protocols, study
-from hyper.heterogeneity import Heterogeneity
-from hyper.params import InputError
-from hyper.protocols import Repeat
+from hyper.analysis import cohort, study
+from hyper.commands import cli
+from hyper.core.params import InputError
+from hyper.model import protocols
+from hyper.model.heterogeneity import Heterogeneity
+from hyper.model.protocols import Repeat
+from hyper.runs import io
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -302,7 +305,7 @@ def test_one_run_study_writes_what_grow_writes(tmp_path):
 
 
 def test_a_study_carries_the_sobol_problem(tmp_path):
-    from hyper import sobol
+    from hyper.analysis import sobol
 
     path = write(tmp_path, GOOD + '[sobol]\nnames = ["kM"]\nbounds = [[0.005, 0.02]]\nprotocol = "weekly"\n')
     assert study.load(path).names == ["cylinder"]

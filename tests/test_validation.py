@@ -3,7 +3,7 @@
 Table-driven: each case is a command line (with the file it names), the message it
 must give (a regex), exit status 2, and a results folder that stays as it was (here:
 never created). Protocol and parameter files go through the shared parsers
-(hyper.protocols.load, hyper.signaling.load_params), so these cases cover them too.
+(hyper.model.protocols.load, hyper.model.signaling.load_params), so these cases cover them too.
 """
 
 import re
@@ -17,7 +17,7 @@ from dolfinx import mesh as dmesh
 from dolfinx.io import XDMFFile
 from mpi4py import MPI
 
-from hyper import grow
+from hyper.commands import grow
 
 SESSION = "[[session]]\nstart = {start}\nduration = {duration}\nintensity = {intensity}\n"
 

@@ -1,80 +1,8 @@
-"""hyper inspect: what a result file is, where it came from, and what it says.
-
-    hyper inspect results/grow/idealized_mwf.h5
-
-Prints the provenance (command, versions, git commit, run digest, mesh hash, ranks,
-quadrature degree, linear solver), the attribute groups (signaling, material, protocol,
-settings, heterogeneity, fidelity: the names every job uses), the study file that reruns
-a growth result, and each series with its unit, length and first and last values.
-Works on every HDF5 result the jobs write.
-"""
-
-from __future__ import annotations
+"""``python -m hyper.inspect``: the same as ``hyper inspect`` (`hyper.commands.inspect`)."""
 
 import sys
-from pathlib import Path
 
-import numpy as np
-
-from hyper import cli
-from hyper.params import InputError
-
-# the groups every job names alike, shown first
-GROUPS = ("signaling", "material", "protocol", "settings", "heterogeneity", "fidelity")
-
-
-def parser() -> cli.Parser:
-    p = cli.Parser("inspect", __doc__)
-    p.add_argument("result", type=Path, help="an HDF5 result file")
-    return p
-
-
-def shown(value) -> str:
-    if isinstance(value, bytes):
-        value = value.decode(errors="replace")
-    if isinstance(value, np.ndarray) and value.size > 6:
-        return f"[{', '.join(f'{v:g}' for v in value[:3])}, …, {value[-1]:g}] ({value.size} values)"
-    return str(value)
-
-
-def describe(path: Path) -> list[str]:
-    import h5py
-
-    if not path.is_file():
-        raise InputError(f"{path}: no such file")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as err:
-        raise InputError(f"{path}: not a readable HDF5 file ({err})") from None
-    lines = [f"{path}: {'complete' if f.attrs.get('complete') else 'INCOMPLETE (its writer did not finish)'}"]
-    with f:
-        provenance = {k: v for k, v in f.attrs.items() if k not in ("complete", "study")}
-        lines.append("provenance:")
-        lines += [f"  {k} = {shown(v)}" for k, v in sorted(provenance.items())]
-        groups = sorted((name for name, item in f.items() if isinstance(item, h5py.Group)),
-                        key=lambda name: (GROUPS.index(name) if name in GROUPS else len(GROUPS), name))
-        for name in groups:
-            lines.append(f"[{name}]")
-            lines += [f"  {k} = {shown(v)}" for k, v in sorted(f[name].attrs.items())]
-        if "study" in f.attrs:
-            lines.append("study (the study file that reruns this result):")
-            lines += [f"  {line}" for line in shown(f.attrs["study"]).splitlines()]
-        lines.append("series:")
-        for name, item in sorted(f.items()):
-            if isinstance(item, h5py.Dataset):
-                data = item[()]
-                ends = (f", first {data.flat[0]:.6g}, last {data.flat[-1]:.6g}"
-                        if data.size and data.dtype.kind in "iuf" else "")
-                lines.append(f"  {name} [{shown(item.attrs.get('units', '?'))}]: shape {data.shape}{ends}")
-    return lines
-
-
-def run(comm, args) -> int:
-    print("\n".join(describe(args.result)))
-    return cli.EXIT_OK
-
-
-main = cli.entry(parser, run, world=False)
+from hyper.commands.inspect import main
 
 if __name__ == "__main__":
     sys.exit(main())

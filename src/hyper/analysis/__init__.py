@@ -1,0 +1,1 @@
+"""Studies over many runs: cohort, ensemble, Sobol, calibration, dose, reproduction."""

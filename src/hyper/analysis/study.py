@@ -1,0 +1,487 @@
+"""hyper study STUDY.toml: a whole study in one file.
+
+    hyper study studies/custom.toml
+    mpirun -n 4 hyper study studies/paper-cohort.toml --ranks-per-job 2
+    hyper study studies/paper-cohort.toml --growth-dt 24 --output results/coarse
+
+One geometry × one protocol runs as `hyper grow` does (OUTPUT/GEOMETRY_PROTOCOL.h5, its
+fields and OUTPUT/GEOMETRY_growth.png); more run as a cohort on the MPI farm as
+`hyper cohort` does (OUTPUT/runs/, summary.csv, ratios.png, shape.png of the first
+geometry, table.md), and a rerun skips the runs already done.
+
+The file; every key is checked when it is read, an unknown one is an error, and paths
+of inputs are relative to the study file's folder (the output folder to the current one):
+
+    geometries = ["BFLH_VHF_Left", "cylinder"]  # built-in geometry ids
+    protocols = ["mwf", "mine.toml"]            # built-in names, "all", or protocol TOML files
+
+    [[mesh]]                   # a mesh file of yours (repeatable): tetrahedral XDMF with
+    file = "muscle.xdmf"       # facet tags ft_small (1, 2 the ends, 3 the side)
+    unit = "mm"                # its length unit: m or mm
+
+    [[protocol]]               # a protocol written here (repeatable), as in a protocol file:
+    name = "twice-weekly"      # [[protocol.session]] tables (start, duration, intensity) and
+    [protocol.repeat]          # end (h), or a repeat rule:
+    weekdays = ["tue", "fri"]  # days of each training week (weeks begin on a Monday), or
+                               # every_days = 3
+    duration = 1.0             # h, each session
+    intensity = 0.8            # fraction of the maximal force
+    weeks = 6                  # training weeks; the protocol ends with the last
+    lead_in_days = 7           # rest before the first training week (0 by default)
+
+    [signaling]                # signaling parameters (fields of hyper.model.signaling.SignalingParams)
+    a10 = 0.09
+
+    [material]                 # the muscle law's parameters (fields of hyper.model.material.MaterialParams)
+    sigma_act = 2.5e5          # Pa
+
+    [heterogeneity]            # per-cell signaling parameters (hyper.model.heterogeneity), optional
+    model = "uniform-noise"    # or "matern", with length (m) and nu
+    epsilon = 0.01
+    seed = 1
+
+    [numerics]
+    growth_dt = 168.0          # h; or accuracy = 1e-3, the steps hyper.runs.fidelity chooses
+    signaling_dt = 0.05        # h, the RK4 step
+    quadrature_degree = 4      # built-in geometries only
+    linear_solver = "lu"       # lu, iterative or auto (lu; auto with accuracy)
+    max_halvings = 4
+    feedback = "hill"          # of CSA on protein synthesis: hill, linear or none
+    grow_during_sessions = true   # false: the original code's
+    consistent_stress = true      # false: the original code's P = Fe S
+
+    [output]
+    folder = "results/study"   # (the default)
+    figures = true
+    snapshot_every = 24.0      # h of simulated time between fields snapshots (and the last state)
+
+    [data]                     # measured CSA to compare every run with (hyper.runs.measured), optional;
+    file = "mine.csv"          # without it a run is compared with its protocol's own data set, if any
+
+    [sobol]                    # the sensitivity analysis of `hyper sobol --problem STUDY.toml`
+    names = ["kM", "kF"]       # (checked here, run there; see hyper.sobol)
+    bounds = [[0.005, 0.02], [0.0095, 0.038]]
+
+Precedence: a command-line option wins over the study file, and the file over the
+defaults (--output over [output] folder, --growth-dt over [numerics] growth_dt, and so on
+for each key). Wherever they come from, a growth or RK4 step given explicitly wins over
+the one that accuracy would choose, as in `hyper grow`.
+
+Exit status: as `hyper grow` (one run) or `hyper cohort` (more); 2 for a bad study
+file or option, with nothing written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+import time
+import traceback
+from pathlib import Path
+
+from hyper.analysis import cohort
+from hyper.commands import cli
+from hyper.core.log import PROGRESS_EVERY, info
+from hyper.core.params import InputError, as_attributes, build, positive_hours, read_toml, replace_from_mapping
+from hyper.fem import geometry as geo
+from hyper.fem.coupled import GrowthSettings
+from hyper.model import material as mat
+from hyper.model import protocols, signaling
+from hyper.model.heterogeneity import Heterogeneity
+from hyper.model.protocols import Protocol
+from hyper.runs import driver as run
+from hyper.runs import fidelity, measured, sequence
+
+KEYS = ("geometries", "protocols", "mesh", "protocol", "signaling", "material", "heterogeneity", "numerics",
+        "output", "sobol", "data")
+MESH_KEYS = ("file", "unit")
+DATA_KEYS = ("file",)
+HETEROGENEITY_KEYS = ("model", "epsilon", "length", "nu", "seed")
+OUTPUT_KEYS = ("folder", "figures", "snapshot_every")
+DEFAULT_FOLDER = Path("results/study")
+
+
+# ----------------------------------------------------------------------- the sections
+
+
+@dataclasses.dataclass(frozen=True)
+class Numerics:
+    """How the runs are solved. None: the default, or what accuracy chooses."""
+
+    growth_dt: float | None = None  # h, the longest growth step
+    accuracy: float | None = None  # fraction of the growth (hyper.runs.fidelity), in (0, 0.5)
+    signaling_dt: float | None = None  # h, the RK4 step
+    quadrature_degree: int | None = None  # of the built-in geometries; None: theirs (4)
+    linear_solver: str | None = None  # lu, iterative or auto; None: lu, or auto with accuracy
+    max_halvings: int = GrowthSettings.max_halvings  # cuts of a failing growth step
+    feedback: str = GrowthSettings.feedback  # hill, linear or none
+    grow_during_sessions: bool = GrowthSettings.grow_during_sessions  # False: the original code's
+    consistent_stress: bool = GrowthSettings.consistent_stress  # False: the original code's P = Fe S
+
+    def __post_init__(self):
+        for name in ("growth_dt", "signaling_dt"):
+            if getattr(self, name) is not None:
+                positive_hours(getattr(self, name), name)
+        if self.growth_dt is not None and self.signaling_dt is not None and self.signaling_dt > self.growth_dt:
+            raise InputError(f"{self.signaling_dt:g} h must not exceed the growth step ({self.growth_dt:g} h)",
+                             field="signaling_dt")
+        a = self.accuracy
+        if a is not None and (isinstance(a, bool) or not isinstance(a, (int, float))
+                              or not (math.isfinite(a) and 0 < a < 0.5)):
+            raise InputError(f"expected a number in (0, 0.5), a fraction of the growth (1e-3 is 0.1 %), got {a!r}",
+                             field="accuracy")
+        q = self.quadrature_degree
+        if q is not None and (isinstance(q, bool) or not isinstance(q, int) or not 1 <= q <= 12):
+            raise InputError(f"expected an integer in [1, 12], got {q!r}", field="quadrature_degree")
+        if self.linear_solver is not None and self.linear_solver not in run.LINEAR_SOLVERS:
+            raise InputError(f"expected one of {', '.join(run.LINEAR_SOLVERS)}, got {self.linear_solver!r}",
+                             field="linear_solver")
+        m = self.max_halvings
+        if isinstance(m, bool) or not isinstance(m, int) or not 0 <= m <= GrowthSettings.MAX_HALVINGS:
+            raise InputError(f"expected an integer in [0, {GrowthSettings.MAX_HALVINGS}], got {m!r}",
+                             field="max_halvings")
+        from hyper.model.growth import FEEDBACK_LAWS
+
+        if self.feedback not in FEEDBACK_LAWS:
+            raise InputError(f"expected one of {', '.join(FEEDBACK_LAWS)}, got {self.feedback!r}", field="feedback")
+        for name in ("grow_during_sessions", "consistent_stress"):
+            if not isinstance(getattr(self, name), bool):
+                raise InputError(f"expected true or false, got {getattr(self, name)!r}", field=name)
+
+
+@dataclasses.dataclass(frozen=True)
+class Output:
+    folder: Path = DEFAULT_FOLDER  # where the results go
+    figures: bool = True  # the growth figure (one run), or ratios.png and shape.png (a cohort)
+    snapshot_every: float = run.SNAPSHOT_EVERY  # h of simulated time between fields snapshots
+
+    def __post_init__(self):
+        positive_hours(self.snapshot_every, "snapshot_every")
+        if not isinstance(self.folder, Path) or not str(self.folder) or "\0" in str(self.folder):
+            raise InputError(f"expected a folder path, got {self.folder!r}", field="folder")
+        problem = cli.unwritable(self.folder, folder=True)
+        if problem is not None:
+            raise InputError(problem, field="folder")
+        if not isinstance(self.figures, bool):
+            raise InputError(f"expected true or false, got {self.figures!r}", field="figures")
+
+
+@dataclasses.dataclass(frozen=True)
+class Study:
+    """A checked study: what runs, with which parameters, how solved and where written."""
+
+    geometries: tuple[str, ...]  # built-in geometry ids
+    meshes: tuple[run.MeshFile, ...]  # the user's mesh files
+    protocols: tuple[Protocol, ...]
+    signaling: signaling.SignalingParams = signaling.SignalingParams()
+    material: mat.MaterialParams = mat.MaterialParams()
+    heterogeneity: Heterogeneity | None = None
+    seed: int | None = None  # of the per-cell parameters
+    numerics: Numerics = Numerics()
+    output: Output = Output()
+    data: measured.Measured | None = None  # the measured CSA every run is compared with
+
+
+    def __post_init__(self):
+        unknown = [g for g in self.geometries if g not in geo.GEOMETRIES]
+        if unknown:
+            raise InputError(f"unknown {', '.join(map(repr, unknown))}; known: {', '.join(geo.GEOMETRIES)}",
+                             field="geometries")
+        if not self.names:
+            raise InputError("no geometry: give geometries = [...] or [[mesh]] tables", field="geometries")
+        if not self.protocols:
+            raise InputError("no protocol: give protocols = [...] or [[protocol]] tables", field="protocols")
+        for field, names in (("geometries", self.names), ("protocols", [p.name for p in self.protocols])):
+            repeated = sorted({n for n in names if names.count(n) > 1})
+            if repeated:
+                raise InputError(f"names must be unique (a mesh is named by its file's stem); repeated: "
+                                 f"{', '.join(repeated)}", field=field)
+        if self.meshes and self.numerics.quadrature_degree is not None:
+            raise InputError("applies to the built-in geometries only; a [[mesh]] is given",
+                             field="numerics.quadrature_degree")
+        if (self.heterogeneity is None) != (self.seed is None):
+            raise InputError("per-cell parameters need both a model and a seed", field="heterogeneity")
+        for p in self.protocols if self.data is not None else ():
+            measured.check_span(self.data, p, "data.file")
+
+    @property
+    def names(self) -> list[str]:
+        """The geometries' names: the built-in ids, then the mesh files' stems."""
+        return [*self.geometries, *(m.path.stem for m in self.meshes)]
+
+
+# ----------------------------------------------------------------------- reading a file
+
+
+def table(data: dict, key: str, where: str, known: tuple[str, ...]) -> dict:
+    """The table ``data[key]`` (empty when absent), with no key outside ``known``."""
+    value = data.get(key, {})
+    if not isinstance(value, dict):
+        raise InputError(f"{where}: {key}: expected a table ([{key}]), got {value!r}")
+    keys_of(value, f"{where}: {key}", known)
+    return value
+
+
+def keys_of(value: dict, where: str, known: tuple[str, ...]) -> None:
+    unknown = sorted(set(value) - set(known))
+    if unknown:
+        raise InputError(f"{where}: unknown key(s) {', '.join(unknown)}; known: {', '.join(known)}")
+
+
+def tables(data: dict, key: str, where: str) -> list[dict]:
+    value = data.get(key, [])
+    if not isinstance(value, list) or not all(isinstance(t, dict) for t in value):
+        raise InputError(f"{where}: {key}: expected an array of tables ([[{key}]] blocks), got {value!r}")
+    return value
+
+
+def strings(data: dict, key: str, where: str) -> list[str]:
+    value = data.get(key, [])
+    if not isinstance(value, list) or not all(isinstance(s, str) for s in value):
+        raise InputError(f"{where}: {key}: expected an array of strings, got {value!r}")
+    return value
+
+
+def named_protocol(text: str, base: Path, where: str) -> list[Protocol]:
+    """A ``protocols`` entry: a built-in name, "all", or a protocol file relative to ``base``."""
+    if text in protocols.NAMES or text == "all":
+        return protocols.from_option(text, where)
+    path = base / text
+    if not path.is_file():
+        raise InputError(f"{where}: {text!r} is neither a built-in protocol ({', '.join(protocols.NAMES)} or all) "
+                         f"nor a protocol file ({path}: no such file)")
+    return [protocols.load(path)]
+
+
+def mesh_file(entry: dict, base: Path, where: str) -> run.MeshFile:
+    keys_of(entry, where, MESH_KEYS)
+    if not isinstance(entry.get("file"), str):
+        raise InputError(f"{where}: file: expected the path of an XDMF mesh file, got {entry.get('file')!r}")
+    unit = entry.get("unit", "m")
+    if unit not in run.MESH_UNITS:
+        raise InputError(f"{where}: unit: expected one of {', '.join(run.MESH_UNITS)}, got {unit!r}")
+    path = base / entry["file"]
+    if not path.is_file():
+        raise InputError(f"{where}: file: {path}: no such file")
+    try:
+        return run.MeshFile(path, unit)
+    except InputError as err:
+        raise InputError(f"{where}: {err}") from None
+
+
+def heterogeneity_of(values: dict, where: str) -> tuple[Heterogeneity | None, int | None]:
+    if not values:
+        return None, None
+    values = dict(values)
+    seed = values.pop("seed", None)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise InputError(f"{where}: seed: expected an integer >= 0 (the per-cell parameters' random seed), "
+                         f"got {seed!r}")
+    try:
+        return Heterogeneity(**values), seed
+    except (InputError, TypeError) as err:
+        raise InputError(f"{where}: {err}") from None
+
+
+def data_file(data: dict, base: Path, where: str) -> measured.Measured | None:
+    """The [data] table's measured CSA (its file relative to ``base``), if there is one."""
+    if "data" not in data:
+        return None
+    entry = table(data, "data", where, DATA_KEYS)
+    if not isinstance(entry.get("file"), str):
+        raise InputError(f"{where}: data.file: expected the path of a CSV file of measured CSA (data/README.md), "
+                         f"got {entry.get('file')!r}")
+    path = base / entry["file"]
+    if not path.is_file():
+        raise InputError(f"{where}: data.file: {path}: no such file")
+    try:
+        return measured.read(path)
+    except InputError as err:
+        raise InputError(f"{where}: data.file: {err}") from None
+
+
+def load(path: str | Path, overrides: dict | None = None, data_path: Path | None = None) -> Study:
+    """The study of a file, with ``overrides`` (field -> (option, value)) of its
+    [numerics] and [output] keys from the command line, and --data instead of
+    its [data] file (``data_path``). InputError names the key and the expected form (or the option, for
+    a bad overriding value)."""
+    path = Path(path)
+    where = str(path)
+    base = path.parent
+    data = read_toml(path)
+    keys_of(data, where, KEYS)
+    if "sobol" in data:
+        from hyper.analysis import sobol
+
+        sobol.read_config(path)
+    overrides = overrides or {}
+    protocol_list = [p for text in strings(data, "protocols", where)
+                     for p in named_protocol(text, base, f"{where}: protocols")]
+    for i, entry in enumerate(tables(data, "protocol", where)):
+        protocol_list.append(protocols.from_table(entry, f"{where}: protocol {i}", f"protocol{i}"))
+    meshes = tuple(mesh_file(entry, base, f"{where}: mesh {i}") for i, entry in enumerate(tables(data, "mesh", where)))
+    params = replace_from_mapping(signaling.SignalingParams(), table(data, "signaling", where,
+                                                                     tuple(as_attributes(signaling.SignalingParams()))),
+                                  f"{where}: signaling")
+    muscle = mat.from_mapping(table(data, "material", where, tuple(as_attributes(mat.MaterialParams()))),
+                              f"{where}: material")
+    het, seed = heterogeneity_of(table(data, "heterogeneity", where, HETEROGENEITY_KEYS), f"{where}: heterogeneity")
+    against = data_file(data, base, where) if data_path is None else measured.read(data_path)
+    sections = {}
+    for name, cls in (("numerics", Numerics), ("output", Output)):
+        known = tuple(f.name for f in dataclasses.fields(cls))
+        values = dict(table(data, name, where, known))
+        sources = {key: f"{where}: {name}.{key}" for key in known}
+        if name == "output" and "folder" in values:
+            if not isinstance(values["folder"], str):
+                raise InputError(f"{where}: output.folder: expected a folder path, got {values['folder']!r}")
+            values["folder"] = Path(values["folder"])
+        for key, (option, value) in overrides.items():
+            if key in known:
+                values[key] = value
+                sources[key] = option
+        # an error names where its key was set: the file, or the option that overrode it
+        sections[name] = build(cls, sources, **values)
+    try:
+        return Study(tuple(strings(data, "geometries", where)), meshes, tuple(protocol_list), params, muscle, het,
+                     seed, **sections, data=against)
+    except InputError as err:
+        raise InputError(f"{where}: {err}") from None
+
+
+# ----------------------------------------------------------------------- running it
+
+
+def parser() -> cli.Parser:
+    p = cli.Parser("study", __doc__)
+    p.add_argument("study", type=Path, metavar="STUDY.toml", help="the study file")
+    p.add_argument("--output", type=cli.output(folder=True), help="output folder; overrides [output] folder")
+    p.add_argument("--figures", action=argparse.BooleanOptionalAction,
+                   help="write the figures (--no-figures: none); overrides [output] figures")
+    p.add_argument("--growth-dt", type=float, help="growth step (h); overrides [numerics] growth_dt")
+    p.add_argument("--accuracy", type=float, help="fidelity choice of the steps; overrides [numerics] accuracy")
+    p.add_argument("--signaling-dt", type=float, help="RK4 step (h); overrides [numerics] signaling_dt")
+    p.add_argument("--quadrature-degree", type=cli.integer(1, 12), help="overrides [numerics] quadrature_degree")
+    p.add_argument("--linear-solver", choices=run.LINEAR_SOLVERS, help="overrides [numerics] linear_solver")
+    p.add_argument("--max-halvings", type=cli.integer(0), help="overrides [numerics] max_halvings")
+    p.add_argument("--snapshot-every", type=cli.positive("hours"), metavar="HOURS",
+                   help="fields snapshot every HOURS of simulated time; overrides [output] snapshot_every")
+    p.add_argument("--data", type=Path, metavar="CSV", help="measured CSA to compare with; overrides [data] file")
+    p.add_argument("--ranks-per-job", type=cli.integer(1), default=1,
+                   help="MPI ranks per run of a cohort; must divide the number of ranks")
+    cli.progress_option(p)
+    return p
+
+
+OVERRIDES = {"output": "folder", "figures": "figures", "growth_dt": "growth_dt", "accuracy": "accuracy",
+             "signaling_dt": "signaling_dt", "quadrature_degree": "quadrature_degree",
+             "linear_solver": "linear_solver", "max_halvings": "max_halvings", "snapshot_every": "snapshot_every"}
+
+
+def from_args(args) -> Study:
+    overrides = {field: ("--" + option.replace("_", "-"), getattr(args, option))
+                 for option, field in OVERRIDES.items() if getattr(args, option) is not None}
+    return load(args.study, overrides, args.data)
+
+
+def steps(study: Study) -> tuple[GrowthSettings, fidelity.Choice | None]:
+    """The growth settings, and the fidelity choice where accuracy sets the steps."""
+    n = study.numerics
+    choice = None
+    growth_dt, signaling_dt = n.growth_dt, n.signaling_dt
+    if n.accuracy is not None:
+        scene = fidelity.Scene(",".join(study.names), ",".join(p.name for p in study.protocols),
+                               heterogeneous=study.heterogeneity is not None, ask="growth")
+        try:
+            choice = fidelity.choose(scene, n.accuracy, growth_dt=growth_dt, signaling_dt=signaling_dt)
+        except InputError as err:
+            raise InputError(f"numerics.accuracy {n.accuracy:g}: {err}") from None
+        growth_dt, signaling_dt = choice.growth_dt, choice.signaling_dt
+    settings = build(GrowthSettings, {k: f"numerics.{k}" for k in ("growth_dt", "signaling_dt", "max_halvings")},
+                     growth_dt=GrowthSettings.growth_dt if growth_dt is None else growth_dt,
+                     signaling_dt=GrowthSettings.signaling_dt if signaling_dt is None else signaling_dt,
+                     max_halvings=n.max_halvings, feedback=n.feedback, grow_during_sessions=n.grow_during_sessions,
+                     consistent_stress=n.consistent_stress)
+    return settings, choice
+
+
+def spec_options(study: Study, choice) -> dict:
+    """The `RunSpec` fields a study sets beyond geometry, protocol, parameters and settings."""
+    solver = study.numerics.linear_solver or ("auto" if choice is not None else "lu")
+    return {"heterogeneity": study.heterogeneity, "seed": study.seed, "linear_solver": solver, "choice": choice,
+            "quadrature_degree": study.numerics.quadrature_degree, "material": study.material}
+
+
+def check_inputs(comm, study: Study) -> None:
+    """The geometries can run and the mesh files have the units they declare (collective)."""
+    for name in study.geometries:
+        run.check_geometry(comm, name, "geometries")
+    for mesh in study.meshes:
+        mesh.load(comm)
+
+
+def first_spec(study: Study, settings, choice) -> run.RunSpec:
+    """The run of the first geometry with the first protocol."""
+    return run.RunSpec(study.names[0], study.protocols[0], study.signaling, settings, {},
+                       mesh=study.meshes[0] if study.meshes else None, **spec_options(study, choice))
+
+
+def one_run(comm, study: Study, settings, choice, stop, command, progress_every: float = PROGRESS_EVERY) -> int:
+    """One geometry × one protocol: `hyper grow`'s plan and its execution."""
+    name, protocol = study.names[0], study.protocols[0]
+    folder = study.output.folder
+    spec = first_spec(study, settings, choice)
+    outputs = [run.Outputs(folder / f"{name}_{protocol.name}.h5")]
+    sequence.refuse_foreign_checkpoints(comm, [spec], outputs)
+    work = sequence.Plan([spec], outputs, folder / f"{name}_growth.png", study.output.snapshot_every,
+                         run.CHECKPOINT_EVERY, False, choice, data=study.data, progress_every=progress_every)
+    return sequence.carry_out(comm, work, stop, command, figure=study.output.figures)
+
+
+def many_runs(comm, study: Study, settings, choice, stop, ranks_per_job: int,
+              progress_every: float = PROGRESS_EVERY) -> int:
+    """More runs: `hyper cohort`'s farm and its summary."""
+    start = time.perf_counter()
+    if comm.size % ranks_per_job:
+        raise InputError(f"--ranks-per-job must divide the number of MPI ranks ({comm.size}), got {ranks_per_job}")
+    folder = study.output.folder
+    runs = cohort.plan(study.names, list(study.protocols), {m.path.stem: m for m in study.meshes})
+    with cli.hold(comm, [folder]):
+        info(comm, f"study: {len(runs)} runs ({len(study.names)} geometries × {len(study.protocols)} protocols) "
+                   f"on {comm.size} rank(s) in groups of {ranks_per_job}, growth step {settings.growth_dt:g} h, "
+                   f"output {folder}")
+        results = cohort.run_cohort(comm, runs, folder, params=study.signaling, settings=settings,
+                                    ranks_per_job=ranks_per_job, stop=stop, options=spec_options(study, choice),
+                                    snapshot_every=study.output.snapshot_every, data=study.data,
+                                    progress_every=progress_every)
+        code = 0
+        if comm.rank == 0:
+            try:
+                code = cohort.finish(folder, runs, results, settings, time.perf_counter() - start,
+                                     plot_geometry=study.names[0], figures=study.output.figures)
+            except Exception:  # noqa: BLE001 - the other ranks wait for the code: report, never leave them hanging
+                traceback.print_exc()
+                code = cli.EXIT_SOME_FAILED
+        cohort.idle_barrier(comm)
+    return int(comm.bcast(code, root=0))
+
+
+def carry_out(comm, args, argv: list[str]) -> int:
+    study = from_args(args)
+    settings, choice = steps(study)
+    check_inputs(comm, study)
+    with run.StopOnTerm() as stop:
+        if len(study.names) * len(study.protocols) == 1:
+            return one_run(comm, study, settings, choice, stop, ["hyper", "study", *argv], args.progress_every)
+        return many_runs(comm, study, settings, choice, stop, args.ranks_per_job, args.progress_every)
+
+
+def main(argv=None, comm=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    return cli.entry(parser, lambda comm, args: carry_out(comm, args, argv))(argv, comm)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

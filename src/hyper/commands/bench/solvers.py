@@ -1,0 +1,337 @@
+"""Linear solvers side by side: MUMPS LU against GMRES with a BLR preconditioner, and GAMG.
+
+    python -m hyper.bench solvers [--levels 0 1 2] [--ranks 2] [--parts levels precision gamg]
+
+The scene is a growth solve: the resting idealized shape (refined `level` times, every
+tetrahedron into eight) takes one transverse growth increment Fg = I + (ϑ - 1)(I - a0⊗a0)
+with ϑ = 1.05 (ten default growth steps at once) and Newton finds the grown equilibrium
+from the reference state, the Jacobian assembled and factorised at every Newton step.
+Every (level, solver) is its own process under mpirun, run one after the other, so each
+process's peak memory is its own:
+
+- lu:        MUMPS's exact factorisation (the default);
+- iterative: GMRES right-preconditioned by MUMPS's block low-rank factorisation
+             (`hyper.fem.mechanics`, precision 1e-4) to a relative residual of 1e-10.
+
+Per run: unknowns, Newton and Krylov iterations, wall time of the solve, the memory
+MUMPS used (INFOG 22, summed over ranks), the factor entries of a full-rank and of the
+stored factor (INFOG 29 and 35), the peak resident memory summed over ranks, and the
+solution; the iterative solution is compared with LU's (max |Δu| / max |u|, max |Δp| /
+max |p - p0|, and the volume), which must agree to the solver tolerance.
+
+Where it stalls:
+- BLR precision: on level `--precision-level` (default 1) GMRES with the BLR
+  preconditioner at precisions 1e-4 … 1e-1 (iterations, or where it fails);
+- GAMG: GMRES with a Schur-complement fieldsplit (u | p and the multipliers, selfp,
+  Jacobi on the Schur block) and smoothed-aggregation AMG with the rigid-body near null
+  space on the displacement block, on the idealized shape and TA_VHF_Left as given; on
+  TA_VHF_Left also with tuned GAMG and with an exact (LU) displacement solve, which
+  tells the displacement block's preconditioner from the Schur approximation.
+
+--parts runs only some of the three (levels, precision, gamg); the others are kept from
+an existing OUTPUT/solvers.json. Writes results/bench/solvers.json and solvers.png (memory and time against unknowns,
+iterations against unknowns and precision).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hyper.commands import cli
+from hyper.commands.bench import common
+from hyper.commands.bench.refinement import memory_fit
+from hyper.core.params import InputError
+from hyper.runs import plot
+
+THETA = 1.05
+PRECISIONS = (1e-4, 1e-3, 1e-2, 1e-1)
+# (geometry, variant): the variant's options go over GAMG_OPTIONS.
+GAMG_VARIANTS = {
+    "GAMG": {},
+    "GAMG, threshold 0.05, 4 smoothing steps": {"fieldsplit_u_pc_gamg_threshold": 0.05,
+                                                "fieldsplit_u_mg_levels_ksp_max_it": 4},
+    "exact displacement solve (LU)": {"fieldsplit_u_pc_type": "lu", "fieldsplit_u_pc_factor_mat_solver_type": "mumps"},
+}
+GAMG_CASES = (("idealized", "GAMG"), *(("TA_VHF_Left", variant) for variant in GAMG_VARIANTS))
+PARTS = ("levels", "precision", "gamg")
+# The Schur-complement fieldsplit of the GAMG cases; its splits are set in `_fieldsplit`.
+GAMG_OPTIONS = {
+    "ksp_type": "gmres", "ksp_gmres_restart": 200, "ksp_pc_side": "right", "ksp_rtol": 1e-10,
+    "ksp_atol": 0.0, "ksp_max_it": 600,
+    "pc_type": "fieldsplit", "pc_fieldsplit_type": "schur", "pc_fieldsplit_schur_fact_type": "upper",
+    "pc_fieldsplit_schur_precondition": "selfp",
+    "fieldsplit_u_ksp_type": "preonly", "fieldsplit_u_pc_type": "gamg",
+    "fieldsplit_u_pc_gamg_aggressive_coarsening": 0, "fieldsplit_u_pc_gamg_threshold": 0.02,
+    "fieldsplit_u_mg_levels_ksp_max_it": 3,
+    "fieldsplit_p_ksp_type": "preonly", "fieldsplit_p_pc_type": "jacobi",
+}
+
+
+# ------------------------------------------------------------------------------ worker
+
+
+def _fieldsplit(problem, comm, options: dict) -> None:
+    """Displacement | pressure and multipliers splits, with the rigid-body near null space
+    on the displacement block (its dofs are xyz triplets in the global order)."""
+    from petsc4py import PETSc
+
+    Vu, dofs = problem.W.sub(0).collapse()
+    dofs = np.asarray(dofs).ravel()
+    first, last = problem.jacobian_matrix.getOwnershipRange()
+    owned = np.flatnonzero(dofs < problem.owned_size)
+    order = np.argsort(dofs[owned])
+    u_rows = (dofs[owned][order] + first).astype(np.int32)
+    nodes = (owned[order] // 3)[::3]
+    x = Vu.tabulate_dof_coordinates()[nodes]
+    other = np.setdiff1d(np.arange(first, last, dtype=np.int32), u_rows).astype(np.int32)
+    is_u = PETSc.IS().createGeneral(u_rows, comm=comm)
+    is_u.setBlockSize(3)
+    is_p = PETSc.IS().createGeneral(other, comm=comm)
+    modes = []
+    for k in range(6):
+        vec = PETSc.Vec().createMPI((len(u_rows), PETSc.DETERMINE), bsize=3, comm=comm)
+        values = np.zeros((len(nodes), 3))
+        if k < 3:
+            values[:, k] = 1.0
+        else:
+            values[:] = np.cross(np.eye(3)[k - 3], x - x.mean(axis=0))
+        vec.getArray()[:] = values.ravel()
+        for previous in modes:
+            vec.axpy(-vec.dot(previous), previous)
+        vec.normalize()
+        modes.append(vec)
+    is_u.compose("nearnullspace", PETSc.NullSpace().create(vectors=modes, comm=comm))
+    ksp = problem.snes.getKSP()
+    ksp.getPC().setFieldSplitIS(("u", is_u), ("p", is_p))
+    db = PETSc.Options()
+    # The sub-solvers read their options when the preconditioner is first set up, inside
+    # the first solve: they stay in the database for this one-problem process.
+    for key, value in options.items():
+        db.setValue(problem.snes.getOptionsPrefix() + key, value)
+    ksp.setFromOptions()
+
+
+def run_case(case: dict, comm, save: Path | None) -> dict:
+    import dolfinx_solver  # noqa: F401
+    import ufl
+    from dolfinx import fem
+    from mpi4py import MPI
+
+    from hyper.fem import fibers
+    from hyper.fem import geometry as geo
+    from hyper.fem.mechanics import BLR_PRECISION, MechanicsProblem, SolverError
+    from hyper.model import growth
+
+    geometry = geo.load(case["geometry"], comm)
+    for _ in range(case.get("level", 0)):
+        geometry = geo.refine(geometry)
+    a0 = fibers.fiber_field(geometry)
+    unit = a0 / ufl.sqrt(ufl.dot(a0, a0))
+    theta = fem.Constant(geometry.mesh, 1.0)  # transverse stretch: area growth ϑ²
+    Fg = growth.transverse_growth_ufl(theta**2, unit)
+    solver = case["solver"]
+    kwargs = {}
+    if solver == "iterative":
+        kwargs = {"linear_solver": "iterative", "blr_precision": case.get("precision", BLR_PRECISION)}
+    start = time.perf_counter()
+    options = {**GAMG_OPTIONS, **GAMG_VARIANTS[case["variant"]]} if solver == "gamg" else None
+    problem = MechanicsProblem(geometry, a0, growth=Fg, petsc_options=options, **kwargs)
+    if solver == "gamg":
+        _fieldsplit(problem, comm, options)
+    setup_s = time.perf_counter() - start
+    theta.value = THETA
+    start = time.perf_counter()
+    row = {**case, "unknowns": problem.num_dofs, "cells": geometry.num_cells()}
+    try:
+        row["newton_iterations"] = problem.solve()
+    except SolverError as err:
+        row["failed"] = str(err)
+    solve_s = comm.allreduce(time.perf_counter() - start, op=MPI.MAX)
+    reason = problem.snes.getKSP().getConvergedReason()
+    row.update(setup_s=comm.allreduce(setup_s, op=MPI.MAX), solve_s=solve_s,
+               krylov_iterations=problem.linear_iterations(), last_ksp_reason=int(reason),
+               peak_rss_mb_sum=comm.allreduce(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, op=MPI.SUM) / 1024,
+               **problem.mumps_memory())
+    if "failed" not in row:
+        row["volume_ratio"] = problem.volume() / geometry.reference_volume()
+        if save is not None:
+            n, p_dofs = problem.owned_size, problem.pressure_dofs
+            np.save(save / f"w_{comm.rank}.npy", problem.w.x.array[:n])
+            np.save(save / f"p_{comm.rank}.npy", p_dofs[p_dofs < n])
+    return row
+
+
+# ------------------------------------------------------------------------------ driver
+
+
+def _run_worker(case: dict, ranks: int, timeout: float, save: Path | None) -> dict:
+    row = common.run_worker("solvers", case, ranks, timeout, extra=() if save is None else ("--save", str(save)))
+    row["ranks"] = ranks
+    return row
+
+
+def compare(reference: Path, other: Path, ranks: int) -> dict:
+    """max |Δu| / max |u| and max |Δp| / max |p - p0| between two saved solutions."""
+    from hyper.model import material as mat
+
+    ref = [np.load(reference / f"w_{r}.npy") for r in range(ranks)]
+    new = [np.load(other / f"w_{r}.npy") for r in range(ranks)]
+    p_dofs = [np.load(reference / f"p_{r}.npy") for r in range(ranks)]
+    p0 = mat.reference_pressure(mat.MaterialParams())
+    du = dp = umax = pmax = 0.0
+    for a, b, p in zip(ref, new, p_dofs):
+        is_u = np.ones(len(a), dtype=bool)
+        is_u[p] = False
+        du, umax = max(du, np.abs(a - b)[is_u].max()), max(umax, np.abs(a[is_u]).max())
+        dp, pmax = max(dp, np.abs(a - b)[p].max()), max(pmax, np.abs(a[p] - p0).max())
+    return {"u": du / umax, "p": dp / pmax}
+
+
+def chart(path: Path, result: dict) -> None:
+    plt = plot.pyplot()
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.3))
+    styles = {"lu": ("o-", "MUMPS LU"), "iterative": ("s-", "GMRES + BLR LU (1e-4)")}
+    ax = axes[0]
+    for solver, (style, label) in styles.items():
+        rows = [r for r in result["levels"] if r["solver"] == solver and "failed" not in r]
+        n = [r["unknowns"] for r in rows]
+        ax.loglog(n, [r["mumps_used_mb"] / 1024 for r in rows], style, label=f"{label}: MUMPS memory")
+        ax.loglog(n, [r["peak_rss_mb_sum"] / 1024 for r in rows], style.replace("-", ":"), alpha=0.6,
+                  color=ax.lines[-1].get_color(), label=f"{label}: peak RSS")
+    ax.set_xlabel("unknowns")
+    ax.set_ylabel("GiB (summed over ranks)")
+    ax.set_title(f"memory, {result['ranks']} ranks, idealized refined", fontsize=9)
+    ax.legend(fontsize=7)
+    ax = axes[1]
+    for solver, (style, label) in styles.items():
+        rows = [r for r in result["levels"] if r["solver"] == solver and "failed" not in r]
+        ax.loglog([r["unknowns"] for r in rows], [r["solve_s"] for r in rows], style, label=label)
+    ax.set_xlabel("unknowns")
+    ax.set_ylabel("wall time of the growth solve (s)")
+    ax.set_title(f"time (ϑ = {THETA:g} at once, Jacobian factorised every Newton step)", fontsize=9)
+    ax.legend(fontsize=7)
+    ax = axes[2]
+    rows = [r for r in result["levels"] if r["solver"] == "iterative" and "failed" not in r]
+    ax.semilogx([r["unknowns"] for r in rows], [r["krylov_iterations"] / r["newton_iterations"] for r in rows],
+                "s-", label="GMRES + BLR 1e-4, against unknowns")
+    for r in result["gamg"]:
+        ok = "failed" not in r
+        its = r["krylov_iterations"] / max(r.get("newton_iterations") or 1, 1) if ok else 0
+        ax.semilogx([r["unknowns"]], [its], "^" if ok else "rx", ms=9,
+                    label=f"{r.get('variant', 'GAMG')} fieldsplit, {r['geometry']}" + ("" if ok else ": breaks down"))
+    ax.set_xlabel("unknowns")
+    ax.set_ylabel("Krylov iterations per Newton step (0: failed)")
+    twin = ax.twiny()
+    prec = [r for r in result["precision"]]
+    twin.semilogx([r["precision"] for r in prec],
+                  [r["krylov_iterations"] / r["newton_iterations"] if "failed" not in r else np.nan for r in prec],
+                  "d--", color="tab:purple")
+    for r in prec:
+        if "failed" in r:
+            twin.plot([r["precision"]], [0], "rx", ms=9)
+    twin.set_xlabel("BLR precision (purple; red x: GMRES fails)", color="tab:purple", fontsize=8)
+    ax.set_title("where it stalls", fontsize=9, pad=28)
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    plot.save(fig, path, dpi=120)
+
+
+def parser() -> cli.Parser:
+    p = cli.Parser("bench solvers", __doc__)
+    p.add_argument("--levels", nargs="+", type=int, choices=range(4), metavar="LEVEL", default=[0, 1, 2],
+                   help="refinement levels of the idealized shape (0 to 3)")
+    p.add_argument("--ranks", type=int, default=2, help="MPI ranks per run")
+    p.add_argument("--precision-level", type=int, default=1, help="level of the BLR precision ladder")
+    p.add_argument("--parts", nargs="+", choices=PARTS, metavar="PART", default=list(PARTS),
+                   help=f"which parts to run ({', '.join(PARTS)}); the others are kept from OUTPUT/solvers.json")
+    p.add_argument("--timeout", type=float, default=3600.0, help="seconds per run before it counts as failed")
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    p.add_argument("--replot", action="store_true", help="redraw the chart from OUTPUT/solvers.json, run nothing")
+    common.add_worker_options(p)
+    p.add_argument("--save", type=Path, help=argparse.SUPPRESS)
+    return p
+
+
+def run(comm, args) -> int:
+    if args.worker:
+        common.write_worker_result(comm, args.json, run_case(args.worker, comm, args.save))
+        return 0
+
+    from hyper.runs import io
+
+    if args.replot:
+        chart(args.output / "solvers.png", json.loads((args.output / "solvers.json").read_text()))
+        return 0
+    if args.ranks < 1:
+        raise InputError("--ranks: at least 1")
+    previous = json.loads((args.output / "solvers.json").read_text()) if (args.output / "solvers.json").exists() else {}
+    kept = {part: previous.get(part, []) for part in PARTS if part not in args.parts}
+    if kept and previous.get("ranks", args.ranks) != args.ranks:
+        raise InputError(f"--ranks {args.ranks}: the kept parts of {args.output / 'solvers.json'} ran on "
+                         f"{previous['ranks']} ranks; run all parts, or the same ranks")
+
+    start = time.perf_counter()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for level in args.levels if "levels" in args.parts else ():
+            saved = {}
+            for solver in ("lu", "iterative"):
+                saved[solver] = Path(tmp) / f"{solver}_{level}"
+                saved[solver].mkdir()
+                print(f"solvers: level {level}, {solver} on {args.ranks} rank(s) …", flush=True)
+                row = _run_worker({"geometry": "idealized", "level": level, "solver": solver},
+                                  args.ranks, args.timeout, saved[solver])
+                rows.append(row)
+                print("  " + ("FAILED " + row["failed"] if "failed" in row else
+                              f"{row['unknowns']} unknowns, {row['newton_iterations']} Newton, "
+                              f"{row['krylov_iterations']} Krylov its, {row['solve_s']:.1f} s, MUMPS "
+                              f"{row['mumps_used_mb']} MB, peak RSS {row['peak_rss_mb_sum']:.0f} MB"), flush=True)
+            lu, it = rows[-2], rows[-1]
+            if "failed" not in lu and "failed" not in it:
+                it["difference_from_lu"] = {**compare(saved["lu"], saved["iterative"], args.ranks),
+                                            "volume": abs(it["volume_ratio"] - lu["volume_ratio"])
+                                                      / (lu["volume_ratio"] - 1)}
+                it["memory_ratio"] = it["mumps_used_mb"] / lu["mumps_used_mb"]
+                it["rss_ratio"] = it["peak_rss_mb_sum"] / lu["peak_rss_mb_sum"]
+                it["time_ratio"] = it["solve_s"] / lu["solve_s"]
+                print(f"  iterative - LU: {it['difference_from_lu']}; MUMPS memory x{it['memory_ratio']:.2f}, "
+                      f"time x{it['time_ratio']:.2f}", flush=True)
+    precision = []
+    for eps in PRECISIONS if "precision" in args.parts else ():
+        print(f"solvers: BLR precision {eps:g} on level {args.precision_level} …", flush=True)
+        precision.append(_run_worker({"geometry": "idealized", "level": args.precision_level, "solver": "iterative",
+                                      "precision": eps}, args.ranks, args.timeout, None))
+    gamg = []
+    for name, variant in GAMG_CASES if "gamg" in args.parts else ():
+        print(f"solvers: {variant} fieldsplit on {name} …", flush=True)
+        gamg.append(_run_worker({"geometry": name, "level": 0, "solver": "gamg", "variant": variant}, 1,
+                                args.timeout, None))
+    measured = {"levels": rows, "precision": precision, "gamg": gamg}
+    rows, precision, gamg = ({**measured, **kept}[part] for part in PARTS)
+    result = {"benchmark": "solvers", "machine": common.machine(), "ranks": args.ranks, "theta": THETA,
+              "levels": rows, "precision": precision, "gamg": gamg, "parts_run": args.parts,
+              "memory_fit": {s: memory_fit([r for r in rows if r["solver"] == s]) for s in ("lu", "iterative")},
+              "versions": io.versions(), "wall_s": time.perf_counter() - start}
+    args.output.mkdir(parents=True, exist_ok=True)
+    common.write_json(args.output / "solvers.json", result)
+    chart(args.output / "solvers.png", result)
+    for r in precision + gamg:
+        print(f"{r.get('variant', r['solver']):40s} {r['geometry']:12s} precision {r.get('precision', '-')}: " +
+              (f"FAILED {r['failed']}" if "failed" in r else
+               f"{r['newton_iterations']} Newton, {r['krylov_iterations']} Krylov its, {r['solve_s']:.1f} s"))
+    print(f"wrote {args.output / 'solvers.json'} and solvers.png")
+    return 0
+
+
+main = cli.entry(parser, run)
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,3 @@
+"""``hyper dose`` (interim: the job still lives in `hyper.analysis.dose`)."""
+
+from hyper.analysis.dose import main  # noqa: F401

@@ -1,0 +1,1 @@
+"""The foundation: input errors and validation, package data, rank-0 logging."""

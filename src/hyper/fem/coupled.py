@@ -1,0 +1,501 @@
+"""The coupled model of MODEL.md §4: signaling ⇄ growth ⇄ mechanics.
+
+`CoupledModel.run()` walks the protocol period by period (each session, and each rest
+between sessions). For a period it advances the signaling ODEs with the current
+synthesis rate kM, sampling the states at the ends of the growth steps; then, step by
+step, it turns the population change dN into an area multiplier, updates the total
+growth tensor, solves equilibrium from the previous solution, measures CSA and volume
+and updates kM = kM0 h(CSA/CSA0) for the next period. It writes no files: it yields
+one `StepReport` per growth step, and the caller decides what to keep.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+
+import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
+import numpy as np
+from dolfinx import fem
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from hyper.core.params import InputError, positive_hours
+from hyper.fem import boxsection as box
+from hyper.fem import growthfield, newton, section
+from hyper.fem.mechanics import MechanicsProblem, SolverError
+from hyper.model import growth, signaling
+from hyper.model.protocols import Protocol
+from hyper.model.signaling import SignalingError
+
+CSA_METHODS = ("cut", "box")
+
+
+@dataclass(frozen=True)
+class GrowthSettings:
+    # h, longest growth step; periods are cut into steps no longer. 168 h is one step per
+    # period for the paper protocols: 7e-6 of the growth from the 0.5 h answer (bench growth).
+    growth_dt: float = 168.0
+    signaling_dt: float = 0.05  # h, RK4 step of the signaling ODEs
+    feedback: str = "hill"  # h(CSA/CSA0): hill, linear or none
+    grow_during_sessions: bool = True  # False reproduces the original code
+    consistent_stress: bool = True  # P = det(Fg) Fe S Fg⁻ᵀ; False: the original Fe S
+    max_halvings: int = 4  # growth-step cuts tried before a failed solve stops the run
+    # where G, Ḡ and A live: "quadrature" points, or "dg1" nodes (the original code)
+    growth_fields: str = "quadrature"
+    # CSA of a mesh without a tagged mid-section, the one the feedback sees: "cut" (the
+    # exact plane cut) or "box" (the original code's staircase, MODEL §9). Both are
+    # recorded either way; a tagged section (idealized, cylinder) is measured on its facets.
+    csa_method: str = "cut"
+    # How each step's equilibrium is solved: "kept" (factors kept across steps,
+    # hyper.fem.newton) or "lagged" (SNES Newton with a lagged Jacobian, before issue 17).
+    # Both stop at the same Newton tolerances, so this is not part of the answer.
+    newton: str = "kept"
+    # the signaling integrator (signaling.METHODS): rk4, or the original's RK45 and N0 (MODEL.md §9)
+    signaling_method: str = "rk4"
+    # dN of a growth step (growth.INCREMENTS): exact, N's change over the step; left-point,
+    # f at the step's start times Δtg (the original code)
+    growth_increment: str = "exact"
+    preset: str = "default"  # the --settings preset these came from (hyper.runs.presets): a label
+
+    # A step cut k times is 2^k solves: beyond this a run is better stopped and looked at.
+    MAX_HALVINGS = 12
+    # Settings added after results existed: in the digest only where they differ from their
+    # defaults, so that the digests (and checkpoints) of default runs stay valid.
+    DIGEST_IF_CHANGED = ("signaling_method", "growth_increment", "growth_fields", "csa_method")
+
+    def __post_init__(self):
+        positive_hours(self.growth_dt, "growth_dt", signaling.SMALLEST_DT)
+        positive_hours(self.signaling_dt, "signaling_dt", signaling.SMALLEST_DT)
+        if self.signaling_dt > self.growth_dt:
+            raise InputError(f"{self.signaling_dt:g} h must not exceed the growth step ({self.growth_dt:g} h)",
+                             field="signaling_dt")
+        if self.feedback not in growth.FEEDBACK_LAWS:
+            raise InputError(f"must be one of {', '.join(growth.FEEDBACK_LAWS)}, got {self.feedback!r}",
+                             field="feedback")
+        if self.newton not in NEWTON_METHODS:
+            raise InputError(f"must be one of {', '.join(NEWTON_METHODS)}, got {self.newton!r}", field="newton")
+        if self.growth_fields not in growthfield.GROWTH_FIELDS:
+            raise InputError(f"must be one of {', '.join(growthfield.GROWTH_FIELDS)}, got {self.growth_fields!r}",
+                             field="growth_fields")
+        if self.csa_method not in CSA_METHODS:
+            raise InputError(f"must be one of {', '.join(CSA_METHODS)}, got {self.csa_method!r}",
+                             field="csa_method")
+        if isinstance(self.max_halvings, bool) or not (
+            isinstance(self.max_halvings, int) and 0 <= self.max_halvings <= self.MAX_HALVINGS
+        ):
+            raise InputError(f"must be an integer in [0, {self.MAX_HALVINGS}], got {self.max_halvings!r}",
+                             field="max_halvings")
+        signaling.integrator(self.signaling_method)  # validates it
+        if self.growth_increment not in growth.INCREMENTS:
+            raise InputError(f"must be one of {', '.join(growth.INCREMENTS)}, got {self.growth_increment!r}",
+                             field="growth_increment")
+
+    def model_attributes(self) -> dict:
+        """The settings that define the solution; max_halvings only decides how hard a
+        failing step is tried, so a stopped run may be resumed with another value, newton
+        how the same equilibrium is found, and the preset only names where the values
+        came from."""
+        out = dataclasses.asdict(self)
+        del out["max_halvings"], out["newton"], out["preset"]
+        for name in self.DIGEST_IF_CHANGED:
+            if out[name] == getattr(GrowthSettings, name):
+                del out[name]
+        return out
+
+
+# Growth steps change the equilibrium by a fraction of a percent, so a Jacobian (and its
+# LU factors) stays a good Newton matrix for many steps: refreshing it every 10
+# iterations made the 9-week idealized run 4.8× faster with the same CSA to 1e-11.
+# `LaggedJacobian` applies the lag; snes_lag_jacobian (in petsc_options or as
+# -mechanics_snes_lag_jacobian) sets it and never reaches PETSc.
+JACOBIAN_LAG = 10
+LAG_OPTION = "snes_lag_jacobian"
+NEWTON_METHODS = ("kept", "lagged")
+
+
+class NoTiming:
+    """The monitor a model has unless given one: it times nothing.
+
+    A monitor is any object whose ``track(name)`` is a context manager around one
+    phase of the work; `CoupledModel` names its phases in `PHASES`.
+    """
+
+    def track(self, name: str) -> contextlib.AbstractContextManager:
+        return contextlib.nullcontext()
+
+
+# The phases a model times through its monitor. "jacobian assembly", "residual
+# assembly", "factorisation" and "back-solves" happen inside "mechanics" (the Newton
+# solves; the last two are timed with kept factors only: SNES does them inside PETSc);
+# the others do not overlap.
+PHASES = ("signaling", "mechanics", "jacobian assembly", "residual assembly", "factorisation", "back-solves",
+          "growth update", "measures")
+
+
+class GrowthFailure(RuntimeError):
+    """A growth step failed for good (Newton after every allowed cut, or the signaling
+    ODEs); the model is back at the state after its last completed step."""
+
+    def __init__(self, message: str, *, step: int, t0: float, t1: float):
+        super().__init__(message)
+        self.step = step  # the step that failed (1-based: steps done before it + 1)
+        self.t0 = t0  # h, its start
+        self.t1 = t1  # h, its end
+
+
+class LaggedJacobian:
+    """The Newton matrix, reassembled every ``lag`` Newton iterations counted across
+    solves (PETSc's snes_lag_jacobian with persistence), or when `refresh` asks.
+
+    PETSc keeps that count inside the SNES where a restart cannot reach it. Here SNES
+    asks at every iteration (its own lag is 1) and this object decides; an unchanged
+    matrix keeps its LU factors, since PETSc refactors only a matrix whose state changed.
+    The state is the count and the point (w and Ḡ) of the last assembly: `rebuild`
+    assembles the same matrix again there.
+    """
+
+    def __init__(self, problem: MechanicsProblem, growth_function: fem.Function, lag: int, monitor=None):
+        self.problem = problem
+        self.monitor = monitor if monitor is not None else NoTiming()
+        self.growth_function = growth_function
+        self.lag = lag if lag >= 1 else 0  # PETSc's -1/-2: never again after the first
+        self.count = 0  # Newton iterations so far, over all solves
+        self.assemblies = 0
+        self.point: tuple[np.ndarray, np.ndarray] | None = None  # (w, Ḡ) local arrays
+        self._refresh = False
+        K = problem.jacobian_matrix
+        problem.snes.setJacobian(self._jacobian, K, K)
+        problem.snes.setFunction(self._residual, problem.snes.getFunction()[0])
+
+    def _residual(self, snes, x, f) -> None:
+        with self.monitor.track("residual assembly"):
+            self.problem.assemble_residual(x, f)
+
+    def refresh(self) -> None:
+        """Assemble anew at the next Newton iteration."""
+        self._refresh = True
+
+    def _jacobian(self, snes, x, K, P) -> None:
+        due = self.count == 0 or (self.lag > 0 and self.count % self.lag == 0)
+        if due or self._refresh:
+            with self.monitor.track("jacobian assembly"):
+                self.problem.assemble_jacobian(x)
+                self.point = (self.problem.w.x.array.copy(), self.growth_function.x.array.copy())
+            self.assemblies += 1
+            self._refresh = False
+        self.count += 1
+
+    def rebuild(self, count: int, point: tuple[np.ndarray, np.ndarray] | None) -> None:
+        """Take over a saved state: the count and the matrix assembled at ``point``."""
+        self.count = count
+        self.point = point
+        if point is not None:
+            newton.assemble_jacobian_at(self.problem, self.growth_function, point, self.problem.solution_vector)
+
+
+@dataclass
+class StepReport:
+    step: int  # growth steps done (0: the initial state)
+    t: float  # h
+    csa_ratio: float  # CSA/CSA0
+    volume_ratio: float  # V/V0
+    kM: float  # 1/h, synthesis rate after the feedback of this step
+    states: np.ndarray  # (5,) signaling states (cell means in the heterogeneous case)
+    newton_iterations: int
+    halvings: int = 0
+    extra: dict = field(default_factory=dict)
+
+
+
+class PlaneSection:
+    """The mid-belly cross-section of a mesh without a tagged one (MODEL §4), measured
+    both ways: "cut", the plane through the mean of all vertices, normal to their first
+    principal axis, cut exactly through the tetrahedra; "box", the original code's
+    staircase (`hyper.box`, MODEL §9). The deformed area is Nanson's integral on each."""
+
+    def __init__(self, problem: MechanicsProblem):
+        mesh = problem.geometry.mesh
+        origin, normal = section.principal_plane(section.global_vertices(mesh, mesh.comm))
+        self._cut = section.CutSection(mesh, origin, normal, degree=problem.geometry.quadrature_degree)
+        # Both evaluate u from a plain vector function: keep a collapsed copy of u.
+        self._w = problem.w
+        self.u, self._map = problem.w.function_space.sub(0).collapse()
+        self.u = fem.Function(self.u)
+        self.box = box.BoxSection(mesh, self.u)
+        self.areas0 = {"cut": self._cut.area0(), "box": self.box.area0()}
+
+    def ratios(self) -> dict[str, float]:
+        """CSA/CSA0 by each method."""
+        self.u.x.array[:] = self._w.x.array[self._map]
+        return {"cut": self._cut.deformed_area(self.u) / self.areas0["cut"],
+                "box": self.box.deformed_area() / self.areas0["box"]}
+
+
+class CoupledModel:
+    """Owns the mechanics problem, the growth field and the signaling state of one run.
+
+    ``integrator`` advances the signaling ODEs, with the signature of
+    `signaling.integrate` (the default); ``monitor`` times the `PHASES` of the run
+    (default `NoTiming`); ``normalize_fibres`` goes to `MechanicsProblem`.
+    """
+
+    def __init__(
+        self,
+        geometry,
+        a0,
+        protocol: Protocol,
+        *,
+        params: signaling.SignalingParams | None = None,
+        material=None,
+        settings: GrowthSettings = GrowthSettings(),
+        petsc_options: dict | None = None,
+        linear_solver: str = "lu",
+        integrator: Callable | None = None,
+        monitor=None,
+        normalize_fibres: bool = True,
+    ):
+        self.geometry = geometry
+        self.comm = geometry.mesh.comm
+        self.protocol = protocol
+        self.params = params if params is not None else signaling.SignalingParams()
+        self.settings = settings
+        self.integrator = integrator if integrator is not None else signaling.integrator(settings.signaling_method)
+        self.monitor = monitor if monitor is not None else NoTiming()
+        self.growth = growthfield.GrowthField(geometry.mesh, a0, geometry.quadrature_degree, settings.growth_fields)
+        kwargs = {} if material is None else {"material": material}
+        options = dict(petsc_options or {})
+        lag = jacobian_lag(options.pop(LAG_OPTION, JACOBIAN_LAG))
+        with _taken_from_database(MECHANICS_PREFIX + LAG_OPTION) as value:
+            if value is not None:
+                lag = jacobian_lag(value)
+            self.problem = MechanicsProblem(
+                geometry,
+                a0,
+                growth=self.growth.function,
+                consistent_stress=settings.consistent_stress,
+                petsc_options=options,
+                options_prefix=MECHANICS_PREFIX,
+                linear_solver=linear_solver,
+                normalize_fibres=normalize_fibres,
+                **kwargs,
+            )
+        self.growth.set_deformation(self.problem.F)
+        if settings.newton == "kept":
+            self.jacobian = newton.KeptFactors(self.problem, self.growth.function, self.monitor)
+        else:
+            self.jacobian = LaggedJacobian(self.problem, self.growth.function, lag, self.monitor)
+        if geometry.midsection is not None:
+            self.section = growthfield.FacetSection(geometry, self.problem.F)
+            self.csa0 = self.section.area0
+        else:
+            self.section = PlaneSection(self.problem)
+            self.csa0 = self.section.areas0[settings.csa_method]
+        # CSA0 (m²) and CSA/CSA0 by every method of a plane section (none for a tagged one)
+        self.csa0_by_method = dict(self.section.areas0) if isinstance(self.section, PlaneSection) else {}
+        self.csa_ratios = dict.fromkeys(self.csa0_by_method, 1.0)
+        self.volume0 = self.problem.volume()
+
+        # Every run starts from the rest state of the baseline parameters (MODEL §1).
+        # Per-cell parameters (one member per owned cell) give one ODE per cell, and ϑ,
+        # G and Ḡ per cell; uniform parameters need one ODE for the whole body.
+        rest = signaling.start_state(settings.signaling_method)
+        n = self.params.size
+        if n is None:
+            self.y = rest
+        elif n == len(self.growth.cells):
+            self.y = np.repeat(rest[:, None], n, axis=1)
+        else:
+            raise InputError(
+                f"per-cell signaling parameters need one value per owned cell "
+                f"({len(self.growth.cells)} on rank {self.comm.rank}), got {n}"
+            )
+        self.kM0 = self.params.kM
+        self.kM = self.kM0
+        self.csa_ratio = 1.0
+        self.volume_ratio = 1.0
+        self.step = 0
+        self.t = 0.0
+        # Position in the protocol: the period being stepped through, the growth steps
+        # of it already done, its signaling samples (None until it is integrated) and
+        # the synthesis rate they were integrated with.
+        self.period = 0
+        self.period_step = 0
+        self.period_times: np.ndarray | None = None
+        self.period_states: np.ndarray | None = None
+        self.period_kM = self.kM
+        self.resumed = False
+
+    def _mean_states(self, y) -> np.ndarray:
+        if y.ndim == 1:
+            return y.copy()
+        total = self.comm.allreduce(y.sum(axis=1), op=MPI.SUM)
+        count = self.comm.allreduce(y.shape[1], op=MPI.SUM)
+        return total / count
+
+    def _report(self, iterations: int, halvings: int = 0) -> StepReport:
+        return StepReport(
+            step=self.step,
+            t=self.t,
+            csa_ratio=self.csa_ratio,
+            volume_ratio=self.volume_ratio,
+            kM=float(np.mean(self.kM)),
+            states=self._mean_states(self.y),
+            newton_iterations=iterations,
+            halvings=halvings,
+            extra={f"csa_ratio_{name}": value for name, value in self.csa_ratios.items()},
+        )
+
+    @property
+    def measures(self) -> tuple[str, ...]:
+        """The names of the measures each `StepReport.extra` carries."""
+        return tuple(f"csa_ratio_{name}" for name in self.csa_ratios)
+
+    def _measure_csa(self) -> None:
+        if self.csa_ratios:
+            self.csa_ratios = self.section.ratios()
+            self.csa_ratio = self.csa_ratios[self.settings.csa_method]
+        else:
+            self.csa_ratio = self.section.area() / self.csa0
+
+    def _solve(self) -> int:
+        """Newton from the previous state; a failure with a lagged Jacobian is retried
+        once with a fresh one before the caller cuts the step. Kept factors retry
+        inside their own solve."""
+        if self.settings.newton == "kept":
+            amount = self.comm.allreduce(float(np.sum(self.growth.cell_det())), op=MPI.SUM)
+            amount = math.log(amount / self.comm.allreduce(len(self.growth.cells), op=MPI.SUM))
+            with self.monitor.track("mechanics"):
+                return self.jacobian.solve(amount)
+        try:
+            with self.monitor.track("mechanics"):
+                return self.problem.solve()
+        except SolverError:
+            if self.jacobian.lag == 1:
+                raise
+            self.jacobian.refresh()
+            with self.monitor.track("mechanics"):
+                return self.problem.solve()
+
+    def _grow(self, theta, halvings: int = 0) -> tuple[int, int]:
+        """Grow by ϑ and solve; on a failed solve, retry as two half increments √ϑ."""
+        with self.monitor.track("growth update"):
+            self.growth.grow(theta)
+        try:
+            iterations = self._solve()
+        except SolverError:
+            self.growth.revert()
+            if halvings >= self.settings.max_halvings:
+                raise
+            root = np.sqrt(theta)
+            its1, h1 = self._grow(root, halvings + 1)
+            its2, h2 = self._grow(root, halvings + 1)
+            return its1 + its2, max(h1, h2)
+        with self.monitor.track("growth update"):
+            self.growth.accept()
+        return iterations, halvings
+
+    def _step(self, theta, t0: float, t1: float) -> tuple[int, int]:
+        """One growth step; if it cannot be solved, the state before it comes back."""
+        w, mult = self.problem.w.x.array.copy(), self.problem.multipliers.copy()
+        Gbar = self.growth.Gbar  # replaced, never changed in place
+        try:
+            return self._grow(theta)
+        except SolverError as err:
+            self.problem.w.x.array[:] = w
+            self.problem.multipliers = mult
+            self.growth.set(Gbar)
+            if self.settings.newton == "kept":
+                self.jacobian.forget()
+            raise GrowthFailure(
+                f"growth step {self.step + 1} ({t0:g} h to {t1:g} h): Newton did not converge "
+                f"with the step cut {self.settings.max_halvings} time(s): {err}",
+                step=self.step + 1, t0=t0, t1=t1,
+            ) from err
+
+    def run(self) -> Iterator[StepReport]:
+        """Yield the initial state (not after a resume), then one report per growth step
+        to the protocol's end. Raises GrowthFailure with the state of the last step."""
+        if not self.resumed:
+            yield self._report(0)
+        s = self.settings
+        periods = self.protocol.periods()
+        while self.period < len(periods):
+            t0, t1, in_session = periods[self.period]
+            if self.period_states is None:
+                times = growth.step_times(t0, t1, s.growth_dt)
+                error = ys = None
+                try:
+                    with self.monitor.track("signaling"):
+                        _, ys = self.integrator(
+                            self.params, self.protocol, self.y, t0, t1, s.signaling_dt, out_times=times, kM=self.kM
+                        )
+                except SignalingError as err:
+                    error = str(err)
+                # per-cell ODEs may fail on some ranks only: every rank stops alike
+                errors = [e for e in self.comm.allgather(error) if e is not None]
+                if errors:
+                    raise GrowthFailure(f"signaling from {t0:g} h to {t1:g} h: {errors[0]}",
+                                        step=self.step + 1, t0=t0, t1=t1)
+                self.period_times, self.period_states, self.period_step = times, ys, 0
+                self.period_kM = self.kM
+            times, ys = self.period_times, self.period_states
+            while self.period_step + 1 < len(times):
+                k = self.period_step + 1
+                iterations = halvings = 0
+                dN = growth.population_change(s.growth_increment, ys[k - 1], ys[k], times[k] - times[k - 1],
+                                              self.params, self.period_kM)
+                if in_session and not s.grow_during_sessions:
+                    dN = np.zeros_like(dN)
+                theta = growth.area_multiplier(dN, self.csa_ratio)
+                # f vanishes below the thresholds (the rest week, early recovery):
+                # nothing grows, so the previous equilibrium stands.
+                if self.comm.allreduce(bool(np.any(theta != 1.0)), op=MPI.LOR):
+                    iterations, halvings = self._step(theta, float(times[k - 1]), float(times[k]))
+                    with self.monitor.track("measures"):
+                        self._measure_csa()
+                        self.volume_ratio = self.problem.volume() / self.volume0
+                    self.kM = self.kM0 * growth.feedback(self.csa_ratio, s.feedback)
+                self.y = ys[k]
+                self.t = float(times[k])
+                self.step += 1
+                self.period_step = k
+                yield self._report(iterations, halvings)
+            self.period += 1
+            self.period_times = self.period_states = None
+
+    def settings_attributes(self) -> dict:
+        return dataclasses.asdict(self.settings)
+
+
+MECHANICS_PREFIX = "mechanics_"
+
+
+def jacobian_lag(value) -> int:
+    """The Newton matrix refresh interval from an option value (InputError if invalid)."""
+    try:
+        lag = int(value)
+    except (TypeError, ValueError):
+        lag = 0
+    if lag < 1 and lag not in (-1, -2):
+        raise InputError(f"{LAG_OPTION} must be a positive integer (or -1: never refresh), got {value!r}")
+    return lag
+
+
+@contextlib.contextmanager
+def _taken_from_database(name: str):
+    """Yield the value of a PETSc option (None if unset), absent from the database
+    meanwhile so that PETSc's own setting of that name stays at its default."""
+    db = PETSc.Options()
+    value = db.getString(name) if db.hasName(name) else None
+    if value is not None:
+        db.delValue(name)
+    try:
+        yield value
+    finally:
+        if value is not None:
+            db.setValue(name, value)
+

@@ -1,0 +1,669 @@
+"""Fibre fields (MODEL.md §5): `fiber_field` gives the reference fibre direction a0 of any
+geometry, analytic (the idealized shape), uniform (the cylinder, a principal axis), or the
+Stokes-flow fibres of the anatomical meshes (after Varvik et al. 2021), computed here.
+
+A slow viscous flow enters the muscle through one end (tag ``ends[0]``), leaves it
+through the other (``ends[1]``) and slides along the lateral surface; its normalized
+velocity is the fibre direction a0. ``python -m hyper.fibers`` computes it once per
+mesh and stores it next to the mesh (``meshes/<folder>/fibers.h5``); ``load`` reads
+it back on any number of ranks.
+
+Method (μ = 1 and unit inflow speed: both scale out of the normalized velocity)
+
+    -div(2μ ε(u)) + ∇p = 0,  div u = 0                        in Ω
+    u·N = -1,  tangential traction 0                           on Γin  (ends[0])
+    u·N =  0,  tangential traction 0   (free slip)             on Γlat (lateral)
+    σ(u, p) n = 0                      (natural outflow)       on Γout (ends[1])
+
+- Taylor–Hood P2–P1: inf-sup stable on tetrahedra, and P2 velocity resolves the
+  bending of the flow around the curved lateral surface on these coarse meshes
+  (~2500 vertices, ~50 000 unknowns: one MUMPS LU factorization).
+- Inflow as a prescribed normal velocity with free tangential traction, i.e. the same
+  slip condition as the lateral surface with flux -1 instead of 0. A full velocity
+  (u = -N, no tangential motion) would contradict u·N = 0 along the rim where the
+  end meets the lateral surface wherever the two are not at right angles; prescribing
+  only the normal component is compatible with the slip condition next to it, so no
+  singular corner layer forms and the speed stays bounded away from 0 (min 0.055 to
+  0.32 of the inflow speed on the 12 anatomical meshes), which keeps the normalization
+  defined.
+  A uniform normal speed means a uniform attachment of fibres over the end surface.
+- Both slip conditions weakly by Nitsche's method (symmetric variant, e.g. Urquiza,
+  Garon & Farinas 2014): consistency terms -(N·σ(u,p)n)(v·N) and their transposes,
+  penalty 2μ γ/h (u·N - g)(v·N) with h the cell diameter and γ = 100 (``penalty``).
+  The share of BFLH_VHF_Left within 30° of its axis stays within 99.84–99.95 % for
+  γ = 10, 100, 1000. Strong conditions would need a rotated basis at curved boundary
+  nodes.
+- N is the *vertex* normal, not the facet normal: the area-weighted average of the
+  facet normals of each end or lateral surface at its vertices, interpolated linearly
+  and normalized. On a faceted curved surface, slip along the facet normals lets the
+  flow follow the facets' zigzag (on the straight cylinder mesh only 67 % of the
+  volume is within 2° of the axis, the speed varies 0.57–1.26); with vertex normals
+  100 % is within 2° and the speed varies by ±2 %. The traction in the consistency
+  terms is σ n with the facet normal n (what the weak form leaves on each facet); N
+  only picks its normal part.
+- Outflow natural (zero traction): it fixes the pressure, and the flow leaves in
+  whatever direction the geometry gives it.
+
+Fibre field. The P2 velocity at the vertices (its P1 interpolant), divided by its
+length there: a vector P1 field, unit at the nodes, which the mechanics uses as a UFL
+vector and the growth field evaluates and renormalizes at its quadrature points. A
+node where the speed falls below ``min_speed`` (a stagnation point: no direction) is
+an error.
+
+Stored form (``fibers.h5``): datasets ``node`` (the mesh file's node indices,
+``mesh.geometry.input_global_indices``), ``a0`` (unit fibres at those nodes, (n, 3)),
+``x`` (their coordinates in metres, to check that the file belongs to the mesh) and
+``speed`` (|u| at the nodes / inflow speed); the method, parameters, tags, statistics
+and versions as attributes, and ``complete`` last (written atomically). Keyed by the
+file's node index, the field maps back exactly onto any partition of the mesh.
+
+The job. ``mpirun -n 2 python -m hyper.fibers`` spreads the meshes over groups of
+``--ranks-per-job`` ranks (hyper.runs.farm) and skips a mesh whose fibre file is complete
+and whose picture exists; a complete fibre file without its picture is read back, not
+recomputed (``--force`` recomputes). It writes ``results/fibers/<geometry>.png`` and
+``results/fibers/summary.csv`` and prints the table.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+import sys
+import time
+from pathlib import Path
+
+import basix.ufl
+import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
+import numpy as np
+import ufl
+from dolfinx import fem, la
+from dolfinx.fem.petsc import LinearProblem
+from mpi4py import MPI
+
+from hyper.commands import cli
+from hyper.core.params import InputError, as_attributes, check_positive
+from hyper.fem import geometry as geo
+from hyper.runs.plot import pyplot
+
+FILE_NAME = "fibers.h5"
+METHOD = ("Stokes flow, Taylor-Hood P2-P1; inflow u.N = -1 on ends[0] and free slip u.N = 0 "
+          "on the lateral surface, both with zero tangential traction by symmetric Nitsche "
+          "(N the area-weighted vertex normal); zero traction on ends[1]; MUMPS LU; "
+          "a0 = u/|u| at the vertices (P1)")
+ELEMENT = "Lagrange P1 vector, unit length at the nodes"
+ALIGNMENT_DEG = 30.0  # the angle the alignment statistic counts up to
+
+_prefixes = itertools.count()
+
+
+@dataclasses.dataclass(frozen=True)
+class StokesParams:
+    penalty: float = 100.0  # Nitsche penalty γ (1): weight 2μγ/h on the normal-velocity misfit
+    # (1) for all forms; degree 6 moves the fibres of BFLH_VHF_Left by 0.007° on average
+    # (at most 0.3°) and leaves the 30° share unchanged
+    quadrature_degree: int = 4
+    min_speed: float = 1.0e-6  # (1, of the inflow speed) below it a node has no fibre direction
+
+    def __post_init__(self):
+        check_positive(self, "penalty", "min_speed")
+        q = self.quadrature_degree
+        if isinstance(q, bool) or not float(q).is_integer() or not 2 <= q <= 12:
+            raise InputError(f"quadrature_degree must be an integer in 2..12, got {q!r}")
+        object.__setattr__(self, "quadrature_degree", int(q))
+
+
+# ------------------------------------------------------------------------------ solver
+
+
+def vertex_normal(space: fem.FunctionSpace, ds: ufl.Measure) -> fem.Function:
+    """Area-weighted average of the facet normals over ``ds`` at each vertex, unit length.
+
+    ``space`` is a vector P1 space; vertices off the surface get 0. The assembled
+    integral ∫ n·φ_i ds is the area-weighted sum over the facets around vertex i
+    (a third of each area), summed over ranks before normalizing.
+    """
+    n = ufl.FacetNormal(space.mesh)
+    vector = fem.assemble_vector(fem.form(ufl.dot(n, ufl.TestFunction(space)) * ds))
+    vector.scatter_reverse(la.InsertMode.add)
+    normal = fem.Function(space, name="N")
+    values = normal.x.array.reshape(-1, 3)
+    values[:] = vector.array.reshape(-1, 3)
+    length = np.linalg.norm(values, axis=1)
+    on = length > 0
+    values[on] /= length[on, None]
+    normal.x.scatter_forward()
+    return normal
+
+
+class StokesFibers:
+    """The Stokes problem of the module docstring on one geometry, built once.
+
+    ``solve()`` returns the P2 velocity; ``fibers()`` the unit P1 fibre field and the
+    nodal speed. Collective over the geometry's communicator.
+    """
+
+    def __init__(self, geometry: geo.Geometry, params: StokesParams = StokesParams()):
+        self.geometry = geometry
+        self.params = params
+        mesh = geometry.mesh
+        cell = mesh.topology.cell_name()
+        p2 = basix.ufl.element("Lagrange", cell, 2, shape=(3,))
+        p1 = basix.ufl.element("Lagrange", cell, 1)
+        self.W = fem.functionspace(mesh, basix.ufl.mixed_element([p2, p1]))
+        self.V1 = fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+
+        metadata = {"quadrature_degree": params.quadrature_degree}
+        dx = ufl.Measure("dx", domain=mesh, metadata=metadata)
+        ds = ufl.Measure("ds", domain=mesh, subdomain_data=geometry.facet_tags, metadata=metadata)
+        inflow, _ = geometry.ends
+        lateral = geometry.lateral
+
+        u, p = ufl.TrialFunctions(self.W)
+        v, q = ufl.TestFunctions(self.W)
+        n = ufl.FacetNormal(mesh)
+        h = ufl.CellDiameter(mesh)
+        gamma = fem.Constant(mesh, float(params.penalty))
+        self.normals = {tag: vertex_normal(self.V1, ds(tag)) for tag in (inflow, lateral)}
+
+        def eps(w):
+            return ufl.sym(ufl.grad(w))
+
+        def sigma(w, r):
+            return 2.0 * eps(w) - r * ufl.Identity(3)
+
+        def unit(w):
+            return w / ufl.sqrt(ufl.dot(w, w))
+
+        a = (ufl.inner(2.0 * eps(u), eps(v)) - p * ufl.div(v) - q * ufl.div(u)) * dx
+        L = fem.Constant(mesh, 0.0) * q * dx
+        for tag, flux in ((inflow, -1.0), (lateral, 0.0)):
+            N = unit(self.normals[tag])
+            a += (-ufl.dot(N, sigma(u, p) * n) * ufl.dot(v, N)
+                  - ufl.dot(N, sigma(v, q) * n) * ufl.dot(u, N)
+                  + 2.0 * gamma / h * ufl.dot(u, N) * ufl.dot(v, N)) * ds(tag)
+            if flux:
+                L += flux * (-ufl.dot(N, sigma(v, q) * n) + 2.0 * gamma / h * ufl.dot(v, N)) * ds(tag)
+        self.problem = LinearProblem(
+            a, L,
+            petsc_options_prefix=f"hyper_fibers_{next(_prefixes)}_",
+            petsc_options={"ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps"},
+        )
+
+    def solve(self) -> fem.Function:
+        """The velocity (P2); raises RuntimeError (on all ranks) if the solve failed."""
+        w = self.problem.solve()
+        reason = self.problem.solver.getConvergedReason()
+        if reason < 0:
+            raise RuntimeError(f"{self.geometry.name}: Stokes solve failed (KSP reason {reason})")
+        return w.sub(0).collapse()
+
+    def fibers(self) -> tuple[fem.Function, fem.Function]:
+        """(a0, speed): the unit fibre field (vector P1) and |u| at the nodes (scalar P1)."""
+        u1 = fem.Function(self.V1)
+        u1.interpolate(self.solve())
+        # Ghost copies take the owner's value: interpolating from a different cell can
+        # differ in the last bit, and the stored field is the owners' values.
+        u1.x.scatter_forward()
+        return normalized(u1, self.params.min_speed, self.geometry.name)
+
+
+def normalized(u: fem.Function, min_speed: float, name: str) -> tuple[fem.Function, fem.Function]:
+    """u/|u| at the nodes of a vector P1 function, and |u| as a scalar P1 function.
+
+    Raises RuntimeError on every rank if some node is slower than ``min_speed``.
+    """
+    values = u.x.array.reshape(-1, 3)
+    length = np.linalg.norm(values, axis=1)
+    slowest = u.function_space.mesh.comm.allreduce(float(length.min(initial=np.inf)), op=MPI.MIN)
+    if not slowest >= min_speed:
+        raise RuntimeError(f"{name}: the flow stagnates (speed {slowest:.3g} < {min_speed:g} at a "
+                           "node), where it has no direction")
+    a0 = fem.Function(u.function_space, name="a0")
+    a0.x.array[:] = (values / length[:, None]).ravel()
+    speed = fem.Function(fem.functionspace(u.function_space.mesh, ("Lagrange", 1)), name="speed")
+    speed.x.array[:] = length
+    return a0, speed
+
+
+def compute(geometry: geo.Geometry, params: StokesParams = StokesParams()) -> tuple[fem.Function, fem.Function]:
+    """The Stokes-flow fibres of ``geometry``: (a0, speed), see ``StokesFibers.fibers``."""
+    return StokesFibers(geometry, params).fibers()
+
+
+# -------------------------------------------------------------------------- statistics
+
+
+def principal_axis(geometry: geo.Geometry) -> np.ndarray:
+    """The first principal axis of the vertex coordinates (every vertex once)."""
+    _, axes = geo.principal_axes(geometry.mesh)
+    return axes[:, 0]
+
+
+def aligned_share(geometry: geo.Geometry, a0: fem.Function, axis, angle_deg: float = ALIGNMENT_DEG) -> float:
+    """Share of the volume where a0 is within ``angle_deg`` of ±``axis``.
+
+    Integrated with the geometry's quadrature rule (a0 renormalized at each point), so
+    it is the rule's approximation of the volume of the region, the same on any number
+    of ranks.
+    """
+    mesh = geometry.mesh
+    axis = np.asarray(axis, dtype=float)
+    # Constants, not literals: one compiled form serves every mesh and angle.
+    direction = fem.Constant(mesh, axis / np.linalg.norm(axis))
+    threshold = fem.Constant(mesh, math.cos(math.radians(angle_deg)))
+    cosine = abs(ufl.dot(a0, direction)) / ufl.sqrt(ufl.dot(a0, a0))
+    inside = ufl.conditional(ufl.ge(cosine, threshold), 1.0, 0.0)
+    comm = geometry.comm
+    part = comm.allreduce(fem.assemble_scalar(fem.form(inside * geometry.dx)), op=MPI.SUM)
+    return part / geometry.reference_volume()
+
+
+def max_norm_error(a0: fem.Function) -> float:
+    """max over the nodes of | |a0| - 1 | (owned nodes, reduced over ranks)."""
+    n = a0.function_space.dofmap.index_map.size_local
+    values = a0.x.array.reshape(-1, 3)[:n]
+    local = float(np.abs(np.linalg.norm(values, axis=1) - 1.0).max(initial=0.0))
+    return a0.function_space.mesh.comm.allreduce(local, op=MPI.MAX)
+
+
+def statistics(geometry: geo.Geometry, a0: fem.Function, speed: fem.Function | None = None) -> dict:
+    """The numbers reported per mesh (collective)."""
+    mesh = geometry.mesh
+    stats = {
+        "cells": geometry.num_cells(),
+        "vertices": mesh.topology.index_map(0).size_global,
+        "share_within_30deg": aligned_share(geometry, a0, principal_axis(geometry)),
+        "max_norm_error": max_norm_error(a0),
+    }
+    if speed is not None:
+        n = speed.function_space.dofmap.index_map.size_local
+        local = speed.x.array[:n]
+        stats["min_speed"] = mesh.comm.allreduce(float(local.min(initial=np.inf)), op=MPI.MIN)
+        stats["max_speed"] = mesh.comm.allreduce(float(local.max(initial=-np.inf)), op=MPI.MAX)
+    return stats
+
+
+# ------------------------------------------------------------------ nodes and storage
+
+
+def node_index(space: fem.FunctionSpace) -> np.ndarray:
+    """For each local (owned and ghost) node of a P1 space: the mesh file's node index.
+
+    For P1 on an affine mesh the dofs and the geometry nodes of a cell are listed in
+    the same reference order, which gives the dof -> geometry node map.
+    """
+    mesh = space.mesh
+    if space.ufl_element().degree != 1 or mesh.geometry.cmaps[0].degree != 1:
+        raise ValueError("node_index needs a P1 space on an affine mesh")
+    index_map = space.dofmap.index_map
+    node = np.full(index_map.size_local + index_map.num_ghosts, -1, dtype=np.int64)
+    node[space.dofmap.list.ravel()] = mesh.geometry.dofmaps[0].ravel()
+    return np.asarray(mesh.geometry.input_global_indices, dtype=np.int64)[node]
+
+
+def gather_nodal(a0: fem.Function, speed: fem.Function, root: int = 0) -> dict[str, np.ndarray] | None:
+    """The datasets of a fibre file, sorted by file node index, on rank ``root`` (else None)."""
+    space = a0.function_space
+    comm = space.mesh.comm
+    n = space.dofmap.index_map.size_local
+    keys = node_index(space)[:n]
+    x = space.tabulate_dof_coordinates()[:n]
+    parts = comm.gather((keys, a0.x.array.reshape(-1, 3)[:n], x, speed.x.array[:n]), root=root)
+    if comm.rank != root:
+        return None
+    keys, values, x, s = (np.concatenate(p) for p in zip(*parts))
+    order = np.argsort(keys)
+    return {"node": keys[order], "a0": values[order], "x": x[order], "speed": s[order]}
+
+
+def fiber_path(name: str, meshes_dir: str | Path | None = None) -> Path:
+    """Where the fibres of geometry ``name`` live: next to its mesh file."""
+    if name not in geo.GEOMETRIES:
+        raise InputError(f"unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
+    root = Path(meshes_dir) if meshes_dir is not None else geo.MESHES_DIR
+    return root / Path(geo.GEOMETRIES[name]).parent / FILE_NAME
+
+
+def load(geometry: geo.Geometry, path: str | Path | None = None) -> fem.Function:
+    """The stored Stokes fibres of ``geometry`` as a unit vector P1 function ("a0").
+
+    ``path`` defaults to ``fiber_path(geometry.name)``. Works on any number of ranks:
+    each local node takes the value stored under its file node index. The file must
+    be complete and belong to this very mesh (same nodes, same coordinates), else
+    InputError. Collective over the geometry's communicator.
+    """
+    import h5py
+
+    from hyper.runs.io import is_complete
+
+    path = Path(path) if path is not None else fiber_path(geometry.name)
+    comm = geometry.comm
+    data: dict | str | None = None
+    if comm.rank == 0:
+        if not is_complete(path):
+            data = (f"{path}: no complete fibre file; compute it with "
+                    f"`python -m hyper.fibers --geometries {geometry.name}`")
+        else:
+            with h5py.File(path, "r") as f:
+                data = {k: f[k][()] for k in ("node", "a0", "x")}
+    data = comm.bcast(data, root=0)
+    if isinstance(data, str):
+        raise InputError(data)
+
+    space = fem.functionspace(geometry.mesh, ("Lagrange", 1, (3,)))
+    keys = node_index(space)
+    stored = data["node"]
+    n_nodes = geometry.mesh.topology.index_map(0).size_global
+    where = np.minimum(np.searchsorted(stored, keys), len(stored) - 1)
+    x = space.tabulate_dof_coordinates()
+    same = (len(stored) == n_nodes and np.array_equal(stored[where], keys)
+            and bool(np.all(np.abs(data["x"][where] - x) <= 1e-12 * np.abs(data["x"]).max())))
+    if not comm.allreduce(same, op=MPI.LAND):
+        raise InputError(f"{path}: the fibres were computed on another mesh than {geometry.name!r} "
+                         f"({len(stored)} stored nodes, the mesh has {n_nodes}, or the nodes or "
+                         "their coordinates differ); recompute them with --force")
+    a0 = fem.Function(space, name="a0")
+    a0.x.array[:] = data["a0"][where].ravel()
+    return a0
+
+
+# ------------------------------------------------------------------------- fibre fields
+
+
+def idealized_fiber(x: np.ndarray) -> np.ndarray:
+    """MODEL.md §5: a0 ∝ (x/r y'(z), y/r y'(z), 0.2), a0 = e_z on the axis; x has shape (3, n)."""
+    z = x[2]
+    slope = np.where(z <= 0.1, 0.06 - 6.0 * z**2, 6.0 * z**2 - 2.4 * z + 0.18)
+    r = np.hypot(x[0], x[1])
+    on_axis = r < 1e-12
+    r = np.where(on_axis, 1.0, r)
+    a = np.vstack([np.where(on_axis, 0.0, x[0] / r * slope), np.where(on_axis, 0.0, x[1] / r * slope),
+                   np.full_like(z, 0.2)])
+    return a / np.linalg.norm(a, axis=0)
+
+
+# Inside this radius (m) the original code set a0 = e_z (MODEL.md §9).
+ORIGINAL_AXIS_RADIUS = 1e-4
+
+
+def original_idealized_fiber(x: np.ndarray) -> np.ndarray:
+    """The idealized fibres as the original code wrote them: `idealized_fiber`, but e_z
+    wherever r < `ORIGINAL_AXIS_RADIUS`; x has shape (3, n)."""
+    a = idealized_fiber(x)
+    a[:, np.hypot(x[0], x[1]) < ORIGINAL_AXIS_RADIUS] = np.array([[0.0], [0.0], [1.0]])
+    return a
+
+
+def uniform_fiber_field(mesh, direction) -> fem.Function:
+    """A constant unit fibre direction as a P1 vector function."""
+    d = np.asarray(direction, dtype=float)
+    d = d / np.linalg.norm(d)
+    a0 = fem.Function(fem.functionspace(mesh, ("Lagrange", 1, (3,))), name="a0")
+    a0.interpolate(lambda x: np.tile(d[:, None], (1, x.shape[1])))
+    return a0
+
+
+FIBER_KINDS = ("auto", "idealized", "axial", "principal", "stokes", "original")
+# The kinds whose field the mechanics and the growth field must use as it is, not
+# normalised at their points.
+UNNORMALISED_KINDS = ("original",)
+
+
+def fiber_field(geometry: geo.Geometry, kind: str = "auto") -> fem.Function:
+    """The reference fibre direction a0 as a vector P1 function, unit length at the nodes.
+
+    kind: "idealized" the analytic spline fibres of MODEL.md §5; "axial" e_z (the axis of
+    the cylinder and the idealized shape); "principal" the first principal axis of the
+    vertex coordinates, oriented from end Γ1 to Γ2 (a stand-in for tests); "stokes" the
+    Stokes-flow fibres stored next to an anatomical mesh (`load`, MODEL.md §5);
+    "auto" picks the first for `idealized`, the second for `cylinder` and "stokes"
+    otherwise. "original" (idealized shape only): the original code's field
+    (`original_idealized_fiber`) interpolated into vector P2, which the original used as
+    it is, unit at the nodes only (MODEL.md §9; see `UNNORMALISED_KINDS`).
+
+    Why P1: every fibre source (analytic, Stokes flow) can be written at vertices, XDMF
+    stores and ParaView shows it as is, and any quadrature or DG space the forms or the
+    growth tensors use interpolates it. Between the nodes |a0| dips below 1 where the
+    fibres turn (by up to 4 % next to the idealized shape's axis, where the formula
+    jumps); `MechanicsProblem` and the growth field normalise at their points.
+    """
+    if kind not in FIBER_KINDS:
+        raise InputError(f"unknown fibre kind {kind!r}; expected one of {', '.join(FIBER_KINDS)}")
+    if kind == "auto":
+        kind = {"idealized": "idealized", "cylinder": "axial"}.get(geometry.name, "stokes")
+    if kind == "stokes":
+        return load(geometry)
+    if kind == "original":
+        if geometry.name != "idealized":
+            raise InputError(f"the original fibres are those of the idealized shape, not of {geometry.name!r}")
+        a0 = fem.Function(fem.functionspace(geometry.mesh, ("Lagrange", 2, (3,))), name="a0")
+        a0.interpolate(original_idealized_fiber)
+        return a0
+    if kind == "axial":
+        return uniform_fiber_field(geometry.mesh, (0.0, 0.0, 1.0))
+    if kind == "principal":
+        _, axes = geo.principal_axes(geometry.mesh)
+        axis = axes[:, 0]
+        if np.dot(geo.facet_centroid(geometry, geometry.ends[1]) - geo.facet_centroid(geometry, geometry.ends[0]),
+                  axis) < 0:
+            axis = -axis
+        return uniform_fiber_field(geometry.mesh, axis)
+    a0 = fem.Function(fem.functionspace(geometry.mesh, ("Lagrange", 1, (3,))), name="a0")
+    a0.interpolate(idealized_fiber)
+    return a0
+
+
+# ----------------------------------------------------------------------------- pictures
+
+
+def cell_fibers(geometry: geo.Geometry, a0: fem.Function, root: int = 0):
+    """(centroids (n, 3), unit fibres (n, 3), volumes (n,)) of all cells, in the mesh
+    file's cell order, on rank ``root`` (None elsewhere). The fibre of a cell is the
+    normalized mean of its nodal values."""
+    mesh = geometry.mesh
+    comm = mesh.comm
+    n = mesh.topology.index_map(mesh.topology.dim).size_local
+    corners = mesh.geometry.x[mesh.geometry.dofmaps[0][:n]]
+    volume = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])) / 6.0
+    dofs = a0.function_space.dofmap.list[:n]
+    mean = a0.x.array.reshape(-1, 3)[dofs].mean(axis=1)
+    mean /= np.linalg.norm(mean, axis=1)[:, None]
+    original = np.asarray(mesh.topology.original_cell_index[:n], dtype=np.int64)
+    parts = comm.gather((original, corners.mean(axis=1), mean, volume), root=root)
+    if comm.rank != root:
+        return None
+    original, centroid, fiber, volume = (np.concatenate(p) for p in zip(*parts))
+    order = np.argsort(original)
+    return centroid[order], fiber[order], volume[order]
+
+
+def figure(name: str, centroid, fiber, volume, axis, stats: dict):
+    """Fibre glyphs on two orthogonal mid-slices through the muscle's long axis, coloured
+    by the angle to the principal axis, and the volume-weighted histogram of that angle.
+
+    ``axis`` (unit) should point from the inflow end to the outflow end."""
+    plt = pyplot()
+    from matplotlib.collections import LineCollection
+
+    angle = np.degrees(np.arccos(np.clip(np.abs(fiber @ axis), 0.0, 1.0)))
+    # Principal coordinates (mm): the fibres' reference axis, then the two widest spreads.
+    centred = centroid - centroid.mean(axis=0)
+    across = centred - np.outer(centred @ axis, axis)
+    spread = np.linalg.svd(across, full_matrices=False)[2]
+    basis = np.vstack([axis, spread[0], np.cross(axis, spread[0])])
+    p = centred @ basis.T * 1e3
+    d = fiber @ basis.T
+    cmap, norm = plt.get_cmap("viridis"), plt.Normalize(0.0, 45.0)
+    glyph = 0.012 * np.ptp(p[:, 0])
+
+    fig = plt.figure(figsize=(12, 5.6), layout="constrained")
+    grid = fig.add_gridspec(2, 2, width_ratios=(3.0, 1.0))
+    for row, (shown, hidden) in enumerate(((1, 2), (2, 1))):
+        ax = fig.add_subplot(grid[row, 0])
+        # A slab around the mid-plane: glyphs from one depth, not a pile of all depths.
+        slab = np.abs(p[:, hidden] - np.median(p[:, hidden])) < 0.08 * np.ptp(p[:, hidden])
+        xy = p[slab][:, [0, shown]]
+        uv = d[slab][:, [0, shown]]
+        uv = uv / np.maximum(np.linalg.norm(uv, axis=1), 1e-12)[:, None] * glyph
+        lines = np.stack([xy - uv, xy + uv], axis=1)
+        ax.add_collection(LineCollection(lines, colors=cmap(norm(angle[slab])), linewidths=1.0))
+        ax.set_xlim(p[:, 0].min() - glyph, p[:, 0].max() + glyph)
+        ax.set_ylim(p[:, shown].min() - glyph, p[:, shown].max() + glyph)
+        ax.set_aspect("equal")
+        ax.set_ylabel(f"{('', '2nd', '3rd')[shown]} axis (mm)")
+        ax.set_title(f"mid-slice across the {('', '3rd', '2nd')[shown]} axis: {slab.sum()} cells", fontsize=10)
+    ax.set_xlabel("principal axis (mm), from the inflow end to the outflow end")
+    fig.colorbar(plt.cm.ScalarMappable(cmap=cmap, norm=norm), ax=fig.axes, shrink=0.6, location="bottom",
+                 aspect=40, label="angle to principal axis (°, clipped at 45)")
+
+    ax2 = fig.add_subplot(grid[:, 1])
+    ax2.hist(angle, bins=np.arange(0, 91, 2.5), weights=volume / volume.sum() * 100, color="0.4")
+    ax2.axvline(ALIGNMENT_DEG, color="C3", ls="--")
+    ax2.set_xlabel("angle to principal axis (°)")
+    ax2.set_ylabel("share of volume (%)")
+    ax2.set_title(f"within {ALIGNMENT_DEG:g}°: {100 * stats['share_within_30deg']:.1f} % of the volume",
+                  fontsize=10)
+    fig.suptitle(f"{name}: Stokes-flow fibres (cell means of the nodal field)")
+    return fig
+
+
+# ---------------------------------------------------------------------------------- job
+
+
+SUMMARY_COLUMNS = ("geometry", "muscle", "subject", "side", "cells", "vertices", "share_within_30deg",
+                   "max_norm_error", "min_speed", "max_speed", "solve_s", "status")
+
+
+def parser() -> cli.Parser:
+    p = cli.Parser("fibers", description="Stokes-flow fibre fields for the anatomical meshes (MODEL.md §5), stored "
+                   f"next to each mesh\nas {FILE_NAME}, with a picture and a summary per mesh.")
+    p.add_argument("--geometries", nargs="+", metavar="ID", default=list(geo.ANATOMICAL),
+                   help="geometries to do (the 12 anatomical meshes)")
+    p.add_argument("--force", action="store_true", help="recompute fibre files that exist")
+    p.add_argument("--ranks-per-job", type=cli.integer(1), default=1, help="MPI ranks per mesh")
+    p.add_argument("--output", type=cli.output(folder=True), default="results/fibers",
+                   help="folder for summary.csv and the pictures")
+    p.add_argument("--meshes-dir", type=Path, default=geo.MESHES_DIR,
+                   help="folder of the meshes, where the fibre files go")
+    p.add_argument("--penalty", type=float, default=StokesParams.penalty, help="Nitsche penalty γ")
+    return p
+
+
+def _work(args, params: StokesParams):
+    """The farm job for one geometry: fibres (computed or read back), file, picture."""
+    from hyper.runs import plot
+    from hyper.runs.io import is_complete, write_series
+
+    def work(comm, job):
+        name = job.key
+        geometry = geo.load(name, comm, meshes_dir=args.meshes_dir)
+        path = fiber_path(name, args.meshes_dir)
+        start = time.perf_counter()
+        computed = args.force or not is_complete(path)
+        if computed:
+            a0, speed = compute(geometry, params)
+            solve_s = time.perf_counter() - start
+            stats = {**statistics(geometry, a0, speed), "solve_s": solve_s}
+        else:
+            a0 = load(geometry, path)
+            stored = comm.bcast(_stored_stats(path) if comm.rank == 0 else None, root=0)
+            stats = {**stored, **statistics(geometry, a0)}
+        if computed:
+            data = gather_nodal(a0, speed)
+            if comm.rank == 0:
+                write_series(
+                    path, data,
+                    attrs={"geometry": name, "mesh": geo.GEOMETRIES[name], "method": METHOD,
+                           "element": ELEMENT, "reference": "Varvik et al. 2021; MODEL.md §5",
+                           "inflow_tag": geometry.ends[0], "outflow_tag": geometry.ends[1],
+                           "lateral_tag": geometry.lateral, "coordinates": "m",
+                           "ranks": comm.size, **stats},
+                    groups={"parameters": as_attributes(params)},
+                )
+        cells = cell_fibers(geometry, a0)
+        axis = principal_axis(geometry)
+        ends = [geo.facet_centroid(geometry, tag) for tag in geometry.ends]
+        axis = axis if np.dot(ends[1] - ends[0], axis) >= 0 else -axis
+        if comm.rank == 0:
+            plot.save(figure(name, *cells, axis, stats), args.output / f"{name}.png", dpi=110)
+        return {k: float(v) if isinstance(v, np.floating) else v for k, v in stats.items()}
+
+    return work
+
+
+def _stored_stats(path: Path) -> dict:
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        return {k: f.attrs[k] for k in SUMMARY_COLUMNS if k in f.attrs}
+
+
+def _write_summary(path: Path, names, fiber_paths, results) -> list[dict]:
+    import csv
+
+    from hyper.runs.io import atomic_path
+
+    rows = []
+    for name, fibers, result in zip(names, fiber_paths, results):
+        muscle, subject, side = geo.split_id(name) if name in geo.ANATOMICAL else ("", "", "")
+        row = {"geometry": name, "muscle": muscle, "subject": subject, "side": side, "status": result.status}
+        if result.status == "done":
+            row.update(result.result)
+        elif result.status == "skipped":
+            row.update(_stored_stats(fibers))
+        rows.append(row)
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=SUMMARY_COLUMNS, restval="", extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    return rows
+
+
+def run(comm, args) -> int:
+    from hyper.core.log import info
+    from hyper.runs import farm
+    from hyper.runs.io import is_complete
+
+    unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
+    if unknown:
+        raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")
+    if len(set(args.geometries)) != len(args.geometries):
+        raise InputError("--geometries: each geometry once")
+    params = StokesParams(penalty=args.penalty)
+    for name in args.geometries:
+        mesh_file = fiber_path(name, args.meshes_dir).parent / Path(geo.GEOMETRIES[name]).name
+        if not mesh_file.is_file():
+            raise InputError(f"{mesh_file}: no such mesh file")
+    jobs = [farm.Job(name, cost=1.0) for name in args.geometries]
+
+    def is_done(job):
+        return (not args.force and is_complete(fiber_path(job.key, args.meshes_dir))
+                and (args.output / f"{job.key}.png").is_file())
+
+    results = farm.run(comm, jobs, _work(args, params), ranks_per_job=args.ranks_per_job,
+                       is_done=is_done, label="fibres")
+    status = 0
+    if comm.rank == 0:
+        paths = [fiber_path(name, args.meshes_dir) for name in args.geometries]
+        rows = _write_summary(args.output / "summary.csv", args.geometries, paths, results)
+        info(comm, f"{'geometry':<16} {'cells':>6} {'within 30°':>10} {'max||a0|-1|':>12} "
+                   f"{'speed min..max':>15} {'solve s':>8}  status")
+        for row in rows:
+            if "share_within_30deg" in row:
+                info(comm, f"{row['geometry']:<16} {row['cells']:>6d} {100 * row['share_within_30deg']:>9.2f}% "
+                           f"{row['max_norm_error']:>12.1e} {row.get('min_speed', np.nan):>7.3f}.."
+                           f"{row.get('max_speed', np.nan):<7.3f} {row.get('solve_s', np.nan):>8.1f}  "
+                           f"{row['status']}")
+            else:
+                info(comm, f"{row['geometry']:<16} {'':>48}  {row['status']}")
+        info(comm, farm.summary_line(results))
+        info(comm, f"summary: {args.output / 'summary.csv'}")
+        status = int(any(r.status == "failed" for r in results))
+    return comm.bcast(status, root=0)
+
+
+main = cli.entry(parser, run, locks=lambda args: [args.output])
+
+if __name__ == "__main__":
+    sys.exit(main())

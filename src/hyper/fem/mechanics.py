@@ -1,0 +1,632 @@
+"""Quasi-static muscle mechanics (MODEL.md §3): one problem object per mesh, built once.
+
+Unknowns: displacement u (P2 vector) and pressure p (P1), Taylor–Hood on tetrahedra.
+With an optional growth tensor Fg (F = Fe Fg, MODEL.md §4) the residual is
+
+    ∫ P : ∇v dX + ∫ q (det Fe - 1) dX + Σ_{Γ1, Γ2} ∫ k (n·u)(n·v) |cof(F) N| dA = 0,
+
+    P = det(Fg) Fe S(Fe) Fg⁻ᵀ   (consistent_stress=True)   or   Fe S(Fe)   (the original code),
+
+with S the law of `hyper.model.material` and n = cof(F) N / |cof(F) N| the current normal
+(Nanson). Without growth Fe = F and both choices are P = F S.
+
+Rigid motions. The tendon springs act along the end normals only. On the curved ends
+of the anatomical meshes they resist every rigid motion. On flat parallel ends
+(idealized, cylinder) the translations across the axis and the rotation about it
+cost nothing in the reference state, so the Jacobian there is singular. Which motions
+are free is read off the 6×6 stiffness the springs give the rigid motions of the
+reference body (`rigid_mode_stiffness`): its null space. Each free mode r is removed
+by a Lagrange multiplier μ enforcing
+
+    ∫ u·r dX = 0        (zero mean transverse displacement, zero mean axial rotation),
+
+which adds μ·∫ r·v dX to the equilibrium equation. A deformation symmetric about the
+axis through the body's centroid satisfies these exactly with μ = 0; in particular a
+uniform transverse growth Fg of the cylinder gives u = (Fg - I)(X - X̄) and p = c1 + 2c2
+to round-off. Point constraints were the alternative: they would need a vertex on
+the axis (the cylinder mesh has none), and on Γ1, where the reaction force is
+measured, their point load shifted it by 10 % on the idealized mesh. The multipliers
+are global unknowns: the Newton matrix is [[J, B], [Bᵀ, 0]] in one AIJ matrix (its
+sparsity taken once from a PETSc nest), factorised by MUMPS.
+
+Linear solvers (``linear_solver``). "lu": MUMPS's exact factorisation, one solve per
+Newton step. "iterative": GMRES, right-preconditioned by MUMPS's block low-rank (BLR)
+factorisation at precision 1e-4 with compressed contribution blocks, to a relative
+residual of 1e-10: the factors of the off-diagonal blocks of every front are stored as
+low-rank products, which saves memory (the bench `solvers` measures how much) and the
+Krylov iterations recover the accuracy. Why not algebraic multigrid: a Schur-complement
+fieldsplit with GAMG on the displacement block needs about 100 GMRES iterations per
+Newton step on the 48k-unknown TA mesh at rest (24 with an exact displacement solve) and
+breaks down on the idealized shape, whose displacement block is singular (the free rigid
+motions live in the multipliers); hypre is not in the PETSc wheel. Measured in
+`python -m hyper.bench solvers`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import basix.ufl
+import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
+import numpy as np
+import ufl
+from dolfinx import fem
+from dolfinx import mesh as dmesh
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from hyper.core.params import InputError
+from hyper.fem.geometry import Geometry
+from hyper.model import material as mat
+
+DEFAULT_PETSC_OPTIONS = {
+    "snes_type": "newtonls",
+    "snes_linesearch_type": "basic",
+    "snes_atol": 1e-8,
+    "snes_rtol": 1e-8,
+    # The solution vector mixes metres and pascals, so a step-size test says nothing.
+    "snes_stol": 0.0,
+    "snes_max_it": 25,
+    "ksp_type": "preonly",
+    "pc_type": "lu",
+    "pc_factor_mat_solver_type": "mumps",
+}
+
+LINEAR_SOLVERS = ("lu", "iterative")
+ITERATIVE_PETSC_OPTIONS = {
+    "ksp_type": "gmres",
+    "ksp_gmres_restart": 100,
+    "ksp_pc_side": "right",
+    "ksp_rtol": 1e-10,
+    "ksp_atol": 0.0,
+    "ksp_max_it": 200,
+}
+# MUMPS controls of the BLR preconditioner: ICNTL(35) = 2 BLR factors, ICNTL(37) = 1
+# compressed contribution blocks; its dropping precision CNTL(7) is ``blr_precision``.
+# On the idealized shape refined once (78k unknowns, 2 ranks) GMRES needs 42 iterations
+# over 4 Newton steps at 1e-4, 290 at 1e-3, 635 at 1e-2 and fails at 1e-1; at 578k
+# unknowns and 1e-4, 95 over 4, with 0.60x LU's memory (python -m hyper.bench solvers).
+BLR_PRECISION = 1e-4
+
+
+def blr_controls(precision: float) -> dict:
+    return {"mat_mumps_icntl_35": 2, "mat_mumps_icntl_37": 1, "mat_mumps_cntl_7": precision}
+
+
+# Free rigid modes are those whose spring stiffness is below this fraction of the largest.
+FREE_MODE_RATIO = 1e-8
+_REASONS = {v: k for k, v in vars(PETSc.SNES.ConvergedReason).items() if isinstance(v, int)}
+
+
+class SolverError(RuntimeError):
+    """Newton did not converge; the problem holds the solution it had before the solve."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RigidModes:
+    """The rigid motions the end springs leave free, as UFL vectors r(X), and a summary."""
+
+    modes: tuple
+    description: str
+    stiffness_ratio: float  # smallest/largest spring stiffness of the six rigid motions
+
+
+class MechanicsProblem:
+    """Taylor–Hood equilibrium with tendon springs, optional growth, SNES Newton + MUMPS.
+
+    Forms and the solver are compiled once; between solves change ``alpha.value`` and
+    the growth function in place. PETSc options: defaults < ``petsc_options`` < the
+    options database under ``options_prefix`` (command line, PETSC_OPTIONS).
+    """
+
+    def __init__(
+        self,
+        geometry: Geometry,
+        a0,
+        material: mat.MaterialParams = mat.MaterialParams(),
+        *,
+        growth=None,
+        consistent_stress: bool = True,
+        petsc_options: dict | None = None,
+        options_prefix: str = "mechanics_",
+        linear_solver: str = "lu",
+        blr_precision: float = BLR_PRECISION,
+        normalize_fibres: bool = True,
+    ):
+        if linear_solver not in LINEAR_SOLVERS:
+            raise ValueError(f"linear_solver must be one of {', '.join(LINEAR_SOLVERS)}, got {linear_solver!r}")
+        if not 0 < blr_precision < 1:
+            raise ValueError(f"blr_precision must be in (0, 1), got {blr_precision!r}")
+        self.linear_solver = linear_solver
+        self.geometry = geometry
+        self.material = material
+        # A nodal fibre field is unit only at its nodes; the law needs unit fibres
+        # wherever it is evaluated (near the idealized shape's axis the interpolant
+        # is up to 4 % short). normalize_fibres=False: the field as it is (the original).
+        if normalize_fibres:
+            a0 = a0 / ufl.sqrt(ufl.dot(a0, a0))
+        self.a0 = a0
+        mesh = geometry.mesh
+        self.comm = mesh.comm
+        cell = mesh.basix_cell()
+        element = basix.ufl.mixed_element(
+            [basix.ufl.element("Lagrange", cell, 2, shape=(3,)), basix.ufl.element("Lagrange", cell, 1)]
+        )
+        self.W = fem.functionspace(mesh, element)
+        self.w = fem.Function(self.W, name="w")
+        self.u = self.w.sub(0)
+        self.p = self.w.sub(1)
+        self._p_dofs = np.asarray(self.W.sub(1).collapse()[1])
+        self.alpha = fem.Constant(mesh, 0.0)
+
+        u, p = ufl.split(self.w)
+        v, q = ufl.TestFunctions(self.W)
+        I = ufl.Identity(3)
+        self.F = I + ufl.grad(u)
+        if growth is None:
+            self.Fe = self.F
+            self.P = self.F * mat.second_piola(self.F, p, a0, self.alpha, material)
+        else:
+            self.Fe = self.F * ufl.inv(growth)
+            S = mat.second_piola(self.Fe, p, a0, self.alpha, material)
+            if consistent_stress:
+                self.P = ufl.det(growth) * self.Fe * S * ufl.inv(growth).T
+            else:
+                self.P = self.Fe * S
+        self.fibre_stretch = mat.fibre_stretch(self.F, a0)
+
+        dx, ds = geometry.dx, geometry.ds
+        N = ufl.FacetNormal(mesh)
+        cofN = ufl.det(self.F) * ufl.inv(self.F).T * N
+        area_ratio = ufl.sqrt(ufl.dot(cofN, cofN))
+        n = cofN / area_ratio
+        k = material.k_tendon
+        residual = ufl.inner(self.P, ufl.grad(v)) * dx + q * (ufl.det(self.Fe) - 1.0) * dx
+        for tag in geometry.ends:
+            residual += k * ufl.dot(n, u) * ufl.dot(n, v) * area_ratio * ds(tag)
+        self.residual = residual
+        self.jacobian = ufl.derivative(residual, self.w)
+        self._residual_form = fem.form(residual)
+        self._jacobian_form = fem.form(self.jacobian)
+
+        self.rigid = rigid_modes(geometry)
+        self._build_system([fem.form(ufl.dot(r, v) * dx) for r in self.rigid.modes])
+        self.multipliers = np.zeros(len(self.rigid.modes))
+
+        self.snes = PETSc.SNES().create(self.comm)
+        self.snes.setFunction(self._assemble_residual, self._F)
+        self.snes.setJacobian(self._snes_jacobian, self._K, self._K)
+        self.snes.setOptionsPrefix(options_prefix)
+        preset = ITERATIVE_PETSC_OPTIONS if linear_solver == "iterative" else {}
+        _set_options(self.snes, options_prefix, {**DEFAULT_PETSC_OPTIONS, **preset, **(petsc_options or {})},
+                     checked=tuple(petsc_options or ()))
+        controls = {**(blr_controls(blr_precision) if linear_solver == "iterative" else {}),
+                    **{k: v for k, v in (petsc_options or {}).items() if k.startswith(READ_LATER)}}
+        self._set_mumps(controls)
+
+        sigma = self.P * self.F.T / ufl.det(self.F)
+        gamma1 = ds(geometry.ends[0])
+        # Compiled on first use: a growth tensor on a quadrature space has no values on
+        # facets, so with growth these forms cannot be built (and growth runs need none).
+        self._reaction_ufl = ufl.dot(sigma * N, N) * gamma1
+        self._reaction_current_ufl = ufl.dot(self.P * N, n) * gamma1
+        # The end forces along Γ1's mean outward normal d (the axis on flat or symmetric
+        # ends). The resultant d·∫_{Γ1} P N dA is taken the variationally consistent way,
+        # ∫ P : ∇(ψ d) dX with ψ the P2 function that is 1 at Γ1's nodes and 0 at all
+        # others: equal to it in the continuum (div P = 0, the side free of traction),
+        # and in the discrete equations to the spring's resultant. The surface integral
+        # of the FE stress itself is off by 5 % on the idealized mesh (0.545 N against 0.572 N).
+        d = _mean_normal(geometry, geometry.ends[0])
+        self.end_axis = d
+        d = ufl.as_vector(d.tolist())
+        psi = _end_indicator(geometry, geometry.ends[0])
+        self._end_force_ufl = ufl.inner(self.P, ufl.grad(psi * d)) * dx
+        self._spring_force_ufl = -k * ufl.dot(n, u) * ufl.dot(n, d) * area_ratio * gamma1
+        self._reaction = self._reaction_current = self._end_force = self._spring_force = None
+        # det F of P2 displacements on affine cells is a cubic, which a rule of degree 3
+        # integrates exactly: 6 points a cell instead of the forms' 14 (degree 4) for the
+        # same volume to round-off, at half the cost of a growth step's measure
+        volume_degree = geometry.quadrature_degree
+        if geometry.mesh.geometry.cmaps[0].degree == 1:
+            volume_degree = min(volume_degree, EXACT_VOLUME_DEGREE)
+        self._volume = fem.form(ufl.det(self.F) * ufl.Measure("dx", domain=geometry.mesh,
+                                                              metadata={"quadrature_degree": volume_degree}))
+        self.reset()
+
+    # -- the Newton system -------------------------------------------------------------
+
+    def _build_system(self, constraint_forms) -> None:
+        """The Newton matrix K and vectors, with one row and column per free rigid mode.
+
+        The unknown vector holds each rank's owned dofs of w, and on the last rank the
+        multipliers after them, so the dofs keep the global numbers DOLFINx gives them
+        and the Jacobian form assembles straight into K.
+        """
+        imap = self.W.dofmap.index_map
+        bs = self.W.dofmap.index_map_bs
+        self._nowned = imap.size_local * bs
+        self._b = fem.petsc.create_vector(self.W)
+        A = fem.petsc.create_matrix(self._jacobian_form)
+        m = len(constraint_forms)
+        self._mult_rank = self.comm.size - 1
+        self._nmult = m if self.comm.rank == self._mult_rank else 0
+        if m == 0:
+            self._K = A
+            self._B = np.empty((0, self._nowned))
+        else:
+            cols = []
+            for form in constraint_forms:
+                vec = fem.petsc.assemble_vector(form)
+                vec.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+                cols.append(vec.array.copy())
+                vec.destroy()
+            self._B = np.array(cols)  # (modes, owned dofs)
+            N = imap.size_global * bs
+            self._rows = np.arange(*A.getOwnershipRange(), dtype=np.int32)
+            self._mult_index = np.arange(N, N + m, dtype=np.int32)
+            # The sparsity of [[A, B], [Bᵀ, 0]] comes from a nest converted once to AIJ;
+            # A must be assembled for its pattern to survive the conversion.
+            fem.petsc.assemble_matrix(A, self._jacobian_form)
+            A.assemble()
+            B = PETSc.Mat().createAIJ(((self._nowned, N), (self._nmult, m)), nnz=(m, m), comm=self.comm)
+            B.setValues(self._rows, np.arange(m, dtype=np.int32), self._B.T.copy())
+            B.assemble()
+            BT = B.transpose(PETSc.Mat())
+            nest = PETSc.Mat().createNest([[A, B], [BT, None]], comm=self.comm)
+            self._K = nest.convert(PETSc.Mat.Type.AIJ)
+            self._K.setLGMap(*A.getLGMap())
+            # The nest's layouts are shared with K: keep its blocks alive with it.
+            self._blocks = (nest, A, B, BT)
+        self._x, self._F = self._K.createVecs()
+
+    def _set_mumps(self, controls: dict) -> None:
+        """Set MUMPS controls (``mat_mumps_icntl_N`` / ``mat_mumps_cntl_N`` keys) on the
+        factor object, made now for the purpose: MUMPS reads its -mat_mumps_ options at
+        the first factorisation, long after `_set_options` has taken them out of the
+        database (where they would reach the next solver made in this process)."""
+        if not controls:
+            return
+        ksp = self.snes.getKSP()
+        pc = ksp.getPC()
+        if not _is_mumps_lu(pc):
+            return  # the options asked for another preconditioner: it wins
+        ksp.setOperators(self._K, self._K)
+        pc.setFactorSetUpSolverType()
+        factor = pc.getFactorMatrix()
+        for key, value in controls.items():
+            kind, _, index = key.removeprefix("mat_mumps_").partition("_")
+            try:
+                if kind == "icntl":
+                    factor.setMumpsIcntl(int(index), int(value))
+                elif kind == "cntl":
+                    factor.setMumpsCntl(int(index), float(value))
+                else:
+                    raise ValueError(kind)
+            except (ValueError, PETSc.Error):
+                raise InputError(f"--petsc-option: {key}={value} is not a MUMPS control "
+                                 "(mat_mumps_icntl_N=integer or mat_mumps_cntl_N=number)") from None
+
+    def linear_iterations(self) -> int:
+        """Krylov iterations of the last solve (one per Newton step with LU)."""
+        return self.snes.getLinearSolveIterations()
+
+    def mumps_memory(self) -> dict:
+        """MUMPS's account of the last factorisation, summed over ranks: memory its
+        analysis estimated and the memory it used (MB, INFOG 17 and 22), the entries a
+        full-rank factor would have (INFOG 29) and those stored (INFOG 35, fewer with BLR)."""
+        pc = self.snes.getKSP().getPC()
+        if not _is_mumps_lu(pc):
+            return {}
+        factor = pc.getFactorMatrix()
+        return {"mumps_estimated_mb": factor.getMumpsInfog(17), "mumps_used_mb": factor.getMumpsInfog(22),
+                "factor_entries": factor.getMumpsInfog(29), "factor_entries_stored": factor.getMumpsInfog(35)}
+
+    def _set_state(self, x) -> None:
+        arr = x.getArray(readonly=True)
+        self.w.x.array[: self._nowned] = arr[: self._nowned]
+        self.w.x.scatter_forward()
+        if len(self.multipliers):
+            mine = arr[self._nowned:].copy() if self.comm.rank == self._mult_rank else None
+            self.multipliers = self.comm.bcast(mine, root=self._mult_rank)
+
+    def _assemble_residual(self, snes, x, f) -> None:
+        self._set_state(x)
+        with self._b.localForm() as local:
+            local.set(0.0)
+        fem.petsc.assemble_vector(self._b, self._residual_form)
+        self._b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        out = f.getArray()
+        out[: self._nowned] = self._b.array + self.multipliers @ self._B
+        if len(self.multipliers):
+            constraint = self.comm.allreduce(self._B @ self.w.x.array[: self._nowned], op=MPI.SUM)
+            out[self._nowned:] = constraint[: self._nmult]
+
+    def _snes_jacobian(self, snes, x, K, P) -> None:
+        self.assemble_jacobian(x)
+
+    # -- public ------------------------------------------------------------------------
+
+    @property
+    def jacobian_matrix(self) -> PETSc.Mat:
+        """The Newton matrix [[J, B], [Bᵀ, 0]] (an assembled AIJ matrix, rows as in
+        `solution_vector`)."""
+        return self._K
+
+    @property
+    def solution_vector(self) -> PETSc.Vec:
+        """The Newton unknowns as SNES sees them: this rank's `owned_size` dofs of w,
+        then on the last rank the multipliers."""
+        return self._x
+
+    @property
+    def owned_size(self) -> int:
+        """The dofs of w this rank owns: the first entries of w's local array."""
+        return self._nowned
+
+    @property
+    def pressure_dofs(self) -> np.ndarray:
+        """The positions of the pressure dofs in w's local array (owned, then ghost)."""
+        return self._p_dofs
+
+    def assemble_residual(self, x: PETSc.Vec, f: PETSc.Vec) -> None:
+        """Take the state (w, μ) from the Newton unknowns ``x`` and assemble the residual
+        into ``f`` (a vector like `solution_vector`)."""
+        self._assemble_residual(None, x, f)
+
+    def load_state(self, x: PETSc.Vec) -> None:
+        """Write the current state (w, μ) into the Newton unknowns ``x``."""
+        arr = x.getArray()
+        arr[: self._nowned] = self.w.x.array[: self._nowned]
+        arr[self._nowned:] = self.multipliers[: self._nmult]
+
+    def assemble_jacobian(self, x: PETSc.Vec) -> None:
+        """Take the state (w, μ) from the Newton unknowns ``x`` and assemble
+        `jacobian_matrix` there."""
+        self._set_state(x)
+        K = self._K
+        K.zeroEntries()
+        fem.petsc.assemble_matrix(K, self._jacobian_form)
+        if len(self.multipliers):
+            add = PETSc.InsertMode.ADD_VALUES
+            K.setValues(self._rows, self._mult_index, self._B.T.copy(), addv=add)
+            K.setValues(self._mult_index, self._rows, self._B, addv=add)
+        K.assemble()
+
+    @property
+    def num_dofs(self) -> int:
+        """Unknowns of the Newton system: displacement, pressure and multipliers."""
+        return self._K.getSize()[0]
+
+    def reset(self) -> None:
+        """The stress-free reference state: u = 0, p = c1 + 2 c2, μ = 0."""
+        self.w.x.array[:] = 0.0
+        self.w.x.array[self._p_dofs] = mat.reference_pressure(self.material)
+        self.w.x.scatter_forward()
+        self.multipliers[:] = 0.0
+
+    def start_from(self, other: MechanicsProblem) -> None:
+        """Take u, p, μ and α of a problem on another mesh of the same body as the
+        initial guess (nested iteration on a refined mesh)."""
+        cells = np.arange(self.geometry.mesh.topology.index_map(3).size_local, dtype=np.int32)
+        for i in range(2):
+            V, dofs = self.W.sub(i).collapse()
+            V0, dofs0 = other.W.sub(i).collapse()
+            source = fem.Function(V0)
+            source.x.array[:] = other.w.x.array[dofs0]
+            target = fem.Function(V)
+            data = fem.create_interpolation_data(V, V0, cells, padding=1e-10)
+            target.interpolate_nonmatching(source, cells, data)
+            target.x.scatter_forward()
+            self.w.x.array[dofs] = target.x.array
+        self.w.x.scatter_forward()
+        self.multipliers = other.multipliers.copy()
+        self.alpha.value = float(other.alpha.value)
+
+    def solve(self) -> int:
+        """Newton from the current state; returns the number of iterations.
+
+        Raises SolverError (state restored) if SNES does not converge.
+        """
+        previous = self.w.x.array.copy(), self.multipliers.copy()
+        x = self._x.getArray()
+        x[: self._nowned] = self.w.x.array[: self._nowned]
+        x[self._nowned:] = self.multipliers[: self._nmult]
+        try:
+            self.snes.solve(None, self._x)
+            reason = self.snes.getConvergedReason()
+        except PETSc.Error as err:
+            reason = f"PETSc error {err}"
+        iterations = self.snes.getIterationNumber()
+        if not isinstance(reason, int) or reason <= 0:
+            self.w.x.array[:] = previous[0]
+            self.w.x.scatter_forward()
+            self.multipliers = previous[1]
+            name = _REASONS.get(reason, reason) if isinstance(reason, int) else reason
+            raise SolverError(
+                f"Newton did not converge at alpha = {float(self.alpha.value):g} "
+                f"after {iterations} iterations ({name}); previous solution restored"
+            )
+        self._set_state(self._x)
+        return iterations
+
+    def _sum(self, form) -> float:
+        return self.comm.allreduce(fem.assemble_scalar(form), op=MPI.SUM)
+
+    def reaction_force_original(self) -> float:
+        """∫_{Γ1} (σN)·N dA on the reference end face (N), as the original code reported it
+        (N): Cauchy stress integrated over reference area, no force of the body (MODEL.md §9)."""
+        if self._reaction is None:
+            self._reaction = fem.form(self._reaction_ufl)
+        return self._sum(self._reaction)
+
+    def end_force(self) -> float:
+        """d·∫_{Γ1} P N dA: the resultant force on the end Γ1 along its mean outward
+        normal d (`end_axis`), positive in tension (N), taken the variationally consistent
+        way (see the constructor). In equilibrium it is the `spring_force` less the
+        multipliers' share on the cells at Γ1 (zero for a symmetric body)."""
+        if self._end_force is None:
+            self._end_force = fem.form(self._end_force_ufl)
+        return self._sum(self._end_force)
+
+    def spring_force(self) -> float:
+        """d·∫_{Γ1} -k (n·u) n |cof F N| dA: the resultant of the tendon spring on Γ1
+        along d, positive in tension (N), from the displacement of the end alone."""
+        if self._spring_force is None:
+            self._spring_force = fem.form(self._spring_force_ufl)
+        return self._sum(self._spring_force)
+
+    def reaction_force_current(self) -> float:
+        """∫_{Γ1} (PN)·n dA: the force along the current end normal n (N)."""
+        if self._reaction_current is None:
+            self._reaction_current = fem.form(self._reaction_current_ufl)
+        return self._sum(self._reaction_current)
+
+    def volume(self) -> float:
+        """∫ det F dX (m³)."""
+        return self._sum(self._volume)
+
+
+EXACT_VOLUME_DEGREE = 3  # of det F for P2 displacements on affine cells
+
+
+def _is_mumps_lu(pc) -> bool:
+    return pc.getType() == "lu" and pc.getFactorSolverType() == "mumps"
+
+
+def taylor_hood_unknowns(mesh) -> int:
+    """Displacement and pressure unknowns of P2-P1 on ``mesh``, without building the space
+    (the multipliers of free rigid motions, at most three, not counted). Collective."""
+    mesh.topology.create_entities(1)
+    vertices = mesh.topology.index_map(0).size_global
+    edges = mesh.topology.index_map(1).size_global
+    return 3 * (vertices + edges) + vertices
+
+
+# Read by MUMPS when it factorises, after setFromOptions: whether they are used cannot be
+# known when the solver is set up.
+READ_LATER = ("mat_mumps_",)
+
+
+def _set_options(snes, prefix: str, options: dict, checked: tuple[str, ...] = ()) -> None:
+    """Apply ``options`` under ``prefix`` except those already in the database, then clean up.
+
+    The ``checked`` keys (the user's) must be ones PETSc reads: a misspelt option would be
+    ignored silently, and a bad value would fail deep inside the run. InputError otherwise.
+    """
+    db = PETSc.Options()
+    added = []
+    for key, value in options.items():
+        name = prefix + key
+        if not db.hasName(name):
+            db.setValue(name, value)
+            added.append(name)
+    try:
+        snes.setFromOptions()
+        unused = [key for key in checked if not key.startswith(READ_LATER) and not db.used(prefix + key)]
+    except PETSc.Error as err:
+        # PETSc's message is its call stack; the last line says what was wrong
+        lines = [line.removeprefix("[0]").strip() for line in str(err).splitlines() if line.strip()]
+        raise InputError(f"--petsc-option: PETSc refused {', '.join(checked)}: {lines[-1]}") from None
+    finally:
+        for name in added:
+            db.delValue(name)
+    if unused:
+        raise InputError(f"--petsc-option: PETSc does not read {', '.join(unused)} for the mechanics solver "
+                         "(misspelt, or an option of another object)")
+
+
+# ------------------------------------------------------------------- rigid motions
+
+
+def _end_facets(geometry: Geometry, tag: int):
+    """Unit normals, areas and centroids of the owned facets with ``tag``."""
+    mesh = geometry.mesh
+    facets = geometry.facet_tags.find(tag)
+    facets = facets[facets < mesh.topology.index_map(2).size_local]
+    pts = mesh.geometry.x[dmesh.entities_to_geometry(mesh, 2, facets)].reshape(-1, 3, 3)
+    cross = np.cross(pts[:, 1] - pts[:, 0], pts[:, 2] - pts[:, 0])
+    twice_area = np.linalg.norm(cross, axis=1)
+    return cross / twice_area[:, None], 0.5 * twice_area, pts.mean(axis=1)
+
+
+def _end_indicator(geometry: Geometry, tag: int) -> fem.Function:
+    """The P2 scalar function that is 1 at the nodes of the facets with ``tag``, 0 elsewhere."""
+    from dolfinx import la
+
+    mesh = geometry.mesh
+    psi = fem.Function(fem.functionspace(mesh, ("Lagrange", 2)))
+    psi.x.array[fem.locate_dofs_topological(psi.function_space, 2, geometry.facet_tags.find(tag))] = 1.0
+    # a rank that holds a node but not its facet learns it from the owner
+    psi.x.scatter_reverse(la.InsertMode.add)
+    psi.x.array[:] = psi.x.array > 0
+    psi.x.scatter_forward()
+    return psi
+
+
+def _mean_normal(geometry: Geometry, tag: int) -> np.ndarray:
+    """The unit vector along ∫ N dA, N the outward normal, over the facets with ``tag``."""
+    N = ufl.FacetNormal(geometry.mesh)
+    ds = ufl.Measure("ds", domain=geometry.mesh, subdomain_data=geometry.facet_tags, metadata=geometry.metadata)
+    total = np.array([geometry.comm.allreduce(fem.assemble_scalar(fem.form(N[i] * ds(tag))), op=MPI.SUM)
+                      for i in range(3)])
+    return total / np.linalg.norm(total)
+
+
+def rigid_mode_stiffness(geometry: Geometry):
+    """The springs' stiffness for rigid motions: eigenvalues (ascending, largest = 1),
+    eigenvectors, the centre c and length scale L of the parametrisation.
+
+    A rigid motion t + ω × (X - c) stretches the springs by n·t + ω·((X - c) × n); the
+    quadratic form ∫_{ends} (n·t + (ω L)·((X - c) × n) / L)² dA in (t, ωL) is a 6×6
+    matrix whose (near-)zero eigenvalues are the motions the ends leave free.
+    """
+    comm = geometry.comm
+    data = [_end_facets(geometry, tag) for tag in geometry.ends]
+    area = comm.allreduce(sum(a.sum() for _, a, _ in data), op=MPI.SUM)
+    centre = comm.allreduce(sum((a[:, None] * c).sum(axis=0) for _, a, c in data), op=MPI.SUM) / area
+    size2 = comm.allreduce(sum((a * ((c - centre) ** 2).sum(axis=1)).sum() for _, a, c in data), op=MPI.SUM)
+    size = float(np.sqrt(size2 / area))
+    K = np.zeros((6, 6))
+    for normals, areas, centroids in data:
+        g = np.hstack([normals, np.cross(centroids - centre, normals) / size])
+        K += (areas[:, None] * g).T @ g
+    K = comm.allreduce(K, op=MPI.SUM)
+    # One rank decides, so every rank builds the same constraints.
+    eig, vec = comm.bcast(np.linalg.eigh(K) if comm.rank == 0 else None, root=0)
+    return eig / eig[-1], vec, centre, size
+
+
+def rigid_modes(geometry: Geometry) -> RigidModes:
+    """The rigid motions the end springs leave free (null space of `rigid_mode_stiffness`)."""
+    eig, vec, centre, size = rigid_mode_stiffness(geometry)
+    free = np.flatnonzero(eig < FREE_MODE_RATIO)
+    ratio = float(eig[0])
+    if len(free) == 0:
+        return RigidModes((), f"none needed: the springs on the ends resist every rigid motion "
+                              f"(smallest/largest stiffness {ratio:.1e})", ratio)
+    X = ufl.SpatialCoordinate(geometry.mesh)
+    c = ufl.as_vector(centre.tolist())
+    modes = []
+    names = []
+    for j in free:
+        t, omega = vec[:3, j], vec[3:, j] / size
+        modes.append(ufl.as_vector(t.tolist()) + ufl.cross(ufl.as_vector(omega.tolist()), X - c))
+        names.append(_mode_name(t, omega * size))
+    return RigidModes(
+        tuple(modes),
+        f"{len(free)} free rigid motion(s) removed by Lagrange multipliers (∫ u·r dX = 0): "
+        + "; ".join(names),
+        ratio,
+    )
+
+
+def _mode_name(t, omega) -> str:
+    def fmt(a):
+        a = np.where(np.abs(a) < 1e-12, 0.0, a)
+        return np.array2string(a, precision=3, suppress_small=True)
+
+    if np.linalg.norm(omega) < 1e-8:
+        return f"translation {fmt(t)}"
+    return f"rotation about {fmt(omega / np.linalg.norm(omega))}" + (
+        f" + translation {fmt(t)}" if np.linalg.norm(t) > 1e-8 else ""
+    )

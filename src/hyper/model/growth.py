@@ -1,0 +1,151 @@
+"""Transverse volumetric growth: growth tensors, the cumulative update, feedback laws.
+
+Kinematics (MODEL.md §4). Over a growth step the signaling model adds dN to the
+myofibril population; with N = CSA/CSA0 the cross-section must grow by the area
+multiplier
+
+    ϑ = 1 + dN CSA0 / CSA,
+
+which the incremental tensor G = √ϑ I + (1 - √ϑ) a0⊗a0 applies across the fibres only.
+Increments act on the unloaded state (Goriely & Ben Amar 2007):
+
+    Ḡ_k = A_{k-1}⁻¹ G_k A_{k-1} Ḡ_{k-1},   A_k = F_k Ḡ_k⁻¹.
+
+The numpy kernels below work on stacks of 3×3 tensors (one per quadrature point);
+`GrowthField` owns the DOLFINx function that carries Ḡ into the mechanics forms.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import ufl
+
+from hyper.model.signaling import net_balance
+
+FEEDBACK_LAWS = ("hill", "linear", "none")
+
+
+def feedback(x, law: str = "hill", n: float = 4.0, K: float = 1.0):
+    """Synthesis factor h(CSA/CSA0): kM = kM0 h. Every law has h(1) = 1.
+
+    hill: 2Kⁿ/(Kⁿ + xⁿ) (the paper's); linear: 3 - 2x; none: 1.
+    """
+    x = np.asarray(x, dtype=float)
+    if law == "hill":
+        return 2.0 * K**n / (K**n + x**n)
+    if law == "linear":
+        return 3.0 - 2.0 * x
+    if law == "none":
+        return np.ones_like(x)
+    raise ValueError(f"unknown feedback law {law!r}; expected one of {', '.join(FEEDBACK_LAWS)}")
+
+
+INCREMENTS = ("exact", "left-point")
+
+
+def population_change(rule: str, y0, y1, dt: float, params, kM):
+    """dN over a growth step of dt (h) from signaling states y0 to y1 ((5,) or (5, n)).
+
+    exact: N's own change, y1[4] - y0[4]; left-point: f(y0) dt, the rate at the step's
+    start times the step, as the original code grew (MODEL.md §9), with the synthesis
+    rate kM the ODEs were integrated with; zero where N is held at a bound that f
+    points beyond (there N does not change, and the original's f was zero too).
+    """
+    if rule == "exact":
+        return y1[4] - y0[4]
+    if rule == "left-point":
+        f = net_balance(y0[2], y0[3], y0[4], params, kM)
+        held = ((y0[4] <= params.Nmin) & (f < 0.0)) | ((y0[4] >= params.Nmax) & (f > 0.0))
+        return np.where(held, 0.0, f)[()] * dt
+    raise ValueError(f"unknown growth increment {rule!r}; expected one of {', '.join(INCREMENTS)}")
+
+
+def area_multiplier(dN, csa_ratio):
+    """ϑ = 1 + dN CSA0/CSA for a population change dN over one growth step."""
+    return 1.0 + np.asarray(dN, dtype=float) / csa_ratio
+
+
+def transverse_growth(theta, a0):
+    """G = √ϑ I + (1 - √ϑ) a0⊗a0 for a stack of unit fibres a0 (..., 3)."""
+    a0 = np.asarray(a0, dtype=float)
+    s = np.sqrt(np.asarray(theta, dtype=float))[..., None, None]
+    eye = np.broadcast_to(np.eye(3), a0.shape[:-1] + (3, 3))
+    return s * eye + (1.0 - s) * a0[..., :, None] * a0[..., None, :]
+
+
+def transverse_growth_ufl(theta, a0):
+    """The UFL form of `transverse_growth`, for expressions and tests."""
+    s = ufl.sqrt(theta)
+    return s * ufl.Identity(3) + (1 - s) * ufl.outer(a0, a0)
+
+
+def cumulative_update(Gbar, A, G):
+    """Ḡ_new = A⁻¹ G A Ḡ: unload by A, grow by G, reload (stacks of 3×3 tensors)."""
+    return inverse(A) @ (G @ A @ Gbar)
+
+
+def transverse_update(Gbar, pulled, pushed, theta):
+    """`cumulative_update` for G = `transverse_growth`(ϑ, a0), from the fibre directions
+    F⁻¹a0 (``pulled``) and Fᵀa0 (``pushed``) of the last equilibrium F = A Ḡ:
+    A⁻¹ G A Ḡ = Ḡ F⁻¹ G F = √ϑ Ḡ + (1 - √ϑ) (Ḡ F⁻¹a0) ⊗ (Fᵀa0), a few array
+    operations per point where A⁻¹ G A Ḡ takes two inverses and three products."""
+    s = np.sqrt(np.asarray(theta, dtype=float))[..., None, None]
+    left = np.einsum("...ij,...j->...i", Gbar, pulled)
+    out = np.multiply((1.0 - s) * left[..., :, None], pushed[..., None, :])
+    out += s * Gbar
+    return out
+
+
+def fibre_directions(F, a0):
+    """(F⁻¹a0, Fᵀa0) for stacks of deformation gradients F and fibres a0 (..., 3): what
+    `transverse_update` needs of the last equilibrium."""
+    return solve(F, a0), np.einsum("...ji,...j->...i", F, a0)
+
+
+def fibre_directions_ufl(F, a0):
+    """`fibre_directions` as one UFL vector (F⁻¹a, Fᵀa) of six components, a = a0/|a0|."""
+    a = a0 / ufl.sqrt(ufl.dot(a0, a0))
+    pulled, pushed = ufl.inv(F) * a, F.T * a
+    return ufl.as_vector([pulled[i] for i in range(3)] + [pushed[i] for i in range(3)])
+
+
+def solve(M, v):
+    """M⁻¹v for stacks of 3×3 tensors and 3-vectors, by the adjugate (`inverse`), with
+    no inverse formed: half the work of inverse(M) @ v."""
+    a, b, c = M[..., 0, 0], M[..., 0, 1], M[..., 0, 2]
+    d, e, f = M[..., 1, 0], M[..., 1, 1], M[..., 1, 2]
+    g, h, i = M[..., 2, 0], M[..., 2, 1], M[..., 2, 2]
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    c0, c1, c2 = e * i - f * h, f * g - d * i, d * h - e * g  # the first column of the adjugate
+    out = np.empty(np.shape(v))
+    out[..., 0] = c0 * x + (c * h - b * i) * y + (b * f - c * e) * z
+    out[..., 1] = c1 * x + (a * i - c * g) * y + (c * d - a * f) * z
+    out[..., 2] = c2 * x + (b * g - a * h) * y + (a * e - b * d) * z
+    out /= (a * c0 + b * c1 + c * c2)[..., None]
+    return out
+
+
+def elastic_part(F, Gbar):
+    """A = F Ḡ⁻¹ (stacks of 3×3 tensors)."""
+    return F @ inverse(Gbar)
+
+
+def inverse(M):
+    """M⁻¹ of a stack of 3×3 tensors by the adjugate: for the well-conditioned tensors
+    of growth (det near 1) as exact as LAPACK's, and several times faster on stacks."""
+    a, b, c = M[..., 0, 0], M[..., 0, 1], M[..., 0, 2]
+    d, e, f = M[..., 1, 0], M[..., 1, 1], M[..., 1, 2]
+    g, h, i = M[..., 2, 0], M[..., 2, 1], M[..., 2, 2]
+    out = np.empty(np.shape(M))
+    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2] = e * i - f * h, c * h - b * i, b * f - c * e
+    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2] = f * g - d * i, a * i - c * g, c * d - a * f
+    out[..., 2, 0], out[..., 2, 1], out[..., 2, 2] = d * h - e * g, b * g - a * h, a * e - b * d
+    out /= (a * out[..., 0, 0] + b * out[..., 1, 0] + c * out[..., 2, 0])[..., None, None]
+    return out
+
+def step_times(t0: float, t1: float, dt: float) -> np.ndarray:
+    """[t0, …, t1] in equal steps no longer than dt (at least one step)."""
+    n = max(1, math.ceil((t1 - t0) / dt - 1e-9))
+    return np.linspace(t0, t1, n + 1)

@@ -1,0 +1,1 @@
+"""Running the model: run specs, the driver, checkpoints, locks, results, farm, fidelity, plots."""

@@ -1,0 +1,253 @@
+"""hyper contraction: ramp the activation α from 0 to 1 on one geometry.
+
+Writes <output>.h5 (series alpha, end_force, spring_force, reaction_force_original,
+reaction_force_current, newton_iterations, volume_ratio, stretch_min, stretch_max; the
+groups material and settings),
+<output>_fields.xdmf (displacement u and pressure p on P1, fibre stretch λ per cell, one
+time step per activation level) and <output>.png (force against activation).
+The forces on the end Γ1 (N, positive in tension), along its mean outward normal d:
+end_force, the resultant d·∫ P N dA (the headline: converged to about 3 % on the
+idealized mesh, python -m hyper.bench refinement), equal by equilibrium to
+spring_force, the tendon spring's resultant; reaction_force_original, the original
+code's ∫ (σN)·N dA, Cauchy stress over reference area, which converges slowly and
+depends on the fibres in the end cells (MODEL.md §9); reaction_force_current, ∫ (PN)·n dA.
+The original code's idealized shape: --ends tags --fibers original (P2 fibres as they
+are, surface integrals at UFL's estimated degree) gives its reaction_force_original at
+α = 1, 0.9291244 N.
+A step whose Newton solve fails is retried as two half steps, down to --max-halvings.
+Options after the known ones go to PETSc under the prefix mechanics_ (for example
+-mechanics_snes_monitor).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hyper.commands import cli
+from hyper.core.params import InputError, as_attributes
+
+SERIES = ("alpha", "end_force", "spring_force", "reaction_force_original", "reaction_force_current",
+          "newton_iterations", "volume_ratio", "stretch_min", "stretch_max", "wall_s")
+UNITS = {"alpha": "1", "end_force": "N", "spring_force": "N", "reaction_force_original": "N",
+         "reaction_force_current": "N", "newton_iterations": "count",
+         "volume_ratio": "1", "stretch_min": "1", "stretch_max": "1", "wall_s": "s"}
+
+
+class _Parser(cli.Parser):
+    """Single-dash words after the known options are PETSc's: kept in ``args.petsc``."""
+
+    def parse_args(self, args=None, namespace=None):
+        args, rest = self.parse_known_args(args, namespace)
+        stray = [a for a in rest if a.startswith("--")]
+        if stray:
+            raise InputError(f"unknown option(s) {' '.join(stray)}; PETSc options take one dash")
+        args.petsc = rest
+        return args
+
+
+def parser() -> cli.Parser:
+    from hyper.fem import fibers
+    from hyper.fem import geometry as geo
+
+    p = _Parser("contraction", description=__doc__)
+    p.add_argument("--geometry", default="idealized", help="geometry identifier")
+    p.add_argument("--ends", choices=geo.IDEALIZED_ENDS, default="disks",
+                   help="the idealized shape's spring ends: the flat end disks, or the XDMF's end tags with "
+                        "their lateral band (the original code)")
+    p.add_argument("--steps", type=cli.integer(1, 10**4), default=10, help="equal activation steps from 0 to 1")
+    p.add_argument("--output", type=cli.output(folder=False, suffixes=(".h5",)),
+                   help="HDF5 series file; results/contraction/GEOMETRY.h5 by default")
+    p.add_argument("--fibers", default="auto", metavar="KIND",
+                   help=f"fibre field kind: {', '.join(fibers.FIBER_KINDS)} (see hyper.fem.fibers.fiber_field); "
+                        "original: the original code's idealized fibres, with its surface quadrature")
+    p.add_argument("--material", type=Path, metavar="F.toml",
+                   help="TOML file overriding the muscle law's parameters (hyper.model.material.MaterialParams)")
+    p.add_argument("--quadrature-degree", type=cli.integer(1, 12), default=4, help="quadrature degree of the forms")
+    p.add_argument("--max-halvings", type=cli.integer(0, 12), default=6, help="step cuts allowed per step")
+    return p
+
+
+class Fields:
+    """Output fields on spaces XDMF stores: P1 displacement and pressure, DG0 fibre stretch."""
+
+    def __init__(self, problem):
+        from dolfinx import fem
+
+        mesh = problem.geometry.mesh
+        self.problem = problem
+        self.u = fem.Function(fem.functionspace(mesh, ("Lagrange", 1, (3,))), name="u")
+        self.p = fem.Function(fem.functionspace(mesh, ("Lagrange", 1)), name="p")
+        dg0 = fem.functionspace(mesh, ("DG", 0))
+        self.stretch = fem.Function(dg0, name="fibre_stretch")
+        self._stretch_expr = fem.Expression(problem.fibre_stretch, dg0.element.interpolation_points)
+        self._ncells = mesh.topology.index_map(3).size_local
+
+    def update(self):
+        self.u.interpolate(self.problem.u)
+        self.p.interpolate(self.problem.p)
+        self.stretch.interpolate(self._stretch_expr)
+        return self.u, self.p, self.stretch
+
+    def stretch_range(self) -> tuple[float, float]:
+        from mpi4py import MPI
+
+        values = self.stretch.x.array[: self._ncells]
+        comm = self.problem.comm
+        return comm.allreduce(values.min(), op=MPI.MIN), comm.allreduce(values.max(), op=MPI.MAX)
+
+
+def advance(problem, target: float, max_halvings: int) -> tuple[int, int]:
+    """Move α from its current value to ``target``, halving the step on failure.
+
+    Returns (Newton iterations, deepest halving).
+    """
+    from hyper.fem.mechanics import SolverError
+
+    start = float(problem.alpha.value)
+    try:
+        problem.alpha.value = target
+        return problem.solve(), 0
+    except SolverError:
+        problem.alpha.value = start
+        if max_halvings == 0:
+            raise
+    middle = 0.5 * (start + target)
+    its1, h1 = advance(problem, middle, max_halvings - 1)
+    its2, h2 = advance(problem, target, max_halvings - 1)
+    return its1 + its2, 1 + max(h1, h2)
+
+
+def plot(path: Path, series: dict, title: str) -> None:
+    from hyper.runs import plot as figures
+
+    fig, (ax, ax2) = figures.pyplot().subplots(1, 2, figsize=(10, 4))
+    ax.plot(series["alpha"], series["end_force"], "o-", label=r"$d\cdot\int_{\Gamma_1} P N\,dA$ (resultant)")
+    ax.plot(series["alpha"], series["reaction_force_original"], "^--",
+            label=r"$\int_{\Gamma_1} (\sigma N)\cdot N\,dA$ (original)")
+    ax.plot(series["alpha"], series["reaction_force_current"], "s:",
+            label=r"$\int_{\Gamma_1} (PN)\cdot n\,dA$ (current)")
+    ax.set_xlabel("activation α")
+    ax.set_ylabel("force on Γ1 (N)")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    ax2.fill_between(series["alpha"], series["stretch_min"], series["stretch_max"], alpha=0.3, label="cell range")
+    ax2.set_xlabel("activation α")
+    ax2.set_ylabel("fibre stretch λ")
+    ax2.legend()
+    ax2.grid(alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    figures.save(fig, path, dpi=120)
+
+
+def contract(comm, args) -> dict:
+    """The activation ramp of the job's ``args`` on ``comm``: the series (and the files)."""
+    from hyper.core.log import Progress, info
+    from hyper.fem import fibers
+    from hyper.fem import geometry as geo
+    from hyper.fem.mechanics import MechanicsProblem
+    from hyper.runs import io
+
+    original = args.fibers in fibers.UNNORMALISED_KINDS
+    geometry = geo.load(args.geometry, comm, quadrature_degree=args.quadrature_degree, ends=args.ends,
+                        estimated_surface_degree=original)
+    a0 = fibers.fiber_field(geometry, args.fibers)
+    material = args.material
+    problem = MechanicsProblem(geometry, a0, material, normalize_fibres=not original)
+    info(comm, f"{args.geometry}: {geometry.num_cells()} cells, {problem.num_dofs} unknowns, "
+               f"{comm.size} rank(s); rigid motions: {problem.rigid.description}")
+    fields = Fields(problem)
+    volume0 = problem.volume()
+    series = {name: [] for name in SERIES}
+    output = args.output
+    xdmf_path = output.with_name(output.stem + "_fields.xdmf")
+    progress = Progress(comm, args.steps, f"contraction {args.geometry}", every=0.0)
+    start = time.perf_counter()
+    with io.atomic_xdmf(comm, xdmf_path) as xdmf:
+        xdmf.write_mesh(geometry.mesh)
+        for k, alpha in enumerate(np.linspace(0.0, 1.0, args.steps + 1)):
+            iterations, halvings = advance(problem, float(alpha), args.max_halvings)
+            for f in fields.update():
+                xdmf.write_function(f, float(alpha))
+            lo, hi = fields.stretch_range()
+            values = (float(alpha), problem.end_force(), problem.spring_force(), problem.reaction_force_original(),
+                      problem.reaction_force_current(), iterations, problem.volume() / volume0, lo, hi,
+                      time.perf_counter() - start)
+            for name, value in zip(SERIES, values):
+                series[name].append(value)
+            progress.update(k, f"α = {alpha:.3f}: end force {values[1]:.4e} N, original R {values[3]:.4e} N, "
+                               f"λ in [{lo:.4f}, {hi:.4f}], {iterations} Newton its"
+                               + (f" ({halvings} halvings)" if halvings else ""), force=True)
+    from hyper.runs import checkpoint
+    from hyper.runs import driver as run
+
+    attrs = {
+        "geometry": args.geometry,
+        "steps": args.steps,
+        "fibers": args.fibers,
+        "fibres_normalised": not original,
+        "ends": args.ends,
+        "end_areas_m2": [geometry.area(tag) for tag in geometry.ends],
+        "end_axis": problem.end_axis,
+        "surface_quadrature_degree": "estimated" if geometry.estimated_surface_degree else geometry.quadrature_degree,
+        "mesh_sha256": checkpoint.on_rank0(comm, lambda: checkpoint.file_digest(
+            *run.mesh_files(geo.MESHES_DIR / geo.GEOMETRIES[args.geometry]))),
+        "cells": geometry.num_cells(),
+        "unknowns": problem.num_dofs,
+        "ranks": comm.size,
+        "quadrature_degree": geometry.quadrature_degree,
+        "linear_solver": "lu",
+        "rigid_motions": problem.rigid.description,
+        "fields_xdmf": xdmf_path.name,
+    }
+    settings = {"steps": args.steps, "fibers": args.fibers, "ends": args.ends,
+                "quadrature_degree": geometry.quadrature_degree,
+                "max_halvings": args.max_halvings, "petsc_prefix": problem.snes.getOptionsPrefix(),
+                "petsc_options": " ".join(args.petsc),
+                "snes_rtol": problem.snes.getTolerances()[0], "snes_atol": problem.snes.getTolerances()[1]}
+    if comm.rank == 0:
+        io.write_series(output, series, attrs=attrs, units=UNITS,
+                        groups={"material": as_attributes(material), "settings": settings})
+        plot(output.with_suffix(".png"), series, f"{args.geometry}: {geometry.num_cells()} cells, "
+                                                  f"{problem.num_dofs} unknowns")
+    comm.barrier()
+    return series
+
+
+def run(comm, args) -> int:
+    import dolfinx_solver  # noqa: F401  (before petsc4py)
+    from petsc4py import PETSc
+
+    from hyper.core.log import info
+    from hyper.fem.mechanics import SolverError
+    from hyper.model import material
+
+    args.material = material.load(args.material) if args.material is not None else material.MaterialParams()
+    if args.output is None:
+        args.output = Path("results/contraction") / f"{Path(args.geometry).name}.h5"
+        problem = cli.unwritable(args.output, folder=False)
+        if problem is not None:
+            raise InputError(f"--output: {problem}")
+    if args.petsc:
+        PETSc.Options().insertString(" ".join(args.petsc))
+    try:
+        with cli.hold(comm, [args.output]):
+            series = contract(comm, args)
+    except SolverError as err:
+        cli.error(comm, f"{err} (after {args.max_halvings} step halvings)")
+        return cli.EXIT_SOME_FAILED
+    info(comm, f"end force at α = 1: {series['end_force'][-1]:.6f} N (spring {series['spring_force'][-1]:.6f} N; "
+               f"the original's ∫(σN)·N dA {series['reaction_force_original'][-1]:.7f} N); "
+               f"fibre stretch range at α = 1: [{series['stretch_min'][-1]:.4f}, {series['stretch_max'][-1]:.4f}]; "
+               f"wrote {args.output}")
+    return cli.EXIT_OK
+
+
+main = cli.entry(parser, run)
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,660 @@
+"""The driver of one coupled run: what it is, where it writes, and how it survives.
+
+A `RunSpec` describes a run: the geometry (a built-in one or a user's `MeshFile`), the
+protocol, the signaling parameters (uniform, or per cell from a heterogeneity model
+and a seed), the growth settings and the PETSc options; its SHA-256 `digest` names the
+result, and a checkpoint is resumed only by the run with the same digest. `Outputs`
+derives the files of a run from its result path:
+
+    RESULT.h5             the time series (hyper.runs.io.write_series), written when done
+    RESULT_fields.xdmf    snapshots of u, det Ḡ and a0 (and N with per-cell signaling) every
+                          --snapshot-every simulated hours and at the end: one temporal
+                          series of grids, each with every field (hyper.runs.io.one_grid)
+    RESULT.ckpt.h5        the whole state, every --checkpoint-every growth steps, at the
+                          first step boundary after a SIGTERM and when a step fails
+    RESULT.status.json    why an unfinished run stopped, and how to resume it
+    RESULT.h5.lock        held while a run writes (hyper.commands.cli.hold)
+
+`execute` runs the model (`hyper.fem.coupled.CoupledModel.run`, which writes no files)
+and records it: `Series` keeps the time series, `Snapshots` the XDMF fields, both
+carried by the checkpoint so that a resumed run writes what an uninterrupted one
+would (the same bits on one rank; on several, within the round-off by which two
+parallel runs already differ). grow, cohort, ensemble and the
+benches all run through here.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import math
+import signal
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import numpy as np
+from mpi4py import MPI
+
+from hyper.core.log import PROGRESS_EVERY, Progress, info
+from hyper.core.params import InputError, as_attributes
+from hyper.model import signaling
+from hyper.model.material import MaterialParams
+from hyper.model.protocols import Protocol
+from hyper.runs import checkpoint as ckpt
+from hyper.runs import fidelity, io, provenance
+
+# growth steps. A checkpoint with the Newton state of BFLH_VHF_Left (8512 cells) takes longer
+# to write than a step takes to solve: `python -m hyper.bench speed` put the I/O of its kept run
+# at 1.46 s of 18.3 s with a checkpoint every 10 steps, 0.72 s of 16.8 s every 25.
+CHECKPOINT_EVERY = 25
+SNAPSHOT_EVERY = 24.0  # h of simulated time: a 9-week run writes 64 snapshots
+SERIES = ("t", "csa_ratio", "volume_ratio", "kM", *signaling.STATES, "newton_iterations", "halvings", "wall_s")
+LINEAR_SOLVERS = ("lu", "iterative", "auto")
+
+MESH_UNITS = {"m": 1.0, "mm": 1.0e-3}
+# A muscle's longest side: the paper's are 0.1-0.45 m. Outside this, the declared unit
+# is wrong (a file in millimetres read as metres is ~1000x too long).
+MUSCLE_LENGTH_M = (0.01, 1.0)
+
+
+class Unsaved(RuntimeError):
+    """A checkpoint could not be written (a full disk, a quota): the run stops, the previous
+    checkpoint stays as it was."""
+
+
+class Interrupted(RuntimeError):
+    """The run stopped at a step boundary on request (SIGTERM); its checkpoint is saved."""
+
+    def __init__(self, message: str, *, step: int, t: float, checkpoint: Path | None):
+        super().__init__(message)
+        self.step = step
+        self.t = t
+        self.checkpoint = checkpoint
+
+
+# ------------------------------------------------------------------------- what a run is
+
+
+def mesh_files(path: Path) -> list[Path]:
+    """A mesh file and, for XDMF, its HDF5 data: what a mesh's SHA-256 hashes."""
+    data = path.with_suffix(".h5")
+    return [path] + ([data] if path.suffix == ".xdmf" and data.is_file() else [])
+
+
+@dataclasses.dataclass(frozen=True)
+class MeshFile:
+    """A user's tetrahedral XDMF mesh with facet tags ``tags``: 1 and 2 the ends, 3 the
+    lateral surface (the anatomical meshes' convention); lengths in ``unit``."""
+
+    path: Path
+    unit: str = "m"
+    tags: str = "ft_small"
+
+    def __post_init__(self):
+        if self.unit not in MESH_UNITS:
+            raise InputError(f"--mesh-unit: expected one of {', '.join(MESH_UNITS)}, got {self.unit!r}")
+        if Path(self.path).suffix != ".xdmf":
+            raise InputError(f"{self.path}: expected an XDMF mesh file (.xdmf with its .h5), "
+                             f"got {Path(self.path).suffix!r}")
+
+    def load(self, comm):
+        from hyper.fem import geometry as geo
+
+        geometry = geo.load_file(self.path, comm, name=self.path.stem, tags=self.tags, ends=(1, 2), lateral=3,
+                                 scale=MESH_UNITS[self.unit])
+        x = geometry.mesh.geometry.x
+        lo, hi = np.empty(3), np.empty(3)
+        comm.Allreduce(x.min(axis=0) if len(x) else np.full(3, np.inf), lo, op=MPI.MIN)
+        comm.Allreduce(x.max(axis=0) if len(x) else np.full(3, -np.inf), hi, op=MPI.MAX)
+        length = float(np.max(hi - lo))
+        low, high = MUSCLE_LENGTH_M
+        if not low <= length <= high:
+            in_file = length / MESH_UNITS[self.unit]
+            raise InputError(
+                f"{self.path}: the mesh is {in_file:g} {self.unit} long (longest side of its bounding box), "
+                f"i.e. {length:g} m, outside the {low:g}-{high:g} m of a muscle: its length unit is not "
+                f"{self.unit!r}; declare the file's unit with --mesh-unit ({' or '.join(MESH_UNITS)})"
+            )
+        return geometry
+
+    def identity(self) -> dict:
+        return {"mesh_sha256": ckpt.file_digest(*mesh_files(self.path)), "unit": self.unit, "tags": self.tags}
+
+
+def check_geometry(comm, name: str, option: str = "--geometry") -> None:
+    """A built-in geometry that can run: known, its mesh file there, and (anatomical
+    meshes) its fibre field computed. Collective (rank 0 looks at the files)."""
+    from hyper.fem import fibers
+    from hyper.fem import geometry as geo
+
+    if name not in geo.GEOMETRIES:
+        raise InputError(f"{option}: unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
+    path = geo.MESHES_DIR / geo.GEOMETRIES[name]
+    if not ckpt.on_rank0(comm, path.is_file):
+        raise InputError(f"{option} {name}: {path}: no such mesh file")
+    fibres = fibers.fiber_path(name) if name in geo.ANATOMICAL + geo.MESHED else None
+    if fibres is not None and not ckpt.on_rank0(comm, lambda: io.is_complete(fibres)):
+        raise InputError(f"{option} {name}: {fibres}: no complete fibre file; compute it with "
+                         f"`hyper fibers --geometries {name}`")
+
+
+@dataclasses.dataclass(frozen=True)
+class RunSpec:
+    """Everything that defines one run's result, and how it is solved."""
+
+    geometry: str  # a built-in geometry id, or the stem of ``mesh``
+    protocol: Protocol
+    params: signaling.SignalingParams = signaling.SignalingParams()
+    settings: object = None  # GrowthSettings; None: the defaults
+    petsc_options: Mapping = dataclasses.field(default_factory=dict)
+    mesh: MeshFile | None = None
+    # per-cell signaling parameters: p0 (1 + ε ξ) drawn from this model with this seed
+    heterogeneity: object = None  # hyper.model.heterogeneity.Heterogeneity
+    seed: int | None = None
+    # how the Newton steps are solved: "lu", "iterative" or "auto" (by memory); all give
+    # the answer to the Newton tolerance, so the choice is not part of the digest
+    linear_solver: str = "lu"
+    # the fidelity choice (--accuracy) that set the steps; "auto" completes it with the solver
+    choice: fidelity.Choice | None = None
+    # the discretisation: uniform refinements of the mesh, and the quadrature degree
+    # (None: the geometry's own, 4)
+    refine: int = 0
+    quadrature_degree: int | None = None
+    # the original code's idealized shape (MODEL.md §9): its end tags ("tags") and its
+    # fibres ("original": P2 used as they are, surface integrals at UFL's estimated degree)
+    ends: str = "disks"
+    fibers: str = "auto"
+    material: MaterialParams = MaterialParams()  # the muscle law's parameters (--material)
+
+    def __post_init__(self):
+        if self.settings is None:
+            from hyper.fem.coupled import GrowthSettings
+
+            object.__setattr__(self, "settings", GrowthSettings())
+        if self.linear_solver not in LINEAR_SOLVERS:
+            raise InputError(f"--linear-solver: expected one of {', '.join(LINEAR_SOLVERS)}, "
+                             f"got {self.linear_solver!r}")
+        if (self.heterogeneity is None) != (self.seed is None):
+            raise InputError("per-cell parameters need both a heterogeneity model and a seed")
+        if isinstance(self.refine, bool) or not isinstance(self.refine, int) or self.refine < 0:
+            raise InputError(f"expected an integer >= 0, got {self.refine!r}", field="refine")
+        if self.quadrature_degree is not None and not (isinstance(self.quadrature_degree, int)
+                                                       and 1 <= self.quadrature_degree <= 12):
+            raise InputError(f"expected an integer in [1, 12], got {self.quadrature_degree!r}",
+                             field="quadrature_degree")
+
+    @property
+    def label(self) -> str:
+        return f"{self.geometry}/{self.protocol.name}"
+
+    def describe(self) -> dict:
+        """What the digest hashes: geometry, protocol, parameters, settings, solver options."""
+        described = {k: ("per cell" if isinstance(v, np.ndarray) else v) for k, v in as_attributes(self.params).items()}
+        # the files' bytes, not only the name: a mesh remade in place (`hyper mesh --force`,
+        # `make new-meshes`) is another run, not one whose result is already there
+        geometry = ({"name": self.geometry, "sha256": ckpt.file_digest(*self.input_files())}
+                    if self.mesh is None else self.mesh.identity())
+        out = {
+            "geometry": geometry,
+            "protocol": self.protocol.to_attributes(),
+            "params": described,
+            "settings": self.settings.model_attributes(),
+            "petsc_options": dict(self.petsc_options),
+        }
+        if self.heterogeneity is not None:
+            out["heterogeneity"] = {**self.heterogeneity.attributes(), "seed": self.seed}
+        # only where they differ from the defaults, so that the digests of default runs stay
+        if self.refine:
+            out["refine"] = self.refine
+        if self.quadrature_degree is not None:
+            out["quadrature_degree"] = self.quadrature_degree
+        if self.ends != "disks":
+            out["ends"] = self.ends
+        if self.fibers != "auto":
+            out["fibers"] = self.fibers
+        if self.material != MaterialParams():
+            out["material"] = as_attributes(self.material)
+        return out
+
+    def digest(self) -> str:
+        return ckpt.digest(self.describe())
+
+    def mesh_files(self) -> list[Path]:
+        """The files of this run's mesh (`mesh_files`)."""
+        if self.mesh is not None:
+            return mesh_files(Path(self.mesh.path))
+        from hyper.fem import geometry as geo
+
+        return mesh_files(geo.MESHES_DIR / geo.GEOMETRIES[self.geometry])
+
+    def input_files(self) -> list[Path]:
+        """The files a built-in geometry's run reads: its mesh and, beside it, its Stokes fibres."""
+        from hyper.fem import fibers
+
+        files = self.mesh_files()
+        stored = files[0].parent / fibers.FILE_NAME
+        return files + ([stored] if self.mesh is None and stored.is_file() else [])
+
+    def load_geometry(self, comm):
+        from hyper.fem import geometry as geo
+
+        if self.mesh is not None:
+            if self.refine or self.quadrature_degree is not None or (self.ends, self.fibers) != ("disks", "auto"):
+                raise InputError("refinement, quadrature degree, ends and fibres apply to the built-in geometries only")
+            return self.mesh.load(comm)
+        kwargs = {} if self.quadrature_degree is None else {"quadrature_degree": self.quadrature_degree}
+        geometry = geo.load(self.geometry, comm, ends=self.ends, estimated_surface_degree=not self.unit_fibres,
+                            **kwargs)
+        for _ in range(self.refine):
+            geometry = geo.refine(geometry)
+        return geometry
+
+    def fiber_field(self, geometry):
+        from hyper.fem import fibers
+
+        return fibers.fiber_field(geometry, "principal" if self.mesh is not None else self.fibers)
+
+    @property
+    def unit_fibres(self) -> bool:
+        """Whether the mechanics normalises the fibres at its points (all but the original's)."""
+        from hyper.fem import fibers
+
+        return self.fibers not in fibers.UNNORMALISED_KINDS
+
+    def cell_params(self, geometry):
+        """The signaling parameters of this run on this rank's cells."""
+        if self.heterogeneity is None:
+            return self.params
+        from hyper.model import heterogeneity
+
+        return heterogeneity.cell_params(geometry.mesh, self.heterogeneity, self.seed, self.params)
+
+
+@dataclasses.dataclass(frozen=True)
+class Outputs:
+    """The files of one run, named after its result ``h5``."""
+
+    h5: Path
+
+    @property
+    def checkpoint(self) -> Path:
+        return self.h5.with_name(self.h5.stem + ".ckpt.h5")
+
+    @property
+    def status(self) -> Path:
+        return self.h5.with_name(self.h5.stem + ".status.json")
+
+    @property
+    def fields(self) -> Path:
+        return self.h5.with_name(self.h5.stem + "_fields.xdmf")
+
+    def is_current(self, digest: str) -> bool:
+        """A complete result of the run with this digest exists."""
+        import h5py
+
+        if not io.is_complete(self.h5):
+            return False
+        with h5py.File(self.h5, "r") as f:
+            return f.attrs.get("run_digest") == digest
+
+    def store(self, series: dict, attrs: Mapping, groups: Mapping) -> None:
+        """Write the result, then drop the checkpoint and status it no longer needs (one rank)."""
+        io.write_series(self.h5, series, attrs=attrs, groups=groups)
+        self.checkpoint.unlink(missing_ok=True)
+        self.status.unlink(missing_ok=True)
+
+
+def result_groups(spec: RunSpec, choice: fidelity.Choice | None = None) -> dict:
+    """The attribute groups every run's result carries; ``choice`` the run's fidelity
+    choice (`Result.choice`)."""
+    groups = {"signaling": as_attributes(spec.params), "material": as_attributes(spec.material),
+              "protocol": spec.protocol.to_attributes(), "settings": dataclasses.asdict(spec.settings)}
+    if spec.heterogeneity is not None:
+        groups["heterogeneity"] = {**spec.heterogeneity.attributes(), "seed": spec.seed}
+    if choice is not None:
+        groups["fidelity"] = choice.as_attributes()
+    return groups
+
+
+# ------------------------------------------------------------------------- stopping
+
+
+class StopOnTerm:
+    """SIGTERM sets a flag that the run reads at its step boundaries (main thread only)."""
+
+    def __init__(self):
+        self.received = False
+        self._previous = None
+
+    def _handler(self, signum, frame):
+        self.received = True
+
+    def __enter__(self):
+        # PETSc installs a SIGTERM handler that aborts when it starts, which would replace
+        # ours if a job started it later (the farm's first DOLFINx import did, once): start
+        # it now, before ours.
+        with contextlib.suppress(ImportError):  # a job without PETSc (signaling only)
+            import dolfinx_solver  # noqa: F401  (must precede petsc4py)
+            from petsc4py import PETSc  # noqa: F401
+        with contextlib.suppress(ValueError):  # not the main thread: no handler, no stop
+            self._previous = signal.signal(signal.SIGTERM, self._handler)
+        return self
+
+    def __exit__(self, *exc):
+        if self._previous is not None:
+            signal.signal(signal.SIGTERM, self._previous)
+
+    def __call__(self) -> bool:
+        return self.received
+
+
+def available_memory_mb(comm) -> float:
+    """MemAvailable of every node the ranks of ``comm`` run on, summed (MB). Collective."""
+    node = comm.Split_type(MPI.COMM_TYPE_SHARED)
+    try:
+        mine = 0.0
+        if node.rank == 0:
+            meminfo = Path("/proc/meminfo").read_text().splitlines()
+            line = next(text for text in meminfo if text.startswith("MemAvailable:"))
+            mine = float(line.split()[1]) / 1024.0
+        return comm.allreduce(mine, op=MPI.SUM)
+    finally:
+        node.Free()
+
+
+# ------------------------------------------------------------------------- recording
+
+
+class Series:
+    """The time series of a run: one row per growth step, `SERIES`, the model's
+    ``measures`` (names of `StepReport.extra`: both CSA measures of an anatomical mesh)
+    and any extra columns.
+
+    ``extra`` is (names, function): the function of the model gives the values of all the
+    extra columns at once (so a reduction over the communicator serves them all); every
+    rank calls it.
+    """
+
+    def __init__(self, extra: tuple[tuple[str, ...], Callable] | None = None, measures: tuple[str, ...] = ()):
+        self.extra_names, self.extra = extra if extra is not None else ((), None)
+        self.measures = tuple(measures)
+        self.columns = (*SERIES, *self.measures, *self.extra_names)
+        self.rows = {name: [] for name in self.columns}
+
+    def append(self, report, model, wall_s: float) -> None:
+        for name, value in zip(signaling.STATES, report.states):
+            self.rows[name].append(value)
+        self.rows["t"].append(report.t)
+        self.rows["csa_ratio"].append(report.csa_ratio)
+        self.rows["volume_ratio"].append(report.volume_ratio)
+        self.rows["kM"].append(report.kM)
+        self.rows["newton_iterations"].append(report.newton_iterations)
+        self.rows["halvings"].append(report.halvings)
+        self.rows["wall_s"].append(wall_s)
+        for name in self.measures:
+            self.rows[name].append(report.extra[name])
+        if self.extra is not None:
+            for name, value in zip(self.extra_names, self.extra(model), strict=True):
+                self.rows[name].append(value)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {k: np.asarray(v) for k, v in self.rows.items()}
+
+    def restore(self, saved: dict) -> None:
+        # a checkpoint from before both CSA measures were kept lacks them: unknown there
+        missing = [float("nan")] * len(saved["t"])
+        self.rows = {name: list(saved[name]) if name in saved or name not in self.measures else list(missing)
+                     for name in self.columns}
+
+    @property
+    def wall_s(self) -> float:
+        return float(self.rows["wall_s"][-1]) if self.rows["wall_s"] else 0.0
+
+
+def snapshot_due(kept: list[float], t: float, every: float) -> bool:
+    """A snapshot is due at ``t`` (h) after those ``kept``: none yet, or ``t`` reaches the
+    first multiple of ``every`` hours after the last one."""
+    if not kept:
+        return True
+    slack = 1e-9 * every  # step times are sums of step lengths: 3 × 8 h may fall short of 24 h
+    return t >= (math.floor((kept[-1] + slack) / every) + 1) * every - slack
+
+
+class Snapshots:
+    """Output fields of a run on spaces XDMF stores (P1 and DG0), updated in place:
+    u, det Ḡ, a0, and N where each cell has its own signaling.
+
+    Each snapshot is also kept per owned cell so that a checkpoint carries them and a
+    resumed run writes them again.
+    """
+
+    def __init__(self, model, a0):
+        from dolfinx import fem
+
+        mesh = model.geometry.mesh
+        self.model = model
+        p1 = fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+        dg0 = fem.functionspace(mesh, ("DG", 0))
+        self.u = fem.Function(p1, name="u")
+        self.det = fem.Function(dg0, name="detGbar")
+        self.a0 = fem.Function(p1, name="a0")
+        self.a0.interpolate(a0)
+        self.N = fem.Function(dg0, name="N") if np.ndim(model.y) == 2 else None
+        cells = model.growth.cells
+        nlocal = len(cells) + mesh.topology.index_map(mesh.topology.dim).num_ghosts
+        self._cells = cells
+        self._local = np.arange(nlocal, dtype=np.int32)
+        self._dg0_dofs = dg0.dofmap.list[cells][:, 0]
+        self.times: list[float] = []
+        self.kept: dict[str, list[np.ndarray]] = {name: [] for name in self._names()}
+
+    def _names(self) -> tuple[str, ...]:
+        return ("u", "det") + (("N",) if self.N is not None else ())
+
+    def fields(self) -> tuple:
+        """The fields of the snapshot just kept; the fibres, which never change, with the first only."""
+        return (self.u, self.det) + ((self.a0,) if len(self.times) == 1 else ()) + \
+            ((self.N,) if self.N is not None else ())
+
+    def update(self, t: float) -> tuple:
+        self.u.interpolate(self.model.problem.u)
+        self.det.x.array[self._dg0_dofs] = self.model.growth.cell_det()
+        self.det.x.scatter_forward()
+        if self.N is not None:
+            self.N.x.array[self._dg0_dofs] = self.model.y[signaling.STATES.index("N")]
+            self.N.x.scatter_forward()
+        self._keep(t)
+        return self.fields()
+
+    def _keep(self, t: float) -> None:
+        self.times.append(t)
+        udofs = self.u.function_space.dofmap.list[self._cells]
+        self.kept["u"].append(self.u.x.array.reshape(-1, 3)[udofs])
+        self.kept["det"].append(self.det.x.array[self._dg0_dofs].copy())
+        if self.N is not None:
+            self.kept["N"].append(self.N.x.array[self._dg0_dofs].copy())
+
+    def state(self) -> tuple[dict, dict]:
+        """(per-cell arrays, global values) of the snapshots so far, for a checkpoint."""
+        n = len(self._cells)
+        empty = {"u": (n, 0, 4, 3), "det": (n, 0), "N": (n, 0)}
+        per_cell = {f"snapshot_{name}": np.stack(rows, axis=1) if rows else np.empty(empty[name])
+                    for name, rows in self.kept.items()}
+        return per_cell, {"snapshot_t": np.asarray(self.times, dtype=float)}
+
+    def restore(self, saved: ckpt.Checkpoint):
+        """Yield (t, fields) for each saved snapshot, set on this partition, and keep them."""
+        u_rows, det_rows = saved.rows("snapshot_u"), saved.rows("snapshot_det")
+        n_rows = saved.rows("snapshot_N") if self.N is not None else None
+        udofs = self.u.function_space.dofmap.list[self._local]
+        ddofs = self.det.function_space.dofmap.list[self._local][:, 0]
+        for i, t in enumerate(np.asarray(saved.glob["snapshot_t"], dtype=float)):
+            self.u.x.array.reshape(-1, 3)[udofs] = u_rows[:, i]
+            self.u.x.scatter_forward()
+            self.det.x.array[ddofs] = det_rows[:, i]
+            self.det.x.scatter_forward()
+            if self.N is not None:
+                self.N.x.array[ddofs] = n_rows[:, i]
+                self.N.x.scatter_forward()
+            self._keep(float(t))
+            yield float(t), self.fields()
+
+
+# ------------------------------------------------------------------------- the run
+
+
+@dataclasses.dataclass
+class Result:
+    """A finished run: its series, the attributes of its result, and the model at the end."""
+
+    series: dict[str, np.ndarray]
+    meta: dict
+    model: object
+    choice: fidelity.Choice | None = None  # the spec's, with the linear solver where it was chosen
+
+
+def build(comm, spec: RunSpec, *, monitor=None, integrator=None):
+    """The coupled model of ``spec``, its fibre field, the linear solver's attributes and
+    the fidelity choice completed with it (``auto``: by `fidelity.linear_solver` from the
+    unknowns and the memory available). ``monitor`` and ``integrator`` go to the model
+    (`hyper.fem.coupled.CoupledModel`): a timing monitor, another ODE integrator."""
+    from hyper.fem.coupled import CoupledModel
+    from hyper.fem.mechanics import taylor_hood_unknowns
+
+    geometry = spec.load_geometry(comm)
+    a0 = spec.fiber_field(geometry)
+    choice = spec.choice
+    solver, reason = spec.linear_solver, "asked for (--linear-solver)"
+    if solver == "auto":
+        unknowns, memory = taylor_hood_unknowns(geometry.mesh), available_memory_mb(comm)
+        if choice is None:
+            solver, reason = fidelity.linear_solver(unknowns, memory)
+        else:
+            choice = choice.with_linear_solver(unknowns, memory)
+            solver, reason = choice.linear_solver, choice.linear_solver_reason
+        info(comm, f"fidelity: {reason}")
+    kwargs = {name: value for name, value in (("monitor", monitor), ("integrator", integrator)) if value is not None}
+    model = CoupledModel(geometry, a0, spec.protocol, params=spec.cell_params(geometry), material=spec.material,
+                         settings=spec.settings, petsc_options=dict(spec.petsc_options), linear_solver=solver,
+                         normalize_fibres=spec.unit_fibres, **kwargs)
+    return model, a0, {"linear_solver": solver, "linear_solver_reason": reason}, choice
+
+
+def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: float = SNAPSHOT_EVERY,
+            checkpoint_every: int = CHECKPOINT_EVERY, stop: Callable[[], bool] | None = None,
+            extra_series: tuple[tuple[str, ...], Callable] | None = None, checkpoints: bool = True,
+            progress_every: float = PROGRESS_EVERY, monitor=None, command: list[str] | None = None) -> Result:
+    """Run ``spec``, writing its snapshots to ``outputs.fields`` (the first state, then every
+    ``snapshot_every`` simulated hours and the last); return its `Result`. Progress
+    lines come at most every ``progress_every`` seconds of wall time.
+
+    With ``checkpoints``, the run resumes from ``outputs.checkpoint`` if it exists (it
+    must belong to this run: InputError otherwise), saves its state there every
+    ``checkpoint_every`` growth steps (0: never on schedule), when ``stop()`` turns true
+    on some rank (then raises `Interrupted`) and before a `GrowthFailure` propagates
+    (whose ``checkpoint`` attribute names the file); either way ``outputs.status`` says
+    what happened. The caller stores the result (`Outputs.store`), which drops the
+    checkpoint. ``command`` goes into the status file of a failed run. Collective over ``comm``.
+    """
+    from hyper.fem.coupled import GrowthFailure
+
+    run_digest = spec.digest()
+    model, a0, solver, choice = build(comm, spec, monitor=monitor)
+    snaps = Snapshots(model, a0)
+    series = Series(extra_series, model.measures)
+    segments = 1
+    saved = None
+    path = outputs.checkpoint
+    if checkpoints:
+        # a checkpoint write killed halfway leaves its temporary file: never read, remove it
+        ckpt.on_rank0(comm, lambda: Path(str(path) + io.PARTIAL).unlink(missing_ok=True))
+        if ckpt.on_rank0(comm, path.is_file):
+            saved = ckpt.read(comm, path, run_digest, ckpt.local_original_cells(model.geometry.mesh))
+            ckpt.restore_model(model, saved.rows, saved.glob)
+            series.restore(saved.series)
+            segments = int(saved.attrs["segments"]) + 1
+            info(comm, f"{spec.label}: resuming from {path} at step {model.step} (t = {model.t:g} h), "
+                       f"written on {saved.attrs['ranks']} rank(s)")
+    wall0 = series.wall_s
+
+    def save(status: str) -> None:
+        original, per_cell, glob = ckpt.model_state(model)
+        snap_cells, snap_glob = snaps.state()
+        try:
+            ckpt.write(comm, path, original, {**per_cell, **snap_cells}, {**glob, **snap_glob}, series.arrays(),
+                       {"run_digest": run_digest, "step": model.step, "t": model.t, "segments": segments,
+                        "status": status, "geometry": spec.geometry, "protocol": spec.protocol.name})
+        except OSError as err:  # raised on every rank alike
+            kept = "the previous checkpoint is kept" if ckpt.on_rank0(comm, path.is_file) else "no checkpoint yet"
+            with contextlib.suppress(OSError):  # a disk too full for the checkpoint may take no status either
+                stopped("failed", reason=str(err), step=model.step, t_h=model.t, checkpoint=kept,
+                        resume="make room, then run the same command again")
+            raise Unsaved(f"{err}; {kept}") from None
+
+    def stopped(state: str, **status) -> None:
+        ckpt.on_rank0(comm, lambda: ckpt.write_status(outputs.status, {"state": state, **status}))
+
+    end = spec.protocol.end
+    progress = Progress(comm, end, spec.label, every=progress_every)
+    start = time.perf_counter()
+    last_saved = model.step
+    with io.atomic_xdmf(comm, outputs.fields) as xdmf:
+        xdmf.write_mesh(model.geometry.mesh)
+        if saved is not None:
+            for t, fields in snaps.restore(saved):
+                for f in fields:
+                    xdmf.write_function(f, t)
+        try:
+            for report in model.run():
+                series.append(report, model, wall0 + time.perf_counter() - start)
+                last = report.t >= end
+                if snapshot_due(snaps.times, report.t, snapshot_every) or last:
+                    for f in snaps.update(report.t):
+                        xdmf.write_function(f, report.t)
+                progress.update(report.t, f"day {report.t / 24:5.1f}, CSA/CSA0 {report.csa_ratio:.5f}, "
+                                          f"V/V0 {report.volume_ratio:.5f}", force=last)
+                if last or not checkpoints:
+                    continue
+                if stop is not None and comm.allreduce(bool(stop()), op=MPI.LOR):
+                    save("interrupted")
+                    stopped("interrupted", reason="SIGTERM", step=model.step, t_h=model.t, checkpoint=path,
+                            resume="run the same command again")
+                    raise Interrupted(f"stopped on request at step {model.step} (t = {model.t:g} h); "
+                                      f"state saved in {path}", step=model.step, t=model.t, checkpoint=path)
+                if checkpoint_every and model.step - last_saved >= checkpoint_every:
+                    save("running")
+                    last_saved = model.step
+        except GrowthFailure as err:
+            err.checkpoint = None
+            if checkpoints:
+                save("failed")
+                err.checkpoint = path
+                stopped("failed", reason=str(err), failed_step=err.step, from_h=err.t0, to_h=err.t1,
+                        checkpoint=path, geometry=spec.geometry, protocol=spec.protocol.to_attributes(),
+                        params=as_attributes(spec.params), settings=dataclasses.asdict(spec.settings),
+                        petsc_options=dict(spec.petsc_options), ranks=comm.size, command=list(command or ()),
+                        resume="run the command again, e.g. with a larger --max-halvings")
+                err.args = (f"{err}; state after step {err.step - 1} saved in {path}, details in {outputs.status}",)
+            raise
+    meta = {
+        "geometry": spec.geometry,
+        "mesh_sha256": ckpt.on_rank0(comm, lambda: ckpt.file_digest(*spec.mesh_files())),
+        "quadrature_degree": model.geometry.quadrature_degree,
+        "ends": spec.ends,
+        "fibers": spec.fibers,
+        "surface_quadrature_degree": "estimated" if model.geometry.estimated_surface_degree
+        else model.geometry.quadrature_degree,
+        "csa0_m2": model.csa0,
+        **{f"csa0_{name}_m2": area for name, area in model.csa0_by_method.items()},
+        "volume0_m3": model.volume0,
+        "ranks": comm.size,
+        "growth_steps": model.step,
+        "wall_s": wall0 + time.perf_counter() - start,
+        "segments": segments,
+        "run_digest": run_digest,
+        "unknowns": model.problem.num_dofs,
+        "study": provenance.study_text(spec),
+        **solver,
+    }
+    return Result(series.arrays(), meta, model, choice)

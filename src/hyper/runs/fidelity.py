@@ -1,0 +1,284 @@
+"""Scene-adaptive fidelity: the cheapest model and steps that answer a scene within an accuracy.
+
+A scene is what a run is asked: on which geometry (none for a signaling question), under
+which protocol, with uniform or per-cell (heterogeneous) signaling parameters, and about
+what: the growth (CSA/CSA0, V/V0) or the signaling (N). `choose` picks the model the
+scene needs and the longest growth and RK4 steps whose error, taken from the measured
+error tables below, stays within the accuracy:
+
+- The accuracy is relative to what is asked, as the benchmarks measure it:
+  |x - x_ref| / (x_ref - 1) for x = CSA/CSA0 or V/V0 (a fraction of the growth: 1e-3 is
+  0.1 %), |N - N_ref| / N_ref for a signaling question.
+- A growth question has two error sources that add, the growth step and the RK4 step:
+  each gets half of the accuracy. A signaling question has no growth step, and the RK4
+  step gets all of it.
+- The tables were measured on the idealized muscle under mwf; for other geometries and
+  protocols they are an estimate (the reasons say so), which the safety factors cover.
+
+The predicted error of a choice is the sum of the table's estimates, without the safety
+factors; the choice keeps each estimate times its factor within its share.
+
+The linear solver is chosen once the mesh is known (`linear_solver`): MUMPS's LU while
+its memory, predicted from the measured growth with the number of unknowns, fits in the
+memory available; GMRES with a block low-rank preconditioner beyond. Both answer to the
+Newton tolerance, so the choice changes the cost, not the answer.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+from hyper.core.params import InputError, as_attributes, positive_hours
+
+ASKS = ("growth", "signaling")
+MODELS = ("signaling-only", "uniform", "per-cell")
+DEFAULT_ACCURACY = 1e-3  # 0.1 % of the growth
+
+# Error of the growth from the growth step: |x - x_ref| / (x_ref - 1) at 9 weeks, the
+# larger of x = CSA/CSA0 and V/V0, against Δtg = 0.5 h (idealized muscle, mwf, 1 rank),
+# rounded up. Measured by `python -m hyper.bench growth` (results/bench/growth.json,
+# sweep[].errors). 168 h is one step per period for the paper's protocols (the sweep's
+# "1/period"). The 0.5 h reference's own error is unknown (the 1 h and 2 h errors are at
+# round-off level and give no order), which GROWTH_SAFETY also covers.
+GROWTH_STEP_ERROR = {1.0: 6.37e-8, 2.0: 6.88e-8, 6.0: 5.46e-7, 24.0: 2.86e-6, 168.0: 7.16e-6}
+GROWTH_SAFETY = 10.0
+GROWTH_SHARE = 0.5  # of a growth question's accuracy; the RK4 step gets the rest
+
+# RK4 against DOP853 at rtol 1e-13 on mwf, measured by `python -m hyper.bench signaling`
+# (results/bench/signaling.json, speed_accuracy): at dt = 0.05 h the relative error of
+# N(1512 h) is 4.07e-7, the observed order 4 (6.2e-6 at 0.1 h, 1.1e-8 at 0.02 h), stable up
+# to 0.65 h, failing from 0.7 h. Relative to the growth, N - 1, the same error is 4.87e-6
+# (growth.json, paper_signaling_check). Both rounded up.
+SIGNALING_DT0 = 0.05  # h, also the default step of hyper.signaling and GrowthSettings
+SIGNALING_ERROR = {"signaling": 4.1e-7, "growth": 4.9e-6}  # at SIGNALING_DT0, by what is asked
+SIGNALING_ORDER = 4
+# The measured errors exceed the order-4 extrapolation from 0.05 h by up to 1.41x (at
+# 0.4 h); with 2 every measured step up to 0.5 h lies within its prediction.
+SIGNALING_SAFETY = 2.0
+STABLE_DT = 0.65  # h, the largest RK4 step measured stable on mwf
+# RK4 steps that divide the sessions (1 h, 4 h) and delays (12 h, 17 h) of the paper, so
+# that RK4 shortens a step only to land on the end of the AKT bump (15.77 h after a
+# session start) or on a sample time; the largest keeps clear of STABLE_DT (0.6 h already
+# loses 2.6 % of N).
+SIGNALING_LADDER = (0.01, 0.02, 0.025, 0.05, 0.1, 0.125, 0.25, 0.5)
+
+
+@dataclass(frozen=True)
+class Scene:
+    """What a run is asked. ``protocol`` names the protocol (a command that runs several
+    with one set of steps names them all, comma-separated)."""
+
+    geometry: str | None  # None: no mesh
+    protocol: str
+    heterogeneous: bool  # per-cell signaling parameters
+    ask: str  # "growth" or "signaling"
+
+    def __post_init__(self):
+        if self.ask not in ASKS:
+            raise InputError(f"ask must be one of {', '.join(ASKS)}, got {self.ask!r}")
+        if self.ask == "growth" and self.geometry is None:
+            raise InputError("a growth question needs a geometry")
+
+
+@dataclass(frozen=True)
+class Choice:
+    """The model and steps that answer a scene, their predicted error and why."""
+
+    model: str  # one of MODELS
+    growth_dt: float | None  # h, the longest growth step; None: nothing grows
+    signaling_dt: float  # h, the RK4 step
+    predicted_error: float  # in the accuracy's measure (of the growth, or of N)
+    reasons: tuple[str, ...]
+    accuracy: float | None = None  # asked for; None: the steps were given, not chosen
+    linear_solver: str | None = None  # "lu" or "iterative" once the mesh is known
+    linear_solver_reason: str | None = None
+
+    def with_linear_solver(self, unknowns: int, available_mb: float) -> Choice:
+        """This choice completed with the linear solver for a mesh (`linear_solver`)."""
+        solver, why = linear_solver(unknowns, available_mb)
+        return dataclasses.replace(self, linear_solver=solver, linear_solver_reason=why)
+
+    def as_attributes(self) -> dict:
+        """HDF5 attributes: the fields, without the unset ones, reasons as one text."""
+        out = {k: v for k, v in as_attributes(self).items() if v is not None}
+        out["reasons"] = "; ".join(self.reasons)
+        return out
+
+    def describe(self) -> str:
+        steps = f"RK4 step {self.signaling_dt:g} h"
+        if self.growth_dt is not None:
+            steps = f"growth step {self.growth_dt:g} h, " + steps
+        measure = "of N" if self.model == "signaling-only" else "of the growth"
+        if self.accuracy is None:
+            bound = "(no accuracy asked)"
+        else:
+            bound = f"{'<=' if self.predicted_error <= self.accuracy else '>'} accuracy {self.accuracy:g}"
+        solver = "" if self.linear_solver is None else f"; linear solver {self.linear_solver}"
+        return f"{self.model} model, {steps}; predicted error {self.predicted_error:.2g} {measure} {bound}{solver}"
+
+
+def growth_step_error(dt: float) -> float:
+    """The tabulated error of the growth for a growth step of ``dt`` h: that of the shortest
+    tabulated step at least as long, or of one step per period beyond them."""
+    longer = [step for step in GROWTH_STEP_ERROR if step >= dt]
+    return GROWTH_STEP_ERROR[min(longer) if longer else max(GROWTH_STEP_ERROR)]
+
+
+def signaling_error(dt: float, ask: str) -> float:
+    """RK4's error for a step of ``dt`` h, extrapolated with its order from SIGNALING_DT0,
+    relative to what ``ask`` asks (the growth, or N)."""
+    return SIGNALING_ERROR[ask] * (dt / SIGNALING_DT0) ** SIGNALING_ORDER
+
+
+def _shares(ask: str) -> tuple[float, float]:
+    """(growth step, RK4 step) shares of the accuracy."""
+    return (GROWTH_SHARE, 1.0 - GROWTH_SHARE) if ask == "growth" else (0.0, 1.0)
+
+
+def smallest_accuracy(ask: str) -> float:
+    """The tightest accuracy the tables can promise for a question about ``ask``."""
+    growth_share, signaling_share = _shares(ask)
+    least = SIGNALING_SAFETY * signaling_error(min(SIGNALING_LADDER), ask) / signaling_share
+    if growth_share:
+        least = max(least, GROWTH_SAFETY * min(GROWTH_STEP_ERROR.values()) / growth_share)
+    return least
+
+
+def _model(scene: Scene) -> tuple[str, str]:
+    if scene.ask == "signaling":
+        return "signaling-only", "a signaling question: the ODEs alone, no mesh"
+    if scene.heterogeneous:
+        return "per-cell", "heterogeneous parameters: one signaling ODE per cell"
+    return "uniform", "uniform parameters: one signaling ODE for the whole muscle"
+
+
+def _where(scene: Scene) -> tuple[str, ...]:
+    if scene.ask == "signaling":
+        if scene.protocol == "mwf":
+            return ()
+        return (f"the RK4 errors were measured on mwf; for {scene.protocol} they are an estimate",)
+    if (scene.geometry, scene.protocol) == ("idealized", "mwf"):
+        return ()
+    return (f"the error tables were measured on idealized/mwf; for {scene.geometry}/{scene.protocol} "
+            "they are an estimate",)
+
+
+def _unstable(signaling_dt: float) -> tuple[str, ...]:
+    if signaling_dt <= STABLE_DT:
+        return ()
+    return (f"RK4 step {signaling_dt:g} h is above {STABLE_DT:g} h, the largest measured stable on mwf",)
+
+
+def _predicted(ask: str, growth_dt: float | None, signaling_dt: float) -> float:
+    growth_part = 0.0 if growth_dt is None else growth_step_error(growth_dt)
+    return growth_part + signaling_error(signaling_dt, ask)
+
+
+def _check_steps(scene: Scene, growth_dt, signaling_dt) -> None:
+    for name, value in (("growth_dt", growth_dt), ("signaling_dt", signaling_dt)):
+        if value is not None:
+            positive_hours(value, name)
+    if scene.ask == "signaling" and growth_dt is not None:
+        raise InputError("a signaling question has no growth step: give no growth_dt")
+
+
+def choose(scene: Scene, accuracy: float = DEFAULT_ACCURACY, *, growth_dt: float | None = None,
+           signaling_dt: float | None = None) -> Choice:
+    """The cheapest model and longest steps that answer ``scene`` within ``accuracy``.
+
+    A growth step or RK4 step given here is kept instead of the chosen one (the reasons
+    say so, and the predicted error is that of the given step). Raises InputError for an
+    accuracy that is not a finite number in (0, 0.5), or tighter than the tables promise.
+    """
+    if isinstance(accuracy, bool) or not isinstance(accuracy, (int, float)) or not (
+        math.isfinite(accuracy) and 0 < accuracy < 0.5
+    ):
+        raise InputError(f"accuracy must be a finite number in (0, 0.5), a fraction of what is asked "
+                         f"(1e-3 is 0.1 %), got {accuracy!r}")
+    _check_steps(scene, growth_dt, signaling_dt)
+    accuracy = float(accuracy)
+    growth_share, signaling_share = _shares(scene.ask)
+    growth_budget, signaling_budget = growth_share * accuracy, signaling_share * accuracy
+    growth_steps = [dt for dt, e in GROWTH_STEP_ERROR.items() if GROWTH_SAFETY * e <= growth_budget]
+    # safety error(dt) <= budget is dt <= 0.05 h (budget / (safety error(0.05 h)))^(1/4)
+    rk4_steps = [dt for dt in SIGNALING_LADDER if SIGNALING_SAFETY * signaling_error(dt, scene.ask) <= signaling_budget]
+    if not rk4_steps or (growth_share and not growth_steps):
+        raise InputError(f"accuracy {accuracy:g} is tighter than the measured error tables can promise for a "
+                         f"{scene.ask} question; the smallest supported accuracy is "
+                         f"{smallest_accuracy(scene.ask):.3g}")
+    model, why = _model(scene)
+    reasons = [why, *_where(scene)]
+    chosen_rk4 = max(rk4_steps)
+    if growth_share:
+        chosen_growth = max(growth_steps)
+        reasons.append(f"accuracy {accuracy:g} of the growth split in half: {growth_budget:.3g} to the growth "
+                       f"step, {signaling_budget:.3g} to the RK4 step")
+        reasons.append(f"growth step {chosen_growth:g} h: the longest whose tabulated error "
+                       f"{GROWTH_STEP_ERROR[chosen_growth]:.3g} x {GROWTH_SAFETY:g} <= {growth_budget:.3g} "
+                       "(python -m hyper.bench growth)")
+    else:
+        chosen_growth = None
+        reasons.append(f"accuracy {accuracy:g} of N, all of it to the RK4 step (nothing grows)")
+    reasons.append(f"RK4 step {chosen_rk4:g} h: the largest of {', '.join(f'{dt:g}' for dt in SIGNALING_LADDER)} h "
+                   f"(steps that divide the sessions, below the stability limit {STABLE_DT:g} h) whose error "
+                   f"{signaling_error(chosen_rk4, scene.ask):.2g} x {SIGNALING_SAFETY:g} <= {signaling_budget:.3g} "
+                   f"(order {SIGNALING_ORDER} from {SIGNALING_ERROR[scene.ask]:.2g} at {SIGNALING_DT0:g} h, "
+                   "python -m hyper.bench signaling)")
+    if growth_dt is not None:
+        reasons.append(f"growth step {growth_dt:g} h given explicitly, kept instead of the chosen {chosen_growth:g} h")
+        chosen_growth = float(growth_dt)
+    if signaling_dt is not None:
+        reasons.append(f"RK4 step {signaling_dt:g} h given explicitly, kept instead of the chosen {chosen_rk4:g} h")
+        reasons.extend(_unstable(signaling_dt))
+        chosen_rk4 = float(signaling_dt)
+    return Choice(model, chosen_growth, chosen_rk4, _predicted(scene.ask, chosen_growth, chosen_rk4),
+                  tuple(reasons), accuracy)
+
+
+def assess(scene: Scene, growth_dt: float | None, signaling_dt: float) -> Choice:
+    """The model of ``scene`` with the given steps and their predicted error (no accuracy
+    asked, nothing chosen)."""
+    _check_steps(scene, growth_dt, signaling_dt)
+    if scene.ask == "growth" and growth_dt is None:
+        raise InputError("a growth question needs a growth step")
+    model, why = _model(scene)
+    reasons = (why, *_where(scene), "steps given, no accuracy asked", *_unstable(signaling_dt))
+    growth_dt = None if growth_dt is None else float(growth_dt)
+    return Choice(model, growth_dt, float(signaling_dt), _predicted(scene.ask, growth_dt, signaling_dt), reasons)
+
+
+# ----------------------------------------------------------------------- linear solver
+
+# The memory MUMPS's LU used (INFOG 22, MB summed over 2 ranks) on the idealized shape
+# refined once and twice, in the growth solve of `python -m hyper.bench solvers`
+# (results/bench/solvers.json, levels[]): a power law through the two, m = a n^b.
+LU_MEMORY_MB = ((78120, 871.0), (577993, 11946.0))  # exponent 1.31
+# The BLR preconditioned GMRES's memory against LU's at the larger of the two (7177 MB
+# against 11946 MB; 0.91 at the smaller: compression pays on large fronts, so 0.6 is
+# conservative for larger meshes).
+ITERATIVE_MEMORY_RATIO = 0.60
+# LU runs while its predicted memory is within this share of the memory available: the
+# mesh, forms, fields and MUMPS's own workspace estimate (up to 20 % above its use) need the rest.
+LU_MEMORY_SHARE = 0.7
+
+
+def lu_memory_mb(unknowns: int) -> float:
+    """MUMPS LU's memory (MB, all ranks together) for a Taylor–Hood system of ``unknowns``."""
+    (n0, m0), (n1, m1) = LU_MEMORY_MB
+    exponent = math.log(m1 / m0) / math.log(n1 / n0)
+    return m1 * (unknowns / n1) ** exponent
+
+
+def linear_solver(unknowns: int, available_mb: float) -> tuple[str, str]:
+    """LU while it fits in the memory available, else the iterative solver; and why."""
+    lu = lu_memory_mb(unknowns)
+    if lu <= LU_MEMORY_SHARE * available_mb:
+        return "lu", (f"MUMPS LU: {unknowns} unknowns need about {lu / 1024:.2g} GiB, within "
+                      f"{LU_MEMORY_SHARE:g} x {available_mb / 1024:.3g} GiB available")
+    iterative = ITERATIVE_MEMORY_RATIO * lu
+    fits = "" if iterative <= LU_MEMORY_SHARE * available_mb else "; it may not fit either: use more nodes"
+    return "iterative", (f"GMRES with a BLR preconditioner: LU would need about {lu / 1024:.3g} GiB for {unknowns} "
+                         f"unknowns, more than {LU_MEMORY_SHARE:g} x {available_mb / 1024:.3g} GiB available; "
+                         f"the iterative solver about {iterative / 1024:.3g} GiB{fits}")

@@ -1,0 +1,177 @@
+"""Measured CSA time courses, and how far a run's CSA is from them.
+
+A data file is a CSV (data/README.md) with a time column named after its unit (``week``,
+``day`` or ``hour``) and the CSA: ``csa`` in any unit, or ``csa_change_percent``, the
+change from the baseline in percent. Its first row is time 0, the baseline every later
+row is divided by, so what is compared is CSA / CSA at time 0 against the model's
+CSA/CSA0. The project's data sets (DeFreitas, Damas, Seynnes) were each measured under
+one protocol (`SHIPPED`); a run under that protocol is compared with them unasked.
+
+The error of a run against a data set (`compare`): the root-mean-square difference of
+the CSA change over the measured times after time 0, in percentage points, and the
+difference (model − measured) at the last measured time; the model's CSA is interpolated
+linearly between its growth steps.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+
+from hyper.core import resources
+from hyper.core.params import InputError
+from hyper.model import protocols
+from hyper.model.protocols import Protocol
+
+DATA_DIR = resources.folder("data")
+TIME_UNITS = {"week": protocols.WEEK, "day": 24.0, "hour": 1.0}  # h per unit
+CSA_COLUMNS = ("csa", "csa_change_percent")
+# file -> (its label, the protocol it was measured under: a built-in name or a file in DATA_DIR)
+SHIPPED = {
+    "defreitas.csv": ("DeFreitas et al. 2011", "mwf"),
+    "damas.csv": ("Damas et al. 2016", "damas.toml"),
+    "seynnes.csv": ("Seynnes et al. 2007", "seynnes.toml"),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Measured:
+    """A measured CSA time course after time 0."""
+
+    path: Path
+    label: str
+    t: np.ndarray  # h, the measurement times after time 0, increasing
+    csa_ratio: np.ndarray  # CSA / CSA at time 0, at t
+
+
+def _table(path: Path) -> tuple[str, str, np.ndarray]:
+    """(time unit, CSA column, rows of [time, csa]) of a data file; InputError naming what is wrong."""
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.reader(f))
+    except OSError as err:
+        raise InputError(f"{path}: cannot read: {err.strerror}") from None
+    if not rows:
+        raise InputError(f"{path}: empty file")
+    header = [h.strip().lower() for h in rows[0]]
+    csa = [h for h in header if h in CSA_COLUMNS]
+    if not csa:
+        raise InputError(f"{path}: missing column 'csa' (or 'csa_change_percent', in %); columns: "
+                         f"{', '.join(header)}")
+    if len(csa) > 1:
+        raise InputError(f"{path}: give the CSA once, as 'csa' or as 'csa_change_percent', not both")
+    units = [h for h in header if h != csa[0]]
+    if len(units) != 1:
+        raise InputError(f"{path}: expected one time column besides '{csa[0]}', named after its unit "
+                         f"({', '.join(TIME_UNITS)}); columns: {', '.join(header)}")
+    if units[0] not in TIME_UNITS:
+        raise InputError(f"{path}: unknown time unit {units[0]!r}; known: {', '.join(TIME_UNITS)}")
+    it, ic = header.index(units[0]), header.index(csa[0])
+    values, lines = [], []
+    for k, row in enumerate(rows[1:], start=2):
+        if not any(cell.strip() for cell in row):
+            continue
+        if len(row) != len(header):
+            raise InputError(f"{path}: line {k}: expected {len(header)} values, got {len(row)}")
+        try:
+            values.append((float(row[it]), float(row[ic])))
+        except ValueError:
+            raise InputError(f"{path}: line {k}: not a number: {row}") from None
+        lines.append(k)
+    data = np.array(values, dtype=float).reshape(-1, 2)
+    if len(data) < 2:
+        raise InputError(f"{path}: need at least two rows (time 0 and a later one)")
+    bad = ~np.isfinite(data).all(axis=1)
+    if bad.any():
+        raise InputError(f"{path}: line {lines[int(np.flatnonzero(bad)[0])]}: NaN or infinite value")
+    back = np.diff(data[:, 0]) <= 0
+    if back.any():
+        raise InputError(f"{path}: line {lines[int(np.flatnonzero(back)[0]) + 1]}: time must increase strictly")
+    if data[0, 0] != 0.0:
+        raise InputError(f"{path}: the first row must be time 0 (the baseline CSA), got {data[0, 0]:g}")
+    return units[0], csa[0], data
+
+
+def read(path: str | Path) -> Measured:
+    """The CSA time course of a data file (hours, CSA / CSA at time 0)."""
+    path = Path(path)
+    unit, column, data = _table(path)
+    csa = data[:, 1] if column == "csa" else 1.0 + data[:, 1] / 100.0
+    if np.any(csa <= 0):
+        raise InputError(f"{path}: CSA must be > 0" if column == "csa" else f"{path}: a CSA change must be > -100 %")
+    label = SHIPPED[path.name][0] if is_shipped(path) else path.stem
+    return Measured(path, label, data[1:, 0] * TIME_UNITS[unit], csa[1:] / csa[0])
+
+
+def is_shipped(path: Path) -> bool:
+    return path.name in SHIPPED and path.resolve().parent == DATA_DIR.resolve()
+
+
+def same_schedule(a: Protocol, b: Protocol) -> bool:
+    """The same sessions and end, whatever the names."""
+    return a.sessions == b.sessions and a.end == b.end
+
+
+def of_protocol(protocol: Protocol) -> Measured | None:
+    """The project's data set measured under ``protocol`` (by schedule), if any."""
+    for name, (_, measured_under) in SHIPPED.items():
+        path = DATA_DIR / name
+        if not path.is_file():
+            continue
+        if measured_under in protocols.NAMES:
+            theirs = protocols.from_option(measured_under)[0]
+        else:
+            theirs = protocols.load(DATA_DIR / measured_under)
+        if same_schedule(protocol, theirs):
+            return read(path)
+    return None
+
+
+def check_span(data: Measured, protocol: Protocol, where: str = "--data") -> None:
+    """InputError where the data go on beyond the end of the run."""
+    if data.t[-1] > protocol.end * (1 + 1e-12):
+        raise InputError(f"{where} {data.path}: measured up to {data.t[-1]:g} h, beyond the end of protocol "
+                         f"{protocol.name} ({protocol.end:g} h)")
+
+
+@dataclasses.dataclass(frozen=True)
+class Comparison:
+    """A run's CSA against a measured course, in percentage points of CSA change."""
+
+    data: Measured
+    model_csa_ratio: np.ndarray  # the run's CSA/CSA0 at data.t
+
+    @property
+    def difference_pp(self) -> np.ndarray:
+        return 100.0 * (self.model_csa_ratio - self.data.csa_ratio)
+
+    @property
+    def rmse_pp(self) -> float:
+        return float(math.sqrt(np.mean(self.difference_pp ** 2)))
+
+    @property
+    def last_difference_pp(self) -> float:
+        return float(self.difference_pp[-1])
+
+    def describe(self) -> str:
+        return (f"against {self.data.label} ({self.data.path.name}, {len(self.data.t)} points): RMSE "
+                f"{self.rmse_pp:.2f} percentage points of CSA change, model − data at "
+                f"{self.data.t[-1]:g} h {self.last_difference_pp:+.2f} points")
+
+    def attributes(self) -> dict:
+        """The result's ``data`` group."""
+        from hyper.runs.checkpoint import file_digest
+
+        return {"file": str(self.data.path), "file_sha256": file_digest(self.data.path), "label": self.data.label,
+                "rmse_pp": self.rmse_pp, "last_difference_pp": self.last_difference_pp,
+                "last_time_h": float(self.data.t[-1]), "time_h": self.data.t,
+                "measured_csa_ratio": self.data.csa_ratio, "model_csa_ratio": self.model_csa_ratio}
+
+
+def compare(data: Measured, t: np.ndarray, csa_ratio: np.ndarray) -> Comparison:
+    """The run with series ``t`` (h, from 0) and ``csa_ratio`` against ``data`` (within the run)."""
+    return Comparison(data, np.interp(data.t, np.asarray(t, dtype=float), np.asarray(csa_ratio, dtype=float)))

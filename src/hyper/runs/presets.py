@@ -1,0 +1,122 @@
+"""Named presets of settings (``--settings``): every switch of the original code at once.
+
+A preset maps setting fields to values. `settings` builds a settings dataclass from its
+defaults, then the preset's values for the fields that dataclass has, then the values
+the user chose explicitly (an option left out is None, not chosen), so an explicit option
+always wins over the preset and one preset serves every job's dataclass (GrowthSettings
+now; the contraction's settings take the fields they have). A dataclass with a
+``preset`` field records the name.
+
+"original" is the paper's code as MODEL.md §9 reads it; each switch is also an option
+of its own, default off.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from collections.abc import Mapping
+
+from hyper.core.params import InputError, build
+
+PRESETS: dict[str, dict] = {
+    "default": {},
+    "original": {
+        "growth_dt": 1.0,  # h
+        "signaling_method": "rk45-original",
+        "growth_increment": "left-point",
+        "grow_during_sessions": False,
+        "consistent_stress": False,
+        "csa_method": "box",
+        "growth_fields": "dg1",
+        # the idealized shape's (RunSpec fields, see `shape`): its XDMF end tags and P2 fibres
+        "ends": "tags",
+        "fibers": "original",
+    },
+}
+NAMES = tuple(PRESETS)
+
+# the options that set each switch, for errors that name what the user typed
+OPTIONS = {"signaling_method": "--signaling-method", "growth_increment": "--growth-increment",
+           "grow_during_sessions": "--skip-sessions", "consistent_stress": "--fe-stress",
+           "csa_method": "--csa-method", "growth_fields": "--growth-fields"}
+SHAPE_DEFAULTS = {"ends": "disks", "fibers": "auto"}  # what every geometry but the idealized one runs
+
+
+def settings(cls, name: str, chosen: Mapping, options: Mapping[str, str] | None = None):
+    """``cls`` from its defaults, preset ``name`` and the ``chosen`` values that are not None.
+
+    ``options`` maps fields to the options that set them, for `hyper.core.params.build`'s errors.
+    """
+    if name not in PRESETS:
+        raise InputError(f"--settings: expected one of {', '.join(NAMES)}, got {name!r}")
+    fields = {f.name for f in dataclasses.fields(cls)}
+    values = {k: v for k, v in PRESETS[name].items() if k in fields}
+    values.update({k: v for k, v in chosen.items() if v is not None})
+    if "preset" in fields:
+        values["preset"] = name
+    return build(cls, {**OPTIONS, **(options or {})}, **values)
+
+
+def add_options(p: argparse.ArgumentParser, *, signaling_method: bool = True) -> None:
+    """--settings and the switches of a growth run; ``signaling_method`` False where the
+    parser has its --signaling-method already."""
+    from hyper.commands.signaling import method_option
+    from hyper.fem.coupled import CSA_METHODS
+    from hyper.fem.geometry import IDEALIZED_ENDS
+    from hyper.fem.growthfield import GROWTH_FIELDS
+    from hyper.model.growth import INCREMENTS
+
+    p.add_argument("--settings", choices=NAMES, default="default",
+                   help="a named preset: original turns on every switch of the original code at once "
+                        "(--signaling-method rk45-original, --growth-increment left-point, --skip-sessions, "
+                        "--fe-stress, --csa-method box, --growth-fields dg1, --growth-dt 1, and on the idealized "
+                        "shape --ends tags --fibers original); an explicit option wins over it")
+    if signaling_method:
+        method_option(p, default=None)
+    p.add_argument("--growth-increment", choices=INCREMENTS,
+                   help="dN of a growth step: exact (N's change over it) or left-point (f at its start × Δtg, "
+                        "the original code); exact unless --settings sets it")
+    p.add_argument("--skip-sessions", action=argparse.BooleanOptionalAction,
+                   help="no growth during sessions (the original code); off unless --settings sets it")
+    p.add_argument("--fe-stress", action=argparse.BooleanOptionalAction,
+                   help="P = Fe S (the original code) instead of the consistent det(Fg) Fe S Fg⁻ᵀ; "
+                        "off unless --settings sets it")
+    p.add_argument("--csa-method", choices=CSA_METHODS,
+                   help="the CSA the feedback sees on a mesh without a tagged mid-section: the exact plane cut, or "
+                        "the original code's box staircase (MODEL.md §9); both are recorded (csa_ratio_cut, "
+                        "csa_ratio_box); cut unless --settings sets it")
+    p.add_argument("--growth-fields", choices=GROWTH_FIELDS,
+                   help="where G, Ḡ and A live: at the quadrature points, or at the nodes of DG1 fields "
+                        "(the original code); quadrature unless --settings sets it")
+    p.add_argument("--ends", choices=IDEALIZED_ENDS,
+                   help="the idealized shape's spring ends: the flat end disks, or the XDMF's end tags with "
+                        "their lateral band (the original code); disks unless --settings sets it")
+    p.add_argument("--fibers", choices=("auto", "original"),
+                   help="the geometry's fibres, or on the idealized shape the original code's (P2 used as they "
+                        "are, surface integrals at UFL's estimated degree); auto unless --settings sets it")
+
+
+def shape(args: argparse.Namespace, geometries) -> dict:
+    """The RunSpec fields ends and fibers: explicit options, else the preset's on the
+    idealized shape (the only one the original's end tags and fibres exist for)."""
+    explicit = {"ends": args.ends, "fibers": args.fibers}
+    if any(v not in (None, SHAPE_DEFAULTS[k]) for k, v in explicit.items()) and set(geometries) != {"idealized"}:
+        raise InputError("--ends and --fibers original apply to the idealized shape only")
+    out = dict(SHAPE_DEFAULTS)
+    if set(geometries) == {"idealized"}:
+        out.update({k: v for k, v in PRESETS[args.settings].items() if k in out})
+    out.update({k: v for k, v in explicit.items() if v is not None})
+    return out
+
+
+def chosen(args: argparse.Namespace) -> dict:
+    """The switches the command line set, by setting field (None: not given)."""
+    return {
+        "signaling_method": args.signaling_method,
+        "growth_increment": args.growth_increment,
+        "grow_during_sessions": None if args.skip_sessions is None else not args.skip_sessions,
+        "consistent_stress": None if args.fe_stress is None else not args.fe_stress,
+        "csa_method": args.csa_method,
+        "growth_fields": args.growth_fields,
+    }

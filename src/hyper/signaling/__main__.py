@@ -1,5 +1,0 @@
-import sys
-
-from hyper.signaling.cli import main
-
-sys.exit(main())
