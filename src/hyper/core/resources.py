@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-PACKAGE = Path(__file__).resolve().parent
+PACKAGE = Path(__file__).resolve().parents[1]  # hyper/, this module being hyper/core/resources.py
 FOLDERS = ("meshes", "data", "studies", "jobs")
 
 
