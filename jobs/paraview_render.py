@@ -4,7 +4,7 @@
         results/cohort/BFLH_VHF_Left_mwf_paraview.png [--scale 10] [--color detGbar]
 
 Reads the last snapshot with Xdmf3ReaderT (the legacy XDMF reader crashes on XDMF 3):
-one grid per snapshot time with every field (hyper.runs.io.one_grid), warps it by u times
+one grid per snapshot time with every field (hyper.core.io.one_grid), warps it by u times
 --scale and colours it by a cell or point array: by default (auto) the growth det Ḡ
 where it varies over the mesh (heterogeneous signaling), else the displacement
 magnitude |u| (uniform growth has one det Ḡ everywhere); --color detGbar or u to choose.

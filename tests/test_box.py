@@ -12,12 +12,13 @@ from mpi4py import MPI
 
 from hyper.analysis import cohort
 from hyper.commands import grow
+from hyper.core import io
 from hyper.core.params import InputError
 from hyper.fem import boxsection as box
 from hyper.fem import geometry as geo
 from hyper.fem import section
 from hyper.runs import driver as run
-from hyper.runs import io
+from hyper.runs import runspec
 
 # A prism [-A, A] × [-B, B] × [-L, L] (m), long along z: the box is 2.4 A × 2.4 B in 30 × 30
 # squares of 0.08 A × 0.08 B, and the prism's sides cross the middle of columns and rows
@@ -278,16 +279,15 @@ def test_plot_box_needs_a_mesh_without_a_tagged_section(tmp_path, capsys):
 def test_a_resumed_run_records_both_measures_as_an_uninterrupted_one(tmp_path):
     from hyper.fem.coupled import GrowthSettings
     from hyper.model import protocols, signaling
-    from hyper.runs import driver as run
 
     write_prism(tmp_path / "prism.xdmf")
     (tmp_path / "one.toml").write_text(PROTOCOL)
-    spec = run.RunSpec("prism", protocols.from_option(str(tmp_path / "one.toml"))[0],
+    spec = runspec.RunSpec("prism", protocols.from_option(str(tmp_path / "one.toml"))[0],
                        signaling.SignalingParams(thetaM=0.46), GrowthSettings(growth_dt=8.0, csa_method="box"),
-                       mesh=run.MeshFile(tmp_path / "prism.xdmf"))
+                       mesh=runspec.MeshFile(tmp_path / "prism.xdmf"))
     comm = MPI.COMM_SELF
-    whole = run.execute(comm, spec, run.Outputs(tmp_path / "whole.h5"), checkpoints=False).series
-    out = run.Outputs(tmp_path / "parts.h5")
+    whole = run.execute(comm, spec, runspec.Outputs(tmp_path / "whole.h5"), checkpoints=False).series
+    out = runspec.Outputs(tmp_path / "parts.h5")
     reports = iter(range(100))
     with pytest.raises(run.Interrupted):
         run.execute(comm, spec, out, stop=lambda: next(reports) >= 2)
@@ -412,6 +412,6 @@ def test_job_remeasures_a_stored_run_by_both_rules(tmp_path, capsys):
     assert "the snapshots' mesh is not the run's" in capsys.readouterr().err
     assert cli.main(["box", str(out)]) == cli.EXIT_INPUT
     assert "ran on 'prism', not a built-in geometry; give its mesh with --mesh" in capsys.readouterr().err
-    run.Outputs(out).fields.unlink()
+    runspec.Outputs(out).fields.unlink()
     assert cli.main(["box", str(out), "--mesh", str(tmp_path / "prism.xdmf")]) == cli.EXIT_INPUT
     assert "run_fields.xdmf are not there" in capsys.readouterr().err

@@ -5,6 +5,7 @@ import pytest
 
 from hyper.analysis import calibrate
 from hyper.model import protocols, signaling, surrogate
+from hyper.runs import runspec
 
 MWF = protocols.named("mwf")
 FACTOR = surrogate.SECTION_FACTOR["idealized"]
@@ -55,7 +56,7 @@ def test_the_ode_growth_model_equals_the_coupled_idealized_run(name):
     from hyper.runs import driver as run
 
     protocol = protocols.named(name)
-    model, *_ = run.build(MPI.COMM_WORLD, run.RunSpec("idealized", protocol))
+    model, *_ = run.build(MPI.COMM_WORLD, runspec.RunSpec("idealized", protocol))
     reports = list(model.run())
     t = np.array([r.t for r in reports])
     coupled = np.array([r.csa_ratio for r in reports])

@@ -12,6 +12,7 @@ from mpi4py import MPI
 from hyper.analysis import cohort
 from hyper.fem.coupled import GrowthSettings
 from hyper.runs import driver as run
+from hyper.runs import runspec
 
 SHORT_PROTOCOL = """name = "short"
 end = 96.0
@@ -264,7 +265,7 @@ def test_mpi_interrupted_run_resumes_to_the_uninterrupted_result(tmp_path):
     stopped = cohort.run_cohort(comm, [entry], out, ranks_per_job=2, stop=StopAfter(3))
     assert stopped[0].status == "done"
     h5 = cohort.series_path(out, entry)
-    assert not h5.exists() and run.Outputs(h5).checkpoint.is_file()
+    assert not h5.exists() and runspec.Outputs(h5).checkpoint.is_file()
     # a run that has not started when the stop comes is not started at all
     other = cohort.Run("idealized", entry.protocol)
     never = cohort.run_cohort(comm, [other], out, stop=lambda: True)
@@ -278,7 +279,7 @@ def test_mpi_interrupted_run_resumes_to_the_uninterrupted_result(tmp_path):
     # resumed on two groups of one rank: the result of the entry that was never stopped
     resumed = cohort.run_cohort(comm, [entry], out, ranks_per_job=1)
     assert resumed[0].status == "done"
-    assert not run.Outputs(h5).checkpoint.exists()
+    assert not runspec.Outputs(h5).checkpoint.exists()
     assert "resuming from" in (out / "runs" / "cylinder_short.log").read_text()
     a = cohort.io.read_series(cohort.series_path(folder / "whole", entry))
     b = cohort.io.read_series(h5)

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
+from hyper.core.io import is_complete, write_series
 from hyper.core.params import InputError
 from hyper.fem import fibers
 from hyper.fem import geometry as geo
-from hyper.runs.io import is_complete, write_series
 
 STORED = "ST_VHM_Right"  # the smallest anatomical mesh (6707 cells)
 

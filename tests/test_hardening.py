@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from hyper.commands import cli
+from hyper.runs import locks
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -241,7 +242,6 @@ LOCKED = {
 
 @pytest.mark.parametrize("job", sorted(LOCKED))
 def test_every_job_that_writes_stops_at_once_on_an_output_another_run_holds(tmp_path, capsys, job):
-    from hyper.runs import checkpoint
 
     out = tmp_path / "out"
     argv = [a.format(out=out) for a in LOCKED[job]]
@@ -250,7 +250,7 @@ def test_every_job_that_writes_stops_at_once_on_an_output_another_run_holds(tmp_
         held = str(out / "cylinder_mwf" / "uniform-noise_eps0.01")
     if job == "signaling":  # signaling locks each result file
         held = str(out / "mwf.h5")
-    lock = checkpoint.OutputLock(Path(held))
+    lock = locks.OutputLock(Path(held))
     assert lock.acquire()
     try:
         assert cli.main([job, *argv]) == cli.EXIT_BUSY

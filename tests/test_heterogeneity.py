@@ -16,6 +16,7 @@ from hyper.fem.coupled import CoupledModel, GrowthSettings
 from hyper.model import heterogeneity as het
 from hyper.model import signaling
 from hyper.model.protocols import Protocol, Session
+from hyper.runs import runspec
 
 # mTOR starts just above its threshold, so the muscle grows from the first hour.
 GROWING = signaling.SignalingParams(thetaM=0.46)
@@ -224,7 +225,7 @@ def test_an_ensemble_sample_stopped_by_sigterm_resumes_to_the_uninterrupted_resu
     comm = MPI.COMM_SELF
     (tmp_path / "short.toml").write_text(SHORT)
     protocol = protocols.load(tmp_path / "short.toml")
-    spec = run.RunSpec("cylinder", protocol, settings=GrowthSettings(growth_dt=12.0),
+    spec = runspec.RunSpec("cylinder", protocol, settings=GrowthSettings(growth_dt=12.0),
                        heterogeneity=het.Heterogeneity(epsilon=0.05), seed=3)
     whole = ensemble.Sample(spec, tmp_path / "whole" / "seed3.h5")
     ensemble.run_sample(comm, whole, snapshot_every=2)

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 
 from hyper.commands import slurm
+from hyper.core import io
 from hyper.core.params import InputError
-from hyper.runs import io
 
 KINDS = ("cohort", "grow-array", "sobol")
 COMMAND = {"cohort": "hyper.cohort", "grow-array": "hyper.grow", "sobol": "hyper.sobol"}

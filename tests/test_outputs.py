@@ -17,11 +17,11 @@ from mpi4py import MPI
 
 from hyper.analysis import study
 from hyper.commands import cli, grow
-from hyper.core import log
+from hyper.core import io, log
 from hyper.core.params import InputError
 from hyper.model import protocols
 from hyper.runs import driver as run
-from hyper.runs import io, measured
+from hyper.runs import measured, runspec
 from test_reliability import PROTOCOL  # the short two-session protocol
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -90,7 +90,7 @@ def test_snapshot_due_by_simulated_time():
 
 def test_grow_fields_are_read_whole_by_meshio(grown):
     series = io.read_series(grown)
-    points, cells, steps = read_fields(run.Outputs(grown).fields)
+    points, cells, steps = read_fields(runspec.Outputs(grown).fields)
     times = [t for t, _, _ in steps]
     # the first state, the first growth step on or after each 24 h, and the last state
     kept = []
@@ -134,7 +134,7 @@ def test_pvbatch_renders_the_fields(grown, tmp_path):
     # Xvfb, before it reads anything; a second start has always worked. Other failures count.
     for _ in range(3):
         done = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 1280x1024x24", "pvbatch",
-                               str(ROOT / "jobs" / "paraview_render.py"), str(run.Outputs(grown).fields), str(png)],
+                               str(ROOT / "jobs" / "paraview_render.py"), str(runspec.Outputs(grown).fields), str(png)],
                               capture_output=True, text=True, timeout=300)
         if done.returncode != 134 or "snapshots" in done.stdout:
             break

@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
+from hyper.core import io
 from hyper.core.params import InputError
 from hyper.model.protocols import NAMES, Protocol, Session, load, named, resolve
-from hyper.runs import io
 
 
 @pytest.mark.parametrize(

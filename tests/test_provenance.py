@@ -10,9 +10,10 @@ import pytest
 
 from hyper.analysis import study
 from hyper.commands import cli
+from hyper.core import io
 from hyper.fem import geometry
 from hyper.model import material
-from hyper.runs import io
+from hyper.runs import runspec
 
 SHORT = 'name = "short"\nend = 48.0\n[[session]]\nstart = 0.0\nduration = 1.0\nintensity = 0.8\n'
 
@@ -89,10 +90,9 @@ def test_a_result_records_its_material_and_the_study_that_reruns_it(grown, tmp_p
 
 def test_material_parameters_change_the_run(grown):
     from hyper.model import protocols
-    from hyper.runs import driver as run
 
     out, _ = grown
-    plain = run.RunSpec("cylinder", protocols.load(out.parent / "short.toml"))
+    plain = runspec.RunSpec("cylinder", protocols.load(out.parent / "short.toml"))
     assert plain.digest() != h5py.File(out).attrs["run_digest"]
     # the defaults leave the digest of a run as it was before material parameters could be set
     assert "material" not in plain.describe()
@@ -133,10 +133,9 @@ def test_a_remade_mesh_or_fibre_file_is_another_run(tmp_path, monkeypatch):
     import shutil
 
     from hyper.model import protocols
-    from hyper.runs import driver as run
 
     name = "TA_VHF_Left"
-    spec = run.RunSpec(name, protocols.named("mwf"))
+    spec = runspec.RunSpec(name, protocols.named("mwf"))
     before = spec.digest()
     folder = spec.input_files()[0].parent
     copy = tmp_path / folder.name

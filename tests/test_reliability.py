@@ -22,9 +22,10 @@ import pytest
 from mpi4py import MPI
 
 from hyper.commands import cli, grow
+from hyper.core import io
 from hyper.runs import checkpoint as ckpt
 from hyper.runs import driver as run
-from hyper.runs import io
+from hyper.runs import locks, runspec
 
 ROOT = Path(__file__).resolve().parents[1]
 PYTHON = sys.executable
@@ -114,7 +115,7 @@ def killed(inputs, tmp_path_factory):
     out = tmp_path_factory.mktemp("killed") / "run.h5"
     proc = start(inputs, out, "--checkpoint-every", "3")
     try:
-        wait_for(run.Outputs(out).checkpoint, proc)
+        wait_for(runspec.Outputs(out).checkpoint, proc)
         proc.send_signal(signal.SIGKILL)
         assert proc.wait(60) == -signal.SIGKILL
     finally:
@@ -122,21 +123,21 @@ def killed(inputs, tmp_path_factory):
         proc.wait()
     assert not out.exists()
     pristine = tmp_path_factory.mktemp("pristine") / "one_rank.ckpt.h5"
-    shutil.copy(run.Outputs(out).checkpoint, pristine)
+    shutil.copy(runspec.Outputs(out).checkpoint, pristine)
     return out, pristine
 
 
 def test_sigkill_then_rerun_continues_bit_for_bit(inputs, reference, killed):
     out, _ = killed
-    saved = attrs(run.Outputs(out).checkpoint)
+    saved = attrs(runspec.Outputs(out).checkpoint)
     assert saved["step"] == 3 and saved["status"] == "running" and saved["ranks"] == 1 and saved["complete"]
 
     assert grow.main(command(inputs, out, "--checkpoint-every", "3")) == 0
     same_series(reference, out, rtol=1e-12)
     np.testing.assert_array_equal(io.read_series(out)["csa_ratio"], io.read_series(reference)["csa_ratio"])
     # the resumed run's XDMF holds every snapshot, the same as the uninterrupted run's
-    ref_fields = fields(run.Outputs(reference).fields.with_suffix(".h5"))
-    new_fields = fields(run.Outputs(out).fields.with_suffix(".h5"))
+    ref_fields = fields(runspec.Outputs(reference).fields.with_suffix(".h5"))
+    new_fields = fields(runspec.Outputs(out).fields.with_suffix(".h5"))
     assert sorted(ref_fields) == sorted(new_fields) and len(ref_fields) > 6
     for name in ref_fields:
         np.testing.assert_array_equal(new_fields[name], ref_fields[name])
@@ -148,31 +149,31 @@ def test_sigterm_saves_at_the_next_step_boundary_and_exits_143(inputs, reference
     out = tmp_path / "run.h5"
     proc = start(inputs, out, "--checkpoint-every", "3")
     try:
-        wait_for(run.Outputs(out).checkpoint, proc)
+        wait_for(runspec.Outputs(out).checkpoint, proc)
         proc.send_signal(signal.SIGTERM)
         log = proc.communicate(timeout=120)[0]
     finally:
         proc.kill()
         proc.wait()
     assert proc.returncode == cli.EXIT_TERMINATED == 143, log
-    status = ckpt.read_status(run.Outputs(out).status)
+    status = ckpt.read_status(runspec.Outputs(out).status)
     assert status["state"] == "interrupted" and status["reason"] == "SIGTERM"
-    with h5py.File(run.Outputs(out).checkpoint, "r") as f:
+    with h5py.File(runspec.Outputs(out).checkpoint, "r") as f:
         assert f.attrs["status"] == "interrupted" and f.attrs["complete"]
         assert f.attrs["step"] == status["step"] > 3  # after the periodic checkpoint at step 3
         assert len(f["series/t"]) == status["step"] + 1
-    assert not out.exists() and not run.Outputs(out).fields.exists()
+    assert not out.exists() and not runspec.Outputs(out).fields.exists()
 
     assert grow.main(command(inputs, out, "--checkpoint-every", "3")) == 0
     same_series(reference, out, rtol=1e-12)
-    assert not run.Outputs(out).status.exists() and not run.Outputs(out).checkpoint.exists()
+    assert not runspec.Outputs(out).status.exists() and not runspec.Outputs(out).checkpoint.exists()
     assert attrs(out)["segments"] == 2
 
 
 @pytest.mark.skipif(not Path(MPIRUN).exists(), reason="needs the venv's mpirun")
 def test_two_ranks_resume_what_one_rank_wrote(inputs, reference, killed, tmp_path):
     out = tmp_path / "run.h5"
-    shutil.copy(killed[1], run.Outputs(out).checkpoint)
+    shutil.copy(killed[1], runspec.Outputs(out).checkpoint)
     result = subprocess.run([MPIRUN, "-n", "2", PYTHON, "-m", "hyper.grow", *command(inputs, out)],
                             cwd=ROOT, env=env(), capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout + result.stderr
@@ -202,15 +203,15 @@ def test_unrecoverable_failure_saves_the_last_step_and_the_reason(inputs, tmp_pa
     assert grow.main(failing) == cli.EXIT_FAILED == 3
     err = capsys.readouterr().err
     assert "Newton did not converge" in err and "run.status.json" in err
-    status = ckpt.read_status(run.Outputs(out).status)
+    status = ckpt.read_status(runspec.Outputs(out).status)
     assert status["state"] == "failed"
     # step 1 is the first session (0-1 h), step 2 the first half of the rest after it
     assert status["failed_step"] == 2 and status["from_h"] == 1.0 and status["to_h"] == 24.5
     assert "DIVERGED_MAX_IT" in status["reason"]
     assert status["settings"]["growth_dt"] == 24.0 and status["petsc_options"] == {"snes_max_it": "2"}
-    saved = attrs(run.Outputs(out).checkpoint)
+    saved = attrs(runspec.Outputs(out).checkpoint)
     assert saved["status"] == "failed" and saved["step"] == 1 and saved["t"] == 1.0
-    assert not out.exists() and not run.Outputs(out).fields.exists()
+    assert not out.exists() and not runspec.Outputs(out).fields.exists()
     assert not Path(str(out) + ".lock").exists()
 
     # Allowed to cut the step, the same run goes on from the saved step 1.
@@ -218,7 +219,7 @@ def test_unrecoverable_failure_saves_the_last_step_and_the_reason(inputs, tmp_pa
     assert "resuming" in capsys.readouterr().out
     s = io.read_series(out)
     assert s["halvings"][2] >= 1
-    assert not run.Outputs(out).status.exists() and not run.Outputs(out).checkpoint.exists()
+    assert not runspec.Outputs(out).status.exists() and not runspec.Outputs(out).checkpoint.exists()
 
 
 def test_a_full_disk_stops_the_run_in_one_line_and_keeps_the_previous_checkpoint(inputs, tmp_path, capsys,
@@ -236,10 +237,10 @@ def test_a_full_disk_stops_the_run_in_one_line_and_keeps_the_previous_checkpoint
     assert grow.main(command(inputs, out, "--checkpoint-every", "3")) == cli.EXIT_FAILED
     lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert len(lines) == 1 and "No space left on device; the previous checkpoint is kept" in lines[0], lines
-    status = ckpt.read_status(run.Outputs(out).status)
+    status = ckpt.read_status(runspec.Outputs(out).status)
     assert status["state"] == "failed" and status["step"] == 6 and "No space left" in status["reason"]
-    assert attrs(run.Outputs(out).checkpoint)["step"] == 3  # the one written before the disk filled
-    assert not out.exists() and not run.Outputs(out).fields.exists()
+    assert attrs(runspec.Outputs(out).checkpoint)["step"] == 3  # the one written before the disk filled
+    assert not out.exists() and not runspec.Outputs(out).fields.exists()
 
     monkeypatch.setattr(ckpt, "write", real)  # room again: the same command finishes from step 3
     assert grow.main(command(inputs, out, "--checkpoint-every", "3")) == 0
@@ -248,7 +249,7 @@ def test_a_full_disk_stops_the_run_in_one_line_and_keeps_the_previous_checkpoint
 
 def test_a_second_run_on_the_same_output_stops_at_once(inputs, tmp_path, capsys):
     out = tmp_path / "results" / "run.h5"
-    lock = ckpt.OutputLock(out)
+    lock = locks.OutputLock(out)
     lock.acquire()
     try:
         assert grow.main(command(inputs, out)) == cli.EXIT_BUSY == 4
@@ -261,7 +262,7 @@ def test_a_second_run_on_the_same_output_stops_at_once(inputs, tmp_path, capsys)
 
 def test_checkpoint_of_other_settings_is_refused(inputs, killed, tmp_path, capsys):
     out = tmp_path / "run.h5"
-    shutil.copy(killed[1], run.Outputs(out).checkpoint)
+    shutil.copy(killed[1], runspec.Outputs(out).checkpoint)
     before = sorted((p.name, p.stat().st_mtime_ns) for p in tmp_path.iterdir())
     assert grow.main(command(inputs, out, "--growth-dt", "12")) == 2
     assert "belongs to another run" in capsys.readouterr().err
@@ -305,7 +306,7 @@ def test_grow_array_script_stops_requeues_and_resumes(inputs, tmp_path):
         job.wait()
     assert job.returncode == 143, log
     assert "stopped on request" in log and (fake / "scontrol.args").read_text() == "requeue 4242\n"
-    assert run.Outputs(result).checkpoint.exists() and not result.exists()
+    assert runspec.Outputs(result).checkpoint.exists() and not result.exists()
 
     requeued = subprocess.run(["bash", str(script)], cwd=tmp_path, env={**env, "SLURM_RESTART_COUNT": "1"},
                               capture_output=True, text=True, timeout=300)
@@ -314,7 +315,7 @@ def test_grow_array_script_stops_requeues_and_resumes(inputs, tmp_path):
     s = io.read_series(result)
     assert attrs(result)["segments"] == 2 and s["t"][-1] == 9 * 168.0 and np.all(np.diff(s["t"]) > 0)
     assert s["csa_ratio"][-1] > 1.01
-    assert not run.Outputs(result).checkpoint.exists()
+    assert not runspec.Outputs(result).checkpoint.exists()
 
 
 # ----------------------------------------------------------------- heterogeneous state
@@ -388,7 +389,7 @@ def test_lock_without_file_system_locks_is_reported_not_fatal(tmp_path, monkeypa
         raise OSError(errno.ENOLCK, "No locks available")
 
     monkeypatch.setattr(ckpt.fcntl, "flock", no_locks)
-    with ckpt.locked([tmp_path / "a.h5", tmp_path / "b.h5"]) as unlocked:
+    with locks.locked([tmp_path / "a.h5", tmp_path / "b.h5"]) as unlocked:
         assert unlocked == [tmp_path / "a.h5.lock", tmp_path / "b.h5.lock"]
     assert list(tmp_path.iterdir()) == []
 

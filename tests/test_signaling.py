@@ -436,7 +436,7 @@ def test_failed_members_are_masked_the_others_untouched():
 
 
 def test_cli_writes_series_and_figure(tmp_path, capsys):
-    from hyper.runs import io
+    from hyper.core import io
 
     out = tmp_path / "sig"
     assert S.main(["--protocol", "all", "--output", str(out), "--plot", str(out / "f.png"), "--sample-every", "2"]) == 0

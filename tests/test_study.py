@@ -12,11 +12,11 @@ import pytest
 
 from hyper.analysis import cohort, study
 from hyper.commands import cli
+from hyper.core import io
 from hyper.core.params import InputError
 from hyper.model import protocols
 from hyper.model.heterogeneity import Heterogeneity
 from hyper.model.protocols import Repeat
-from hyper.runs import io
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -46,7 +46,7 @@ from hyper.core.log import info
 from hyper.core.params import InputError
 from hyper.model import protocols, signaling, surrogate
 from hyper.model.protocols import Protocol
-from hyper.runs import fidelity, measured
+from hyper.runs import fidelity, locks, measured, runspec
 
 # Default bounds of the parameters one may fit without giving bounds: a decade either side
 # of the table value, wide enough for the published 0.01 and 0.025 1/h of kM.
@@ -136,7 +136,7 @@ def coupled_model(comm, datasets: list[Dataset], names: list[str], base: signali
             params = dataclasses.replace(base, **{name: float(v) for name, v in zip(names, x)})
             row = []
             for k, d in enumerate(datasets):
-                model, *_ = run.build(comm, run.RunSpec(geometry, d.protocol, params, settings))
+                model, *_ = run.build(comm, runspec.RunSpec(geometry, d.protocol, params, settings))
                 reports = list(model.run())
                 t = np.array([r.t for r in reports])
                 csa = np.array([r.csa_ratio for r in reports])
@@ -280,7 +280,7 @@ def run(comm, args) -> int:
         raise InputError("--fit: a parameter named twice")
     if not math.isfinite(args.exclude_until) or args.exclude_until < 0:
         raise InputError(f"--exclude-until: expected a number of weeks >= 0, got {args.exclude_until:g}")
-    driver.check_geometry(comm, args.geometry)
+    runspec.check_geometry(comm, args.geometry)
     datasets = [dataset(path, protocols.resolve(p), args.exclude_until)
                 for path, p in zip(args.data, args.protocol)]
     names = list(fits)
@@ -308,12 +308,12 @@ def run(comm, args) -> int:
         model_at = evaluate(f.x)[0]
         offset = 0
         for d in datasets:
-            spec = driver.RunSpec(args.geometry, d.protocol, fitted, settings)
-            outputs = driver.Outputs(args.output / f"check_{d.name}.h5")
-            with cli.hold(comm, [outputs.h5]):
+            spec = runspec.RunSpec(args.geometry, d.protocol, fitted, settings)
+            outputs = runspec.Outputs(args.output / f"check_{d.name}.h5")
+            with locks.hold(comm, [outputs.h5]):
                 result = driver.execute(comm, spec, outputs, checkpoints=False, progress_every=1e9)
                 if comm.rank == 0:
-                    outputs.store(result.series, result.meta, driver.result_groups(spec))
+                    outputs.store(result.series, result.meta, runspec.result_groups(spec))
             coupled_csa = np.interp(d.t, result.series["t"], result.series["csa_ratio"])
             fast = model_at[offset:offset + len(d.t)]
             offset += len(d.t)
@@ -335,7 +335,7 @@ def run(comm, args) -> int:
 
 
 def write(args, datasets: list[Dataset], f: Fit, kind: str, reasons: list[str], choice, checks: dict) -> Path:
-    from hyper.runs import io
+    from hyper.core import io
 
     result = {
         "parameters": {name: {"value": float(f.x[j]), "low": float(f.low[j]), "high": float(f.high[j]),

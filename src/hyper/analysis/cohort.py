@@ -40,7 +40,7 @@ the same geometry, protocol, signaling parameters and settings (hyper.runs.drive
 hyper.runs.driver.CHECKPOINT_EVERY growth steps (runs/GEOMETRY_PROTOCOL.ckpt.h5, deleted when
 its series is stored), so after a kill (Ctrl-C, a Slurm time limit) the same command
 resumes the interrupted runs where they were; a run that failed keeps its checkpoint
-and resumes from it. Files appear only when whole (hyper.runs.io). One cohort at a time
+and resumes from it. Files appear only when whole (hyper.core.io). One cohort at a time
 writes an output folder (the lock OUTPUT.lock). On SIGTERM (what Slurm sends before a
 time limit) the running runs stop at their next growth step with a checkpoint, the
 others are not started, and the summary marks them `interrupted`. Exit status: 0 all
@@ -66,6 +66,7 @@ import numpy as np
 from mpi4py import MPI
 
 from hyper.commands import cli
+from hyper.core import io
 from hyper.core.log import PROGRESS_EVERY, hms, info
 from hyper.core.params import InputError
 from hyper.fem import geometry as geo
@@ -75,7 +76,7 @@ from hyper.model.growth import step_times
 from hyper.model.protocols import Protocol
 from hyper.runs import checkpoint as ckpt
 from hyper.runs import driver as run
-from hyper.runs import farm, io, measured, plot, presets
+from hyper.runs import farm, locks, measured, plot, presets, runspec
 
 COLUMNS = ("geometry", "muscle", "subject", "side", "protocol", "csa0_cm2", "volume0_cm3",
            "final_csa_ratio", "final_csa_ratio_cut", "final_csa_ratio_box", "final_volume_ratio", "wall_s",
@@ -95,14 +96,14 @@ SHAPE_GEOMETRY = "BFLH_VHF_Left"  # the paper's Fig. 6A
 class Run:
     geometry: str  # a built-in geometry id, or the stem of ``mesh``
     protocol: Protocol
-    mesh: run.MeshFile | None = None  # a user's mesh file (hyper study); None: the built-in geometry
+    mesh: runspec.MeshFile | None = None  # a user's mesh file (hyper study); None: the built-in geometry
 
     @property
     def key(self) -> str:
         return f"{self.geometry}_{self.protocol.name}"
 
 
-def plan(geometries, protocol_list, meshes: Mapping[str, run.MeshFile] | None = None) -> list[Run]:
+def plan(geometries, protocol_list, meshes: Mapping[str, runspec.MeshFile] | None = None) -> list[Run]:
     """Every geometry with every protocol; names must make unique run keys. ``meshes``
     maps the geometries that are a user's mesh file to it."""
     meshes = meshes or {}
@@ -142,10 +143,10 @@ def growth_steps(protocol: Protocol, growth_dt: float) -> int:
     return sum(len(step_times(t0, t1, growth_dt)) - 1 for t0, t1, _ in protocol.periods())
 
 
-def spec(entry: Run, params, settings: GrowthSettings, options: Mapping | None = None) -> run.RunSpec:
+def spec(entry: Run, params, settings: GrowthSettings, options: Mapping | None = None) -> runspec.RunSpec:
     """The run of ``entry``; ``options`` more `RunSpec` fields (heterogeneity, seed,
     linear_solver, choice, quadrature_degree: what a study file sets)."""
-    return run.RunSpec(entry.geometry, entry.protocol, params, settings, mesh=entry.mesh, **(options or {}))
+    return runspec.RunSpec(entry.geometry, entry.protocol, params, settings, mesh=entry.mesh, **(options or {}))
 
 
 def series_path(output: Path, entry: Run) -> Path:
@@ -215,14 +216,14 @@ def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: Gr
         (output / "runs").mkdir(parents=True, exist_ok=True)
 
     def is_done(job):
-        return run.Outputs(series_path(output, job.payload)).is_current(digests[job.key])
+        return runspec.Outputs(series_path(output, job.payload)).is_current(digests[job.key])
 
     def work(subcomm, job):
         entry: Run = job.payload
         interrupted = {"interrupted": True} if subcomm.rank == 0 else None
         if subcomm.allreduce(bool(stop is not None and stop()), op=MPI.LOR):
             return interrupted
-        out = run.Outputs(series_path(output, entry))
+        out = runspec.Outputs(series_path(output, entry))
         ckpt.on_rank0(subcomm, lambda: drop_stale_checkpoint(out.checkpoint, digests[entry.key]))
         try:
             with _RunLog(out.h5.with_suffix(".log")) if subcomm.rank == 0 else contextlib.nullcontext():
@@ -232,7 +233,7 @@ def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: Gr
             return interrupted
         if subcomm.rank != 0:
             return None
-        groups = run.result_groups(specs[entry.key], done.choice)
+        groups = runspec.result_groups(specs[entry.key], done.choice)
         against = data if data is not None else measured.of_protocol(entry.protocol)
         if against is not None:
             groups["data"] = measured.compare(against, done.series["t"], done.series["csa_ratio"]).attributes()
@@ -554,7 +555,7 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings, material.MaterialParam
         raise InputError(f"--ranks-per-job must be >= 1 and divide the number of MPI ranks ({comm.size}), "
                          f"got {args.ranks_per_job}")
     for name in args.geometries:
-        run.check_geometry(comm, name, "--geometries")
+        runspec.check_geometry(comm, name, "--geometries")
     if args.plot_geometry is None:
         args.plot_geometry = SHAPE_GEOMETRY if SHAPE_GEOMETRY in args.geometries else args.geometries[0]
     elif args.plot_geometry not in args.geometries:
@@ -598,7 +599,7 @@ def finish(output: Path, runs: list[Run], results, settings: GrowthSettings, ela
     if done and figures:
         ratio_figure(done, output / "ratios.png")
         written.append(output / "ratios.png")
-    pictured = {r.protocol.name: run.Outputs(series_path(output, r)).fields for r in runs
+    pictured = {r.protocol.name: runspec.Outputs(series_path(output, r)).fields for r in runs
                 if r.geometry == plot_geometry}
     pictured = {name: p for name, p in pictured.items() if p.is_file()}
     if pictured and figures:
@@ -637,7 +638,7 @@ def finish(output: Path, runs: list[Run], results, settings: GrowthSettings, ela
 def cohort(comm, args) -> int:
     start = time.perf_counter()
     runs, settings, muscle = check(args, comm)
-    with cli.hold(comm, [args.output]):
+    with locks.hold(comm, [args.output]):
         info(comm, f"cohort: {len(runs)} runs ({len(args.geometries)} geometries × {len(args.protocols)} "
                    f"protocols) on {comm.size} rank(s) in groups of {args.ranks_per_job}, growth step "
                    f"{settings.growth_dt:g} h, output {args.output}")

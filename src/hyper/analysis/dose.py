@@ -33,7 +33,7 @@ from hyper.commands import cli
 from hyper.core.log import info
 from hyper.model import signaling, surrogate
 from hyper.model.protocols import WEEK, Protocol, Session
-from hyper.runs import fidelity
+from hyper.runs import fidelity, runspec
 
 SESSIONS = np.arange(1, 8)  # per week
 INTENSITIES = np.round(np.arange(1, 11) * 0.1, 10)
@@ -94,7 +94,7 @@ def coupled_gain(comm, protocol: Protocol, settings) -> tuple[float, float]:
     from hyper.runs import driver as run
 
     start = time.perf_counter()
-    model, *_ = run.build(comm, run.RunSpec("idealized", protocol, signaling.SignalingParams(), settings))
+    model, *_ = run.build(comm, runspec.RunSpec("idealized", protocol, signaling.SignalingParams(), settings))
     *_, last = model.run()
     return last.csa_ratio - 1.0, time.perf_counter() - start
 
@@ -159,7 +159,7 @@ def run(comm, args) -> int:
 
 
 def write(args, gains, best, checks, worst, atlas_s, choice) -> Path:
-    from hyper.runs import io
+    from hyper.core import io
 
     L = loads()
     protocols_ = [{**describe(index), "gain_pct": 100 * float(gains["hill"][index]),

@@ -49,12 +49,13 @@ from dolfinx import mesh as dmesh
 from mpi4py import MPI
 
 from hyper.commands import cli
+from hyper.core import io
 from hyper.core.log import PROGRESS_EVERY, hms, info
 from hyper.core.params import InputError, build
 from hyper.fem.coupled import GrowthSettings
 from hyper.model import heterogeneity, protocols, signaling
 from hyper.runs import driver as run
-from hyper.runs import farm, io, plot
+from hyper.runs import farm, locks, plot, runspec
 
 STD = tuple(f"{s}_std" for s in signaling.STATES)
 FIELDS = ("N", "detGbar", "u")
@@ -64,12 +65,12 @@ FIELDS = ("N", "detGbar", "u")
 class Sample:
     """One run of an ensemble: the uniform case (no heterogeneity) or a heterogeneous sample."""
 
-    spec: run.RunSpec
+    spec: runspec.RunSpec
     h5: Path
 
     @property
-    def outputs(self) -> run.Outputs:
-        return run.Outputs(self.h5)
+    def outputs(self) -> runspec.Outputs:
+        return runspec.Outputs(self.h5)
 
 
 class FinalFields:
@@ -165,7 +166,7 @@ def run_sample(comm, sample: Sample, *, snapshot_every: float, stop=None,
     if comm.rank == 0:
         attrs = {**done.meta, "protocol": spec.protocol.name, "seed": -1 if spec.seed is None else spec.seed}
         attrs |= {f"roughness_{k}": v for k, v in rough.items()}
-        groups = run.result_groups(spec)
+        groups = runspec.result_groups(spec)
         groups.setdefault("heterogeneity", {"model": "uniform"})
         sample.outputs.store(done.series | cells, attrs, groups)
     return {"csa_ratio": float(done.series["csa_ratio"][-1]), "volume_ratio": float(done.series["volume_ratio"][-1]),
@@ -294,7 +295,7 @@ def parser() -> cli.Parser:
 
 def plan(comm, args) -> tuple[list[farm.Job], heterogeneity.Heterogeneity, Path]:
     """Jobs, heterogeneity and the sample folder; InputError on bad input."""
-    run.check_geometry(comm, args.geometry)
+    runspec.check_geometry(comm, args.geometry)
     (protocol,) = protocols.from_option(args.protocol) if args.protocol != "all" else (None,)
     if protocol is None:
         raise InputError("--protocol: an ensemble runs one protocol, not 'all'")
@@ -305,7 +306,7 @@ def plan(comm, args) -> tuple[list[farm.Job], heterogeneity.Heterogeneity, Path]
     folder = base / het.label()
 
     def job(key, het, seed, h5):
-        spec = run.RunSpec(args.geometry, protocol, settings=settings, heterogeneity=het, seed=seed)
+        spec = runspec.RunSpec(args.geometry, protocol, settings=settings, heterogeneity=het, seed=seed)
         return farm.Job(key, 1.0, Sample(spec, h5))
 
     jobs = [job("uniform", None, None, base / "uniform.h5")]
@@ -334,7 +335,7 @@ def ensemble(comm, args) -> int:
         except run.Interrupted:
             return {"interrupted": True}
 
-    with cli.hold(comm, [folder]), run.StopOnTerm() as stop:
+    with locks.hold(comm, [folder]), run.StopOnTerm() as stop:
         results = farm.run(
             comm, jobs, lambda sub, job: work(sub, job, stop), ranks_per_job=args.ranks_per_job,
             is_done=lambda job: job.payload.outputs.is_current(digests[job.key]),

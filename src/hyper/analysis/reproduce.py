@@ -44,11 +44,12 @@ import numpy as np
 from mpi4py import MPI
 
 from hyper.commands import cli
+from hyper.core import io
 from hyper.core.log import hms, info
 from hyper.core.params import InputError
 from hyper.model import protocols, signaling
 from hyper.model.protocols import Protocol, Session
-from hyper.runs import farm, io
+from hyper.runs import farm, locks, runspec
 
 CASES = ("signaling", "idealized", "contraction", "cohort", "heterogeneity")
 QUICK_CASES = CASES[:-1]
@@ -124,7 +125,6 @@ class Case:
     def run_spec(self):
         from hyper.fem.coupled import GrowthSettings
         from hyper.model import heterogeneity
-        from hyper.runs import driver as run
         from hyper.runs import presets
 
         fields = dict(self.settings)
@@ -133,7 +133,7 @@ class Case:
         extra = dict(self.spec)
         if self.seed is not None:
             extra.update(heterogeneity=heterogeneity.Heterogeneity(epsilon=HETEROGENEITY_EPSILON), seed=self.seed)
-        return run.RunSpec(self.geometry, self.protocol_object(), signaling.SignalingParams(), settings, **extra)
+        return runspec.RunSpec(self.geometry, self.protocol_object(), signaling.SignalingParams(), settings, **extra)
 
 
 def original_fields(geometry: str, growth_dt: float, exact: bool = False) -> tuple[tuple, tuple]:
@@ -328,7 +328,7 @@ def work_on(output: Path, runs: dict[str, Case], stop, progress_every: float):
 
         case = runs[job.payload[1]]
         spec = case.run_spec()
-        out = run.Outputs(series_path(output, case.key))
+        out = runspec.Outputs(series_path(output, case.key))
         try:
             done = run.execute(comm, spec, out, stop=stop, progress_every=progress_every)
         except run.Interrupted:
@@ -338,7 +338,8 @@ def work_on(output: Path, runs: dict[str, Case], stop, progress_every: float):
             if comm.rank == 0:
                 np.savez(out.h5.with_name(f"{case.key}_box.npz"), **{k: v for k, v in picture.items() if v is not None})
         if comm.rank == 0:
-            out.store(done.series, {**done.meta, "protocol": spec.protocol.name}, run.result_groups(spec, done.choice))
+            out.store(done.series, {**done.meta, "protocol": spec.protocol.name},
+                      runspec.result_groups(spec, done.choice))
         return None
 
     return work
@@ -346,13 +347,12 @@ def work_on(output: Path, runs: dict[str, Case], stop, progress_every: float):
 
 def is_done_on(output: Path, runs: dict[str, Case]):
     def is_done(job):
-        from hyper.runs import driver as run
 
         if job.payload[0] == "contraction":
             return contraction_done(contraction_path(output, job.payload[1]), *CONTRACTIONS[job.payload[1]])
         if job.payload[0] == "grow":
             case = runs[job.payload[1]]
-            return run.Outputs(series_path(output, case.key)).is_current(case.run_spec().digest())
+            return runspec.Outputs(series_path(output, case.key)).is_current(case.run_spec().digest())
         return False
 
     return is_done
@@ -889,10 +889,10 @@ def reproduce(comm, args) -> int:
         from hyper.runs import driver as run
 
         for g in QUICK_MUSCLES if args.quick else geometry.ANATOMICAL:
-            run.check_geometry(comm, g, "--cases cohort")
+            runspec.check_geometry(comm, g, "--cases cohort")
     jobs, runs = plan(args)
     output = args.output
-    with cli.hold(comm, [output]):
+    with locks.hold(comm, [output]):
         if comm.rank == 0:
             (output / "runs").mkdir(parents=True, exist_ok=True)
         info(

@@ -68,11 +68,13 @@ import numpy as np
 from mpi4py import MPI
 
 from hyper.commands import cli
+from hyper.core import log
 from hyper.core.log import PROGRESS_EVERY, info
 from hyper.core.params import InputError, positive_hours
 from hyper.model import protocols
 from hyper.model import signaling as S
 from hyper.model.protocols import Protocol, named
+from hyper.runs import locks
 from hyper.runs.plot import pyplot
 
 PARAMETERS = ("a10", "a20", "a3", "a4", "b1", "b2", "b3", "b4", "c21", "c32", "c42", "c43", "kM", "kF")
@@ -501,7 +503,8 @@ def run_chunks(comm, X: np.ndarray, evaluate: Callable[[np.ndarray], np.ndarray]
     results): Y, all outputs in row order, on rank 0 (None elsewhere, and None on rank 0
     too if a chunk failed or was not computed).
     """
-    from hyper.runs import farm, io
+    from hyper.core import io
+    from hyper.runs import farm
 
     where = Path(folder) / key
     jobs = chunk_jobs(X.shape[0], chunk)
@@ -658,12 +661,12 @@ def _check(args) -> tuple[Protocol | None, dict]:
 def run(comm, args) -> int:
     protocol, prob = _check(args)
     # a second analysis writing the same folder would take the first one's chunks for stale
-    with cli.hold(comm, [args.output]):
+    with locks.hold(comm, [args.output]):
         return analyse(comm, args, protocol, prob)
 
 
 def analyse(comm, args, protocol, prob) -> int:
-    from hyper.runs import io
+    from hyper.core import io
     from hyper.runs.farm import summary_line
 
     start = time.perf_counter()
@@ -685,7 +688,7 @@ def analyse(comm, args, protocol, prob) -> int:
             # rank 0 builds the kernel; the other ranks then load it from the cache
             error = comm.bcast(S.c_backend_error() if comm.rank == 0 else None, root=0)
             if error is not None:
-                cli.error(comm, f"{error}; use --backend numpy")
+                log.error(comm, f"{error}; use --backend numpy")
                 return cli.EXIT_SOME_FAILED
             S.c_backend_error()
         if args.function == "csa-gain":
@@ -739,10 +742,11 @@ def _idle_barrier(comm) -> None:
 
 def _finish(args, prob, X, Y, results, protocol, key, timing, start, ranks) -> int:
     """Rank 0: analysis, HDF5, CSV, figures, summary. Returns the exit code."""
-    from hyper.runs import io, plot
+    from hyper.core import io
+    from hyper.runs import plot
 
     if Y is None:
-        cli.error(None, "some chunks failed (see above); rerun the same command to compute only those")
+        log.error(None, "some chunks failed (see above); rerun the same command to compute only those")
         return cli.EXIT_SOME_FAILED
     jobs = chunk_jobs(X.shape[0], args.chunk)
     computed = sum(r.status == "done" for r in results)
@@ -761,7 +765,7 @@ def _finish(args, prob, X, Y, results, protocol, key, timing, start, ranks) -> i
     try:
         ind = analyze(prob, Y, seed=args.seed, resamples=args.resamples, on_failure=args.on_failure)
     except ValueError as err:
-        cli.error(None, str(err))
+        log.error(None, str(err))
         return cli.EXIT_SOME_FAILED
     if ind.dropped:
         info(None, f"dropped {ind.dropped} base samples with a failed member; indices from {ind.base_samples}")

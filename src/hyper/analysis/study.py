@@ -92,7 +92,7 @@ from hyper.model import protocols, signaling
 from hyper.model.heterogeneity import Heterogeneity
 from hyper.model.protocols import Protocol
 from hyper.runs import driver as run
-from hyper.runs import fidelity, measured, sequence
+from hyper.runs import fidelity, locks, measured, runspec, sequence
 
 KEYS = ("geometries", "protocols", "mesh", "protocol", "signaling", "material", "heterogeneity", "numerics",
         "output", "sobol", "data")
@@ -135,8 +135,8 @@ class Numerics:
         q = self.quadrature_degree
         if q is not None and (isinstance(q, bool) or not isinstance(q, int) or not 1 <= q <= 12):
             raise InputError(f"expected an integer in [1, 12], got {q!r}", field="quadrature_degree")
-        if self.linear_solver is not None and self.linear_solver not in run.LINEAR_SOLVERS:
-            raise InputError(f"expected one of {', '.join(run.LINEAR_SOLVERS)}, got {self.linear_solver!r}",
+        if self.linear_solver is not None and self.linear_solver not in runspec.LINEAR_SOLVERS:
+            raise InputError(f"expected one of {', '.join(runspec.LINEAR_SOLVERS)}, got {self.linear_solver!r}",
                              field="linear_solver")
         m = self.max_halvings
         if isinstance(m, bool) or not isinstance(m, int) or not 0 <= m <= GrowthSettings.MAX_HALVINGS:
@@ -173,7 +173,7 @@ class Study:
     """A checked study: what runs, with which parameters, how solved and where written."""
 
     geometries: tuple[str, ...]  # built-in geometry ids
-    meshes: tuple[run.MeshFile, ...]  # the user's mesh files
+    meshes: tuple[runspec.MeshFile, ...]  # the user's mesh files
     protocols: tuple[Protocol, ...]
     signaling: signaling.SignalingParams = signaling.SignalingParams()
     material: mat.MaterialParams = mat.MaterialParams()
@@ -255,18 +255,18 @@ def named_protocol(text: str, base: Path, where: str) -> list[Protocol]:
     return [protocols.load(path)]
 
 
-def mesh_file(entry: dict, base: Path, where: str) -> run.MeshFile:
+def mesh_file(entry: dict, base: Path, where: str) -> runspec.MeshFile:
     keys_of(entry, where, MESH_KEYS)
     if not isinstance(entry.get("file"), str):
         raise InputError(f"{where}: file: expected the path of an XDMF mesh file, got {entry.get('file')!r}")
     unit = entry.get("unit", "m")
-    if unit not in run.MESH_UNITS:
-        raise InputError(f"{where}: unit: expected one of {', '.join(run.MESH_UNITS)}, got {unit!r}")
+    if unit not in runspec.MESH_UNITS:
+        raise InputError(f"{where}: unit: expected one of {', '.join(runspec.MESH_UNITS)}, got {unit!r}")
     path = base / entry["file"]
     if not path.is_file():
         raise InputError(f"{where}: file: {path}: no such file")
     try:
-        return run.MeshFile(path, unit)
+        return runspec.MeshFile(path, unit)
     except InputError as err:
         raise InputError(f"{where}: {err}") from None
 
@@ -364,7 +364,7 @@ def parser() -> cli.Parser:
     p.add_argument("--accuracy", type=float, help="fidelity choice of the steps; overrides [numerics] accuracy")
     p.add_argument("--signaling-dt", type=float, help="RK4 step (h); overrides [numerics] signaling_dt")
     p.add_argument("--quadrature-degree", type=cli.integer(1, 12), help="overrides [numerics] quadrature_degree")
-    p.add_argument("--linear-solver", choices=run.LINEAR_SOLVERS, help="overrides [numerics] linear_solver")
+    p.add_argument("--linear-solver", choices=runspec.LINEAR_SOLVERS, help="overrides [numerics] linear_solver")
     p.add_argument("--max-halvings", type=cli.integer(0), help="overrides [numerics] max_halvings")
     p.add_argument("--snapshot-every", type=cli.positive("hours"), metavar="HOURS",
                    help="fields snapshot every HOURS of simulated time; overrides [output] snapshot_every")
@@ -417,14 +417,14 @@ def spec_options(study: Study, choice) -> dict:
 def check_inputs(comm, study: Study) -> None:
     """The geometries can run and the mesh files have the units they declare (collective)."""
     for name in study.geometries:
-        run.check_geometry(comm, name, "geometries")
+        runspec.check_geometry(comm, name, "geometries")
     for mesh in study.meshes:
         mesh.load(comm)
 
 
-def first_spec(study: Study, settings, choice) -> run.RunSpec:
+def first_spec(study: Study, settings, choice) -> runspec.RunSpec:
     """The run of the first geometry with the first protocol."""
-    return run.RunSpec(study.names[0], study.protocols[0], study.signaling, settings, {},
+    return runspec.RunSpec(study.names[0], study.protocols[0], study.signaling, settings, {},
                        mesh=study.meshes[0] if study.meshes else None, **spec_options(study, choice))
 
 
@@ -433,7 +433,7 @@ def one_run(comm, study: Study, settings, choice, stop, command, progress_every:
     name, protocol = study.names[0], study.protocols[0]
     folder = study.output.folder
     spec = first_spec(study, settings, choice)
-    outputs = [run.Outputs(folder / f"{name}_{protocol.name}.h5")]
+    outputs = [runspec.Outputs(folder / f"{name}_{protocol.name}.h5")]
     sequence.refuse_foreign_checkpoints(comm, [spec], outputs)
     work = sequence.Plan([spec], outputs, folder / f"{name}_growth.png", study.output.snapshot_every,
                          run.CHECKPOINT_EVERY, False, choice, data=study.data, progress_every=progress_every)
@@ -448,7 +448,7 @@ def many_runs(comm, study: Study, settings, choice, stop, ranks_per_job: int,
         raise InputError(f"--ranks-per-job must divide the number of MPI ranks ({comm.size}), got {ranks_per_job}")
     folder = study.output.folder
     runs = cohort.plan(study.names, list(study.protocols), {m.path.stem: m for m in study.meshes})
-    with cli.hold(comm, [folder]):
+    with locks.hold(comm, [folder]):
         info(comm, f"study: {len(runs)} runs ({len(study.names)} geometries × {len(study.protocols)} protocols) "
                    f"on {comm.size} rank(s) in groups of {ranks_per_job}, growth step {settings.growth_dt:g} h, "
                    f"output {folder}")

@@ -11,11 +11,11 @@ from dolfinx import fem
 from mpi4py import MPI
 
 from hyper.commands import cli
+from hyper.core import io
 from hyper.core.log import info
 from hyper.core.params import InputError
 from hyper.fem.boxsection import OUTSIDE, BoxSection
-from hyper.runs import driver as run
-from hyper.runs import io
+from hyper.runs import runspec
 
 JOB = """hyper box: the original code's box CSA (hyper.box, MODEL.md §9) of a stored growth
 run, re-measured on its saved displacement snapshots by each rule for the box nodes
@@ -39,7 +39,7 @@ def parser() -> cli.Parser:
     p.add_argument("result", type=Path, metavar="RESULT.h5",
                    help="a growth result file, with its RESULT_fields.xdmf beside it")
     p.add_argument("--mesh", type=Path, help="the run's own XDMF mesh, where it ran on one (grow --mesh)")
-    p.add_argument("--mesh-unit", default="m", choices=tuple(run.MESH_UNITS), help="length unit of --mesh")
+    p.add_argument("--mesh-unit", default="m", choices=tuple(runspec.MESH_UNITS), help="length unit of --mesh")
     p.add_argument("--output", type=cli.output(folder=False, suffixes=(".h5",)),
                    help="an HDF5 file for the re-measured series (none: the table alone)")
     return p
@@ -71,17 +71,17 @@ def remeasure(comm, result: Path, mesh_file: Path | None = None, unit: str = "m"
     with h5py.File(result, "r") as f:
         geometry = str(f.attrs.get("geometry", ""))
     series = io.read_series(result)
-    fields = run.Outputs(result).fields
+    fields = runspec.Outputs(result).fields
     if not fields.is_file():
         raise InputError(f"{result}: its snapshots {fields} are not there")
     if mesh_file is not None:
-        mesh = run.MeshFile(mesh_file, unit).load(comm).mesh
+        mesh = runspec.MeshFile(mesh_file, unit).load(comm).mesh
     else:
         from hyper.fem import geometry as geo
 
         if geometry not in geo.GEOMETRIES:
             raise InputError(f"{result}: ran on {geometry!r}, not a built-in geometry; give its mesh with --mesh")
-        run.check_geometry(comm, geometry, option=f"{result}'s geometry")
+        runspec.check_geometry(comm, geometry, option=f"{result}'s geometry")
         mesh = geo.load(geometry, comm).mesh
     nodes, snapshots = io.read_point_field(fields, "u")
     u = fem.Function(fem.functionspace(mesh, ("Lagrange", 1, (3,))))  # the snapshots' space

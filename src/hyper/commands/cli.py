@@ -21,11 +21,13 @@ import re
 import signal
 import sys
 import traceback
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
 
+from hyper.core.log import error
 from hyper.core.params import InputError
+from hyper.runs.locks import Busy, hold
 
 EXIT_OK = 0
 EXIT_SOME_FAILED = 1
@@ -198,17 +200,6 @@ def setup_logging(world_rank: int, *, quiet: bool = False, verbose: bool = False
     return logger
 
 
-def error(comm, message: str) -> None:
-    """The one line a bad input gets: on rank 0 of ``comm``, on stderr."""
-    if comm is None or comm.rank == 0:
-        print(f"error: {message}", file=sys.stderr, flush=True)
-
-
-def warning(comm, message: str) -> None:
-    if comm is None or comm.rank == 0:
-        print(f"warning: {message}", file=sys.stderr, flush=True)
-
-
 def petsc_option(text: str) -> tuple[str, str]:
     """KEY=VALUE of a --petsc-option, the key without dash or prefix (they are the solver's)."""
     key, sep, value = text.partition("=")
@@ -216,38 +207,6 @@ def petsc_option(text: str) -> tuple[str, str]:
         raise InputError(f"--petsc-option {text!r}: expected KEY=VALUE with a PETSc option name without "
                          "its dash and prefix, e.g. snes_max_it=50")
     return key, value
-
-
-# -------------------------------------------------------------------------------- locks
-
-
-@contextlib.contextmanager
-def hold(comm, outputs: list[Path]) -> Iterator[None]:
-    """Hold the output locks of ``outputs`` on rank 0 while the block runs (collective).
-
-    Raises `checkpoint.Busy` on every rank when another run holds one of them.
-    """
-    from hyper.runs import checkpoint as ckpt
-
-    with contextlib.ExitStack() as held:
-        busy = unlocked = None
-        broken = None
-        if comm.rank == 0:
-            try:
-                unlocked = held.enter_context(ckpt.locked(list(outputs)))
-            except ckpt.Busy as err:
-                busy = str(err)
-            except OSError as err:  # e.g. the lock's name is a folder, or its folder unwritable
-                broken = f"cannot take the output lock: {err}"
-        busy, broken = comm.bcast((busy, broken), root=0)
-        if broken is not None:
-            raise InputError(broken)
-        if busy is not None:
-            raise ckpt.Busy(busy)
-        for path in unlocked or ():
-            warning(comm, f"{path}: the file system takes no locks; nothing keeps another run from writing "
-                          "the same output")
-        yield
 
 
 # ---------------------------------------------------------------------------- the entry
@@ -264,7 +223,6 @@ def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool 
     """
 
     def main(argv=None, comm=None) -> int:
-        from hyper.runs import checkpoint as ckpt
 
         argv = sys.argv[1:] if argv is None else list(argv)
         if comm is None and world:
@@ -279,7 +237,7 @@ def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool 
             error(comm, str(err))
             return EXIT_INPUT
         setup_logging(rank, quiet=args.quiet, verbose=args.verbose)
-        from hyper.runs import io
+        from hyper.core import io
 
         io.record_command([*made.prog.split(), *argv])
         try:
@@ -288,7 +246,7 @@ def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool 
         except InputError as err:
             error(comm, str(err))
             return EXIT_INPUT
-        except ckpt.Busy as err:
+        except Busy as err:
             error(comm, str(err))
             return EXIT_BUSY
         except Exception:

@@ -40,11 +40,12 @@ from pathlib import Path
 
 from hyper.commands import cli
 from hyper.commands.signaling import answer, method_option
+from hyper.core import io, log
 from hyper.core.log import info
 from hyper.core.params import InputError
 from hyper.model import material, protocols, signaling
 from hyper.runs import driver as run
-from hyper.runs import fidelity, io, measured, presets, sequence
+from hyper.runs import fidelity, measured, presets, runspec, sequence
 from hyper.runs.checkpoint import on_rank0
 
 SIGNALING_SAMPLE_EVERY = 0.5  # h, the series of --ask signaling, as hyper signaling samples it
@@ -85,7 +86,7 @@ def parser(ask: str = "growth") -> cli.Parser:
     p.add_argument("--geometry", help="geometry id (idealized, cylinder, BFLH_VHF_Left, …); idealized by default")
     p.add_argument("--mesh", type=Path, help="your own tetrahedral XDMF mesh instead of --geometry (facet tags "
                    "'ft_small': 1, 2 the ends, 3 the side; fibres along its principal axis)")
-    p.add_argument("--mesh-unit", help=f"length unit of --mesh ({' or '.join(run.MESH_UNITS)}); m by default")
+    p.add_argument("--mesh-unit", help=f"length unit of --mesh ({' or '.join(runspec.MESH_UNITS)}); m by default")
     scene_options(p)
     p.add_argument("--output", type=cli.output(), default="results/grow", help="an .h5 file (one protocol) or a folder")
     p.add_argument("--material", type=Path, metavar="F.toml",
@@ -96,7 +97,7 @@ def parser(ask: str = "growth") -> cli.Parser:
     presets.add_options(p, signaling_method=False)
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run stops")
-    p.add_argument("--linear-solver", choices=run.LINEAR_SOLVERS, help="MUMPS LU, GMRES with MUMPS's block "
+    p.add_argument("--linear-solver", choices=runspec.LINEAR_SOLVERS, help="MUMPS LU, GMRES with MUMPS's block "
                    "low-rank LU (less memory, same answer) or auto (LU while it fits); lu, or auto with --accuracy")
     p.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
                    help="a PETSc option of the mechanics solver, e.g. snes_max_it=50 (repeatable)")
@@ -164,10 +165,10 @@ def plan_from(comm, args) -> sequence.Plan:
         raise InputError("--geometry and --mesh exclude each other: give one of them")
     if args.mesh_unit is not None and args.mesh is None:
         raise InputError("--mesh-unit declares the length unit of a --mesh file; there is none")
-    mesh = run.MeshFile(args.mesh, args.mesh_unit or "m") if args.mesh is not None else None
+    mesh = runspec.MeshFile(args.mesh, args.mesh_unit or "m") if args.mesh is not None else None
     name = args.mesh.stem if mesh is not None else (args.geometry if args.geometry is not None else "idealized")
     if mesh is None:
-        run.check_geometry(comm, name)
+        runspec.check_geometry(comm, name)
     runs = protocols.from_option(args.protocol)
     params = signaling.load_params(args.params) if args.params else signaling.SignalingParams()
     muscle = material.load(args.material) if args.material else material.MaterialParams()
@@ -211,12 +212,13 @@ def plan_from(comm, args) -> sequence.Plan:
         mesh.load(comm)  # units and tags, before anything is written
     solver = args.linear_solver or ("auto" if args.accuracy is not None else "lu")
     shape = presets.shape(args, [name])
-    specs = [run.RunSpec(name, p, params, settings, petsc_options, mesh=mesh, linear_solver=solver, choice=choice,
+    specs = [runspec.RunSpec(name, p, params, settings, petsc_options, mesh=mesh, linear_solver=solver, choice=choice,
                          **shape, material=muscle) for p in runs]
     if not args.restart:
-        sequence.refuse_foreign_checkpoints(comm, specs, [run.Outputs(h5) for h5 in results])
-    return sequence.Plan(specs, [run.Outputs(h5) for h5 in results], plot, args.snapshot_every, args.checkpoint_every,
-                args.restart, choice, box_plots(args.plot_box, runs), data=data, progress_every=args.progress_every)
+        sequence.refuse_foreign_checkpoints(comm, specs, [runspec.Outputs(h5) for h5 in results])
+    outputs = [runspec.Outputs(h5) for h5 in results]
+    return sequence.Plan(specs, outputs, plot, args.snapshot_every, args.checkpoint_every, args.restart,
+                         choice, box_plots(args.plot_box, runs), data=data, progress_every=args.progress_every)
 
 
 def answer_signaling(comm, args) -> int:
@@ -232,7 +234,7 @@ def answer_signaling(comm, args) -> int:
         on_rank0(comm, lambda: answer(comm, runs, paths, params, choice.signaling_dt, SIGNALING_SAMPLE_EVERY,
                                       groups={"fidelity": choice.as_attributes()}, method=method))
     except signaling.SignalingError as err:
-        cli.error(comm, str(err))
+        log.error(comm, str(err))
         return cli.EXIT_FAILED
     return cli.EXIT_OK
 

@@ -19,6 +19,7 @@ from hyper.model import protocols
 from hyper.model.signaling.integrators import METHODS, SMALLEST_DT, SMALLEST_SAMPLE, SignalingError, first_day
 from hyper.model.signaling.integrators import run as series
 from hyper.model.signaling.params import load_params
+from hyper.runs import locks
 from hyper.runs.checkpoint import on_rank0
 
 METHOD_HELP = ("rk4: classical RK4 with steps landing on every switch (converged at 0.05 h); rk45-original: "
@@ -54,7 +55,7 @@ def write(path: Path, series: dict, params, protocol, dt: float, sample_every: f
           method: str = "rk4") -> None:
     """A signaling result: the series, the integrator's settings, parameters and protocol
     (and any other attribute ``groups``, e.g. a fidelity choice)."""
-    from hyper.runs import io
+    from hyper.core import io
 
     io.write_series(
         path, series,
@@ -80,7 +81,7 @@ def answer(comm, runs: list, paths: list[Path], params, dt: float, sample_every:
 
 
 def run(comm, args) -> int:
-    from hyper.runs import io
+    from hyper.core import io
 
     dt = positive_hours(args.signaling_dt, "--signaling-dt", SMALLEST_DT)
     sample_every = positive_hours(args.sample_every, "--sample-every", SMALLEST_SAMPLE)
@@ -101,10 +102,10 @@ def run(comm, args) -> int:
 
     # The ODEs of a few protocols take seconds: rank 0 alone integrates and writes them.
     try:
-        with cli.hold(comm, paths):
+        with locks.hold(comm, paths):
             on_rank0(comm, work)
     except SignalingError as err:
-        cli.error(comm, str(err))
+        log.error(comm, str(err))
         return cli.EXIT_FAILED
     return cli.EXIT_OK
 

@@ -7,6 +7,7 @@ filtered to rank 0 of the communicator each message names).
 from __future__ import annotations
 
 import logging
+import sys
 import time
 
 _logger = logging.getLogger("hyper")
@@ -57,3 +58,14 @@ class Progress:
             self.comm,
             f"{self.label}: {100 * frac:5.1f}% {detail} | elapsed {hms(elapsed)}, left {left_txt}",
         )
+
+
+def error(comm, message: str) -> None:
+    """The one line a bad input gets: on rank 0 of ``comm``, on stderr."""
+    if comm is None or comm.rank == 0:
+        print(f"error: {message}", file=sys.stderr, flush=True)
+
+
+def warning(comm, message: str) -> None:
+    if comm is None or comm.rank == 0:
+        print(f"warning: {message}", file=sys.stderr, flush=True)

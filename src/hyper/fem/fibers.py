@@ -335,7 +335,7 @@ def load(geometry: geo.Geometry, path: str | Path | None = None) -> fem.Function
     """
     import h5py
 
-    from hyper.runs.io import is_complete
+    from hyper.core.io import is_complete
 
     path = Path(path) if path is not None else fiber_path(geometry.name)
     comm = geometry.comm
@@ -552,8 +552,8 @@ def parser() -> cli.Parser:
 
 def _work(args, params: StokesParams):
     """The farm job for one geometry: fibres (computed or read back), file, picture."""
+    from hyper.core.io import is_complete, write_series
     from hyper.runs import plot
-    from hyper.runs.io import is_complete, write_series
 
     def work(comm, job):
         name = job.key
@@ -602,7 +602,7 @@ def _stored_stats(path: Path) -> dict:
 def _write_summary(path: Path, names, fiber_paths, results) -> list[dict]:
     import csv
 
-    from hyper.runs.io import atomic_path
+    from hyper.core.io import atomic_path
 
     rows = []
     for name, fibers, result in zip(names, fiber_paths, results):
@@ -621,9 +621,9 @@ def _write_summary(path: Path, names, fiber_paths, results) -> list[dict]:
 
 
 def run(comm, args) -> int:
+    from hyper.core.io import is_complete
     from hyper.core.log import info
     from hyper.runs import farm
-    from hyper.runs.io import is_complete
 
     unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
     if unknown:

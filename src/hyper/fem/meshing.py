@@ -582,12 +582,12 @@ def build(args) -> dict:
 
 
 def run(comm, args) -> int:
+    from hyper.core.io import atomic_path, write_series
     from hyper.core.log import info
     from hyper.core.params import as_attributes
     from hyper.fem import fibers, meshstats
     from hyper.fem import geometry as geo
     from hyper.runs import plot
-    from hyper.runs.io import atomic_path, write_series
 
     out = args.output
     name = out.name

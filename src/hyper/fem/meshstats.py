@@ -141,8 +141,8 @@ def parser() -> cli.Parser:
 
 
 def run(comm, args) -> int:
+    from hyper.core.io import atomic_path
     from hyper.runs import plot
-    from hyper.runs.io import atomic_path
 
     unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
     if unknown:

@@ -1,7 +1,7 @@
 """Checkpoints of a coupled run, run digests, output locks and status files.
 
 Checkpoint file (HDF5, one per run, ``{result stem}.ckpt.h5``). Rank 0 gathers the
-state and writes it through `hyper.runs.io.atomic_path` (temporary name, fsync, rename):
+state and writes it through `hyper.core.io.atomic_path` (temporary name, fsync, rename):
 a kill during the write leaves the previous checkpoint in place, never half a file.
 
     attrs       kind, format, run_digest (the run it belongs to), step, t, segments,
@@ -25,24 +25,19 @@ checkpoint is resumed only by a run with the same digest.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import datetime
-import errno
-import fcntl
 import hashlib
 import json
 import math
-import os
-import socket
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from hyper.core import io
 from hyper.core.params import InputError
-from hyper.runs import io
 
 if TYPE_CHECKING:
     from hyper.fem.coupled import CoupledModel
@@ -366,90 +361,6 @@ def restore_model(model: CoupledModel, rows: Callable[[str], np.ndarray | None],
             arrays.append(a)
         model.jacobian.restore_secants(arrays, np.asarray(glob["secant_multipliers"], dtype=float))
     model.resumed = True
-
-
-# ------------------------------------------------------------------------------- locks
-
-
-class Busy(RuntimeError):
-    """Another process holds the lock of an output."""
-
-
-class OutputLock:
-    """An exclusive lock (fcntl.flock) on ``{output}.lock``, for one process at a time.
-
-    Taken without waiting: a second run on the same output gets `Busy`, with the
-    holder's host, pid and start time, which the holder writes into the file. The lock
-    file is removed on release; a lock taken on a file that was removed meanwhile is
-    taken again on the new file, so the removal never lets two holders in.
-    """
-
-    def __init__(self, output: Path):
-        self.path = Path(str(output) + ".lock")
-        self._fd: int | None = None
-        self._made: list[Path] = []  # the folders made for the lock, innermost first
-
-    def acquire(self) -> bool:
-        """Take the lock; False where the file system has no locks (then none is held)."""
-        missing = self.path.parent
-        while not missing.exists():
-            self._made.append(missing)
-            missing = missing.parent
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        while True:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = os.read(fd, 4096).decode(errors="replace").strip() or "unknown process"
-                os.close(fd)
-                raise Busy(f"{self.path}: another run is writing this output ({holder}); "
-                           "wait for it to finish, or choose another --output") from None
-            except OSError as err:  # e.g. a Lustre mount without flock support
-                if err.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
-                    os.close(fd)
-                    raise
-                os.close(fd)
-                self.path.unlink(missing_ok=True)
-                return False
-            try:
-                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
-            except FileNotFoundError:
-                same = False
-            if same:
-                break
-            os.close(fd)
-        os.ftruncate(fd, 0)
-        started = datetime.datetime.now().isoformat(timespec="seconds")
-        os.write(fd, f"host {socket.gethostname()}, pid {os.getpid()}, since {started}\n".encode())
-        self._fd = fd
-        return True
-
-    def release(self) -> None:
-        """Let go, and remove the folders made for the lock that nothing else filled: a run
-        that stopped on bad input leaves no trace."""
-        if self._fd is not None:
-            self.path.unlink(missing_ok=True)
-            os.close(self._fd)
-            self._fd = None
-        for folder in self._made:
-            try:
-                folder.rmdir()
-            except OSError:  # not empty: the run wrote there
-                break
-        self._made = []
-
-
-@contextlib.contextmanager
-def locked(outputs: list[Path]) -> Iterator[list[Path]]:
-    """Hold the locks of all ``outputs`` (call on one rank); Busy if any is held.
-    Yields the lock files that could not be taken because the file system has no locks."""
-    locks = [OutputLock(p) for p in outputs]
-    try:
-        yield [lock.path for lock in locks if not lock.acquire()]
-    finally:
-        for lock in reversed(locks):
-            lock.release()
 
 
 # ------------------------------------------------------------------------ status files

@@ -28,7 +28,9 @@ from pathlib import Path
 import numpy as np
 
 from hyper.commands import cli
+from hyper.core import log
 from hyper.core.params import InputError, as_attributes
+from hyper.runs import locks, runspec
 
 SERIES = ("alpha", "end_force", "spring_force", "reaction_force_original", "reaction_force_current",
           "newton_iterations", "volume_ratio", "stretch_min", "stretch_max", "wall_s")
@@ -146,11 +148,11 @@ def plot(path: Path, series: dict, title: str) -> None:
 
 def contract(comm, args) -> dict:
     """The activation ramp of the job's ``args`` on ``comm``: the series (and the files)."""
+    from hyper.core import io
     from hyper.core.log import Progress, info
     from hyper.fem import fibers
     from hyper.fem import geometry as geo
     from hyper.fem.mechanics import MechanicsProblem
-    from hyper.runs import io
 
     original = args.fibers in fibers.UNNORMALISED_KINDS
     geometry = geo.load(args.geometry, comm, quadrature_degree=args.quadrature_degree, ends=args.ends,
@@ -183,7 +185,6 @@ def contract(comm, args) -> dict:
                                f"λ in [{lo:.4f}, {hi:.4f}], {iterations} Newton its"
                                + (f" ({halvings} halvings)" if halvings else ""), force=True)
     from hyper.runs import checkpoint
-    from hyper.runs import driver as run
 
     attrs = {
         "geometry": args.geometry,
@@ -195,7 +196,7 @@ def contract(comm, args) -> dict:
         "end_axis": problem.end_axis,
         "surface_quadrature_degree": "estimated" if geometry.estimated_surface_degree else geometry.quadrature_degree,
         "mesh_sha256": checkpoint.on_rank0(comm, lambda: checkpoint.file_digest(
-            *run.mesh_files(geo.MESHES_DIR / geo.GEOMETRIES[args.geometry]))),
+            *runspec.mesh_files(geo.MESHES_DIR / geo.GEOMETRIES[args.geometry]))),
         "cells": geometry.num_cells(),
         "unknowns": problem.num_dofs,
         "ranks": comm.size,
@@ -235,10 +236,10 @@ def run(comm, args) -> int:
     if args.petsc:
         PETSc.Options().insertString(" ".join(args.petsc))
     try:
-        with cli.hold(comm, [args.output]):
+        with locks.hold(comm, [args.output]):
             series = contract(comm, args)
     except SolverError as err:
-        cli.error(comm, f"{err} (after {args.max_halvings} step halvings)")
+        log.error(comm, f"{err} (after {args.max_halvings} step halvings)")
         return cli.EXIT_SOME_FAILED
     info(comm, f"end force at α = 1: {series['end_force'][-1]:.6f} N (spring {series['spring_force'][-1]:.6f} N; "
                f"the original's ∫(σN)·N dA {series['reaction_force_original'][-1]:.7f} N); "

@@ -6,14 +6,14 @@ and a seed), the growth settings and the PETSc options; its SHA-256 `digest` nam
 result, and a checkpoint is resumed only by the run with the same digest. `Outputs`
 derives the files of a run from its result path:
 
-    RESULT.h5             the time series (hyper.runs.io.write_series), written when done
+    RESULT.h5             the time series (hyper.core.io.write_series), written when done
     RESULT_fields.xdmf    snapshots of u, det Ḡ and a0 (and N with per-cell signaling) every
                           --snapshot-every simulated hours and at the end: one temporal
-                          series of grids, each with every field (hyper.runs.io.one_grid)
+                          series of grids, each with every field (hyper.core.io.one_grid)
     RESULT.ckpt.h5        the whole state, every --checkpoint-every growth steps, at the
                           first step boundary after a SIGTERM and when a step fails
     RESULT.status.json    why an unfinished run stopped, and how to resume it
-    RESULT.h5.lock        held while a run writes (hyper.commands.cli.hold)
+    RESULT.h5.lock        held while a run writes (hyper.runs.locks.hold)
 
 `execute` runs the model (`hyper.fem.coupled.CoupledModel.run`, which writes no files)
 and records it: `Series` keeps the time series, `Snapshots` the XDMF fields, both
@@ -30,19 +30,19 @@ import dataclasses
 import math
 import signal
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from mpi4py import MPI
 
+from hyper.core import io
 from hyper.core.log import PROGRESS_EVERY, Progress, info
-from hyper.core.params import InputError, as_attributes
+from hyper.core.params import as_attributes
 from hyper.model import signaling
-from hyper.model.material import MaterialParams
-from hyper.model.protocols import Protocol
 from hyper.runs import checkpoint as ckpt
-from hyper.runs import fidelity, io, provenance
+from hyper.runs import fidelity, provenance
+from hyper.runs.runspec import Outputs, RunSpec
 
 # growth steps. A checkpoint with the Newton state of BFLH_VHF_Left (8512 cells) takes longer
 # to write than a step takes to solve: `python -m hyper.bench speed` put the I/O of its kept run
@@ -50,12 +50,7 @@ from hyper.runs import fidelity, io, provenance
 CHECKPOINT_EVERY = 25
 SNAPSHOT_EVERY = 24.0  # h of simulated time: a 9-week run writes 64 snapshots
 SERIES = ("t", "csa_ratio", "volume_ratio", "kM", *signaling.STATES, "newton_iterations", "halvings", "wall_s")
-LINEAR_SOLVERS = ("lu", "iterative", "auto")
 
-MESH_UNITS = {"m": 1.0, "mm": 1.0e-3}
-# A muscle's longest side: the paper's are 0.1-0.45 m. Outside this, the declared unit
-# is wrong (a file in millimetres read as metres is ~1000x too long).
-MUSCLE_LENGTH_M = (0.01, 1.0)
 
 
 class Unsaved(RuntimeError):
@@ -71,250 +66,6 @@ class Interrupted(RuntimeError):
         self.step = step
         self.t = t
         self.checkpoint = checkpoint
-
-
-# ------------------------------------------------------------------------- what a run is
-
-
-def mesh_files(path: Path) -> list[Path]:
-    """A mesh file and, for XDMF, its HDF5 data: what a mesh's SHA-256 hashes."""
-    data = path.with_suffix(".h5")
-    return [path] + ([data] if path.suffix == ".xdmf" and data.is_file() else [])
-
-
-@dataclasses.dataclass(frozen=True)
-class MeshFile:
-    """A user's tetrahedral XDMF mesh with facet tags ``tags``: 1 and 2 the ends, 3 the
-    lateral surface (the anatomical meshes' convention); lengths in ``unit``."""
-
-    path: Path
-    unit: str = "m"
-    tags: str = "ft_small"
-
-    def __post_init__(self):
-        if self.unit not in MESH_UNITS:
-            raise InputError(f"--mesh-unit: expected one of {', '.join(MESH_UNITS)}, got {self.unit!r}")
-        if Path(self.path).suffix != ".xdmf":
-            raise InputError(f"{self.path}: expected an XDMF mesh file (.xdmf with its .h5), "
-                             f"got {Path(self.path).suffix!r}")
-
-    def load(self, comm):
-        from hyper.fem import geometry as geo
-
-        geometry = geo.load_file(self.path, comm, name=self.path.stem, tags=self.tags, ends=(1, 2), lateral=3,
-                                 scale=MESH_UNITS[self.unit])
-        x = geometry.mesh.geometry.x
-        lo, hi = np.empty(3), np.empty(3)
-        comm.Allreduce(x.min(axis=0) if len(x) else np.full(3, np.inf), lo, op=MPI.MIN)
-        comm.Allreduce(x.max(axis=0) if len(x) else np.full(3, -np.inf), hi, op=MPI.MAX)
-        length = float(np.max(hi - lo))
-        low, high = MUSCLE_LENGTH_M
-        if not low <= length <= high:
-            in_file = length / MESH_UNITS[self.unit]
-            raise InputError(
-                f"{self.path}: the mesh is {in_file:g} {self.unit} long (longest side of its bounding box), "
-                f"i.e. {length:g} m, outside the {low:g}-{high:g} m of a muscle: its length unit is not "
-                f"{self.unit!r}; declare the file's unit with --mesh-unit ({' or '.join(MESH_UNITS)})"
-            )
-        return geometry
-
-    def identity(self) -> dict:
-        return {"mesh_sha256": ckpt.file_digest(*mesh_files(self.path)), "unit": self.unit, "tags": self.tags}
-
-
-def check_geometry(comm, name: str, option: str = "--geometry") -> None:
-    """A built-in geometry that can run: known, its mesh file there, and (anatomical
-    meshes) its fibre field computed. Collective (rank 0 looks at the files)."""
-    from hyper.fem import fibers
-    from hyper.fem import geometry as geo
-
-    if name not in geo.GEOMETRIES:
-        raise InputError(f"{option}: unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
-    path = geo.MESHES_DIR / geo.GEOMETRIES[name]
-    if not ckpt.on_rank0(comm, path.is_file):
-        raise InputError(f"{option} {name}: {path}: no such mesh file")
-    fibres = fibers.fiber_path(name) if name in geo.ANATOMICAL + geo.MESHED else None
-    if fibres is not None and not ckpt.on_rank0(comm, lambda: io.is_complete(fibres)):
-        raise InputError(f"{option} {name}: {fibres}: no complete fibre file; compute it with "
-                         f"`hyper fibers --geometries {name}`")
-
-
-@dataclasses.dataclass(frozen=True)
-class RunSpec:
-    """Everything that defines one run's result, and how it is solved."""
-
-    geometry: str  # a built-in geometry id, or the stem of ``mesh``
-    protocol: Protocol
-    params: signaling.SignalingParams = signaling.SignalingParams()
-    settings: object = None  # GrowthSettings; None: the defaults
-    petsc_options: Mapping = dataclasses.field(default_factory=dict)
-    mesh: MeshFile | None = None
-    # per-cell signaling parameters: p0 (1 + ε ξ) drawn from this model with this seed
-    heterogeneity: object = None  # hyper.model.heterogeneity.Heterogeneity
-    seed: int | None = None
-    # how the Newton steps are solved: "lu", "iterative" or "auto" (by memory); all give
-    # the answer to the Newton tolerance, so the choice is not part of the digest
-    linear_solver: str = "lu"
-    # the fidelity choice (--accuracy) that set the steps; "auto" completes it with the solver
-    choice: fidelity.Choice | None = None
-    # the discretisation: uniform refinements of the mesh, and the quadrature degree
-    # (None: the geometry's own, 4)
-    refine: int = 0
-    quadrature_degree: int | None = None
-    # the original code's idealized shape (MODEL.md §9): its end tags ("tags") and its
-    # fibres ("original": P2 used as they are, surface integrals at UFL's estimated degree)
-    ends: str = "disks"
-    fibers: str = "auto"
-    material: MaterialParams = MaterialParams()  # the muscle law's parameters (--material)
-
-    def __post_init__(self):
-        if self.settings is None:
-            from hyper.fem.coupled import GrowthSettings
-
-            object.__setattr__(self, "settings", GrowthSettings())
-        if self.linear_solver not in LINEAR_SOLVERS:
-            raise InputError(f"--linear-solver: expected one of {', '.join(LINEAR_SOLVERS)}, "
-                             f"got {self.linear_solver!r}")
-        if (self.heterogeneity is None) != (self.seed is None):
-            raise InputError("per-cell parameters need both a heterogeneity model and a seed")
-        if isinstance(self.refine, bool) or not isinstance(self.refine, int) or self.refine < 0:
-            raise InputError(f"expected an integer >= 0, got {self.refine!r}", field="refine")
-        if self.quadrature_degree is not None and not (isinstance(self.quadrature_degree, int)
-                                                       and 1 <= self.quadrature_degree <= 12):
-            raise InputError(f"expected an integer in [1, 12], got {self.quadrature_degree!r}",
-                             field="quadrature_degree")
-
-    @property
-    def label(self) -> str:
-        return f"{self.geometry}/{self.protocol.name}"
-
-    def describe(self) -> dict:
-        """What the digest hashes: geometry, protocol, parameters, settings, solver options."""
-        described = {k: ("per cell" if isinstance(v, np.ndarray) else v) for k, v in as_attributes(self.params).items()}
-        # the files' bytes, not only the name: a mesh remade in place (`hyper mesh --force`,
-        # `make new-meshes`) is another run, not one whose result is already there
-        geometry = ({"name": self.geometry, "sha256": ckpt.file_digest(*self.input_files())}
-                    if self.mesh is None else self.mesh.identity())
-        out = {
-            "geometry": geometry,
-            "protocol": self.protocol.to_attributes(),
-            "params": described,
-            "settings": self.settings.model_attributes(),
-            "petsc_options": dict(self.petsc_options),
-        }
-        if self.heterogeneity is not None:
-            out["heterogeneity"] = {**self.heterogeneity.attributes(), "seed": self.seed}
-        # only where they differ from the defaults, so that the digests of default runs stay
-        if self.refine:
-            out["refine"] = self.refine
-        if self.quadrature_degree is not None:
-            out["quadrature_degree"] = self.quadrature_degree
-        if self.ends != "disks":
-            out["ends"] = self.ends
-        if self.fibers != "auto":
-            out["fibers"] = self.fibers
-        if self.material != MaterialParams():
-            out["material"] = as_attributes(self.material)
-        return out
-
-    def digest(self) -> str:
-        return ckpt.digest(self.describe())
-
-    def mesh_files(self) -> list[Path]:
-        """The files of this run's mesh (`mesh_files`)."""
-        if self.mesh is not None:
-            return mesh_files(Path(self.mesh.path))
-        from hyper.fem import geometry as geo
-
-        return mesh_files(geo.MESHES_DIR / geo.GEOMETRIES[self.geometry])
-
-    def input_files(self) -> list[Path]:
-        """The files a built-in geometry's run reads: its mesh and, beside it, its Stokes fibres."""
-        from hyper.fem import fibers
-
-        files = self.mesh_files()
-        stored = files[0].parent / fibers.FILE_NAME
-        return files + ([stored] if self.mesh is None and stored.is_file() else [])
-
-    def load_geometry(self, comm):
-        from hyper.fem import geometry as geo
-
-        if self.mesh is not None:
-            if self.refine or self.quadrature_degree is not None or (self.ends, self.fibers) != ("disks", "auto"):
-                raise InputError("refinement, quadrature degree, ends and fibres apply to the built-in geometries only")
-            return self.mesh.load(comm)
-        kwargs = {} if self.quadrature_degree is None else {"quadrature_degree": self.quadrature_degree}
-        geometry = geo.load(self.geometry, comm, ends=self.ends, estimated_surface_degree=not self.unit_fibres,
-                            **kwargs)
-        for _ in range(self.refine):
-            geometry = geo.refine(geometry)
-        return geometry
-
-    def fiber_field(self, geometry):
-        from hyper.fem import fibers
-
-        return fibers.fiber_field(geometry, "principal" if self.mesh is not None else self.fibers)
-
-    @property
-    def unit_fibres(self) -> bool:
-        """Whether the mechanics normalises the fibres at its points (all but the original's)."""
-        from hyper.fem import fibers
-
-        return self.fibers not in fibers.UNNORMALISED_KINDS
-
-    def cell_params(self, geometry):
-        """The signaling parameters of this run on this rank's cells."""
-        if self.heterogeneity is None:
-            return self.params
-        from hyper.model import heterogeneity
-
-        return heterogeneity.cell_params(geometry.mesh, self.heterogeneity, self.seed, self.params)
-
-
-@dataclasses.dataclass(frozen=True)
-class Outputs:
-    """The files of one run, named after its result ``h5``."""
-
-    h5: Path
-
-    @property
-    def checkpoint(self) -> Path:
-        return self.h5.with_name(self.h5.stem + ".ckpt.h5")
-
-    @property
-    def status(self) -> Path:
-        return self.h5.with_name(self.h5.stem + ".status.json")
-
-    @property
-    def fields(self) -> Path:
-        return self.h5.with_name(self.h5.stem + "_fields.xdmf")
-
-    def is_current(self, digest: str) -> bool:
-        """A complete result of the run with this digest exists."""
-        import h5py
-
-        if not io.is_complete(self.h5):
-            return False
-        with h5py.File(self.h5, "r") as f:
-            return f.attrs.get("run_digest") == digest
-
-    def store(self, series: dict, attrs: Mapping, groups: Mapping) -> None:
-        """Write the result, then drop the checkpoint and status it no longer needs (one rank)."""
-        io.write_series(self.h5, series, attrs=attrs, groups=groups)
-        self.checkpoint.unlink(missing_ok=True)
-        self.status.unlink(missing_ok=True)
-
-
-def result_groups(spec: RunSpec, choice: fidelity.Choice | None = None) -> dict:
-    """The attribute groups every run's result carries; ``choice`` the run's fidelity
-    choice (`Result.choice`)."""
-    groups = {"signaling": as_attributes(spec.params), "material": as_attributes(spec.material),
-              "protocol": spec.protocol.to_attributes(), "settings": dataclasses.asdict(spec.settings)}
-    if spec.heterogeneity is not None:
-        groups["heterogeneity"] = {**spec.heterogeneity.attributes(), "seed": spec.seed}
-    if choice is not None:
-        groups["fidelity"] = choice.as_attributes()
-    return groups
 
 
 # ------------------------------------------------------------------------- stopping

@@ -1,7 +1,7 @@
 """Figures: one place that picks matplotlib's file backend and saves atomically.
 
 Jobs run on clusters without a screen, so the backend is Agg, chosen here once,
-before pyplot is first imported; `save` writes through `hyper.runs.io.atomic_path`, so a
+before pyplot is first imported; `save` writes through `hyper.core.io.atomic_path`, so a
 killed job never leaves half a PNG that looks whole.
 """
 
@@ -34,7 +34,7 @@ def pyplot():
 
 def save(fig, path: str | Path, *, dpi: int = 150) -> Path:
     """Write ``fig`` to ``path`` (format from its suffix) atomically and close it."""
-    from hyper.runs import io
+    from hyper.core import io
 
     path = Path(path)
     with io.atomic_path(path) as tmp:

@@ -9,9 +9,10 @@ import dataclasses
 from pathlib import Path
 
 from hyper.commands import cli
+from hyper.core import log
 from hyper.core.log import PROGRESS_EVERY, hms, info
 from hyper.runs import driver as run
-from hyper.runs import fidelity, measured
+from hyper.runs import fidelity, locks, measured, runspec
 from hyper.runs.checkpoint import inspect, on_rank0
 
 
@@ -19,8 +20,8 @@ from hyper.runs.checkpoint import inspect, on_rank0
 class Plan:
     """The validated command: the runs, where their results go, and how they are written."""
 
-    specs: list[run.RunSpec]
-    outputs: list[run.Outputs]
+    specs: list[runspec.RunSpec]
+    outputs: list[runspec.Outputs]
     plot: Path
     snapshot_every: float  # h of simulated time
     checkpoint_every: int
@@ -37,7 +38,7 @@ class Plan:
     linear_solver = property(lambda self: self.specs[0].linear_solver)
 
 
-def refuse_foreign_checkpoints(comm, specs: list[run.RunSpec], outputs: list[run.Outputs]) -> None:
+def refuse_foreign_checkpoints(comm, specs: list[runspec.RunSpec], outputs: list[runspec.Outputs]) -> None:
     """An InputError where a run's checkpoint belongs to another run (another digest): it
     is resumed by its own run only, or dropped with --restart."""
     for spec, out in zip(specs, outputs):
@@ -51,7 +52,7 @@ def draw_box(comm, model, path: Path, title: str) -> None:
     picture = model.section.box.picture()
     if comm.rank == 0:
         info(comm, f"box figure: {box_section(picture, path, title)}")
-def data_of(work: Plan, spec: run.RunSpec) -> measured.Measured | None:
+def data_of(work: Plan, spec: runspec.RunSpec) -> measured.Measured | None:
     """What a run is compared with: the plan's data, else its protocol's (`measured.of_protocol`)."""
     return work.data if work.data is not None else measured.of_protocol(spec.protocol)
 
@@ -62,7 +63,7 @@ def carry_out(comm, work: Plan, stop, command: list[str], figure: bool = True) -
     status; ``command`` goes into the checkpoints."""
     from hyper.fem.coupled import GrowthFailure
 
-    with cli.hold(comm, [o.h5 for o in work.outputs]):
+    with locks.hold(comm, [o.h5 for o in work.outputs]):
         if work.choice is not None:
             info(comm, f"fidelity: {work.choice.describe()}")
         results, errors = {}, {}
@@ -77,9 +78,9 @@ def carry_out(comm, work: Plan, stop, command: list[str], figure: bool = True) -
                 info(comm, f"{spec.protocol.name}: {err}; exit status {cli.EXIT_TERMINATED}")
                 return cli.EXIT_TERMINATED
             except (run.Unsaved, GrowthFailure) as err:
-                cli.error(comm, f"{spec.label}: {err}")
+                log.error(comm, f"{spec.label}: {err}")
                 return cli.EXIT_FAILED
-            groups = run.result_groups(spec, done.choice)
+            groups = runspec.result_groups(spec, done.choice)
             data = data_of(work, spec)
             if data is not None:
                 errors[spec.protocol.name] = measured.compare(data, done.series["t"], done.series["csa_ratio"])

@@ -410,7 +410,7 @@ def parser() -> cli.Parser:
 
 
 def run(comm, args) -> int:
-    from hyper.runs import io
+    from hyper.core import io
 
     if args.replot:
         result = json.loads((args.output / "atlas.json").read_text())

@@ -22,6 +22,7 @@ import numpy as np
 
 from hyper.commands import cli
 from hyper.commands.bench import common
+from hyper.runs import runspec
 
 
 def timed_fit(evaluate, data) -> dict:
@@ -41,7 +42,7 @@ def surrogate_check(comm) -> dict:
     factor = surrogate.section_factor("idealized")
     for name in ("mwf", "every3days", "weekly"):
         protocol = protocols.named(name)
-        model, *_ = run.build(comm, run.RunSpec("idealized", protocol))
+        model, *_ = run.build(comm, runspec.RunSpec("idealized", protocol))
         reports = list(model.run())
         t = np.array([r.t for r in reports])
         csa = np.array([r.csa_ratio for r in reports])
@@ -62,9 +63,10 @@ def parser() -> cli.Parser:
 
 def run(comm, args) -> int:
     from hyper.analysis import calibrate, dose
+    from hyper.core import io
     from hyper.fem import coupled
     from hyper.model import protocols, signaling, surrogate
-    from hyper.runs import fidelity, io
+    from hyper.runs import fidelity
 
     mwf = protocols.named("mwf")
     data = calibrate.dataset("data/defreitas.csv", mwf)

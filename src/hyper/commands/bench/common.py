@@ -38,7 +38,7 @@ def add_worker_options(parser: argparse.ArgumentParser) -> None:
 def write_json(path: Path, result: dict) -> None:
     """A benchmark's result file, written atomically: a killed bench leaves the previous
     file (or none), never half of one."""
-    from hyper.runs import io
+    from hyper.core import io
 
     with io.atomic_path(Path(path)) as tmp:
         tmp.write_text(json.dumps(result, indent=2, default=float) + "\n")

@@ -68,9 +68,9 @@ def parser() -> cli.Parser:
 
 
 def run(comm, args) -> int:
+    from hyper.core import io
     from hyper.core.params import InputError
     from hyper.fem import geometry as geo
-    from hyper.runs import io
 
     for name in args.geometries:
         if name not in geo.GEOMETRIES:

@@ -42,6 +42,7 @@ import numpy as np
 
 from hyper.commands import cli
 from hyper.commands.bench import common
+from hyper.core import log
 from hyper.core.params import InputError
 from hyper.runs import plot
 
@@ -177,7 +178,8 @@ def run_case(comm, case: dict) -> dict:
     from hyper.core.log import Progress
     from hyper.fem.coupled import PHASES, GrowthSettings
     from hyper.model import protocols
-    from hyper.runs.driver import RunSpec, Series, build
+    from hyper.runs.driver import Series, build
+    from hyper.runs.runspec import RunSpec
 
     if case.get("signaling", "rk4") not in SIGNALING:
         raise InputError(f"signaling must be one of {', '.join(SIGNALING)}, got {case['signaling']!r}")
@@ -404,7 +406,7 @@ def run(comm, args) -> int:
     sweep = [keep_series(run(_case(dt_label(dt), args, dt))) for dt in dts]
     reference = sweep[0]
     if "failed" in reference:
-        cli.error(comm, "the reference run failed; nothing written")
+        log.error(comm, "the reference run failed; nothing written")
         return 1
     for row in sweep:
         row["reference"] = row is reference

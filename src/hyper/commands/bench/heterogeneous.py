@@ -27,11 +27,13 @@ from mpi4py import MPI
 
 from hyper.commands import cli
 from hyper.commands.bench import common
+from hyper.core import io
 from hyper.core.log import info
 from hyper.fem.coupled import GrowthSettings
 from hyper.model import heterogeneity, protocols, signaling
-from hyper.runs import io, plot
-from hyper.runs.driver import RunSpec, build
+from hyper.runs import plot
+from hyper.runs.driver import build
+from hyper.runs.runspec import RunSpec
 
 WINDOW = (168.0, 336.0)  # h: the first training week of mwf
 

@@ -158,8 +158,8 @@ def run(comm, args) -> int:
 
     import dolfinx_solver  # noqa: F401
 
+    from hyper.core import io
     from hyper.core.log import info
-    from hyper.runs import io
 
     rows = run_levels(comm, args.levels, log=lambda msg: info(comm, msg))
     result = {"benchmark": "refinement", "ranks": comm.size, "machine": common.machine(), "levels": rows,

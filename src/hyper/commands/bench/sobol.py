@@ -27,9 +27,10 @@ import numpy as np
 from hyper.analysis import sobol
 from hyper.commands import cli
 from hyper.commands.bench import common
+from hyper.core import io
 from hyper.model import signaling as S
 from hyper.model.protocols import named
-from hyper.runs import io, plot
+from hyper.runs import plot
 
 
 def _cli(ranks: int, samples: int, chunk: int, folder: Path) -> dict:

@@ -265,7 +265,7 @@ def run(comm, args) -> int:
         common.write_worker_result(comm, args.json, run_case(args.worker, comm, args.save))
         return 0
 
-    from hyper.runs import io
+    from hyper.core import io
 
     if args.replot:
         chart(args.output / "solvers.png", json.loads((args.output / "solvers.json").read_text()))

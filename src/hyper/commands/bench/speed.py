@@ -44,7 +44,7 @@ import numpy as np
 from hyper.commands import cli
 from hyper.commands.bench import common
 from hyper.core.params import InputError
-from hyper.runs import plot
+from hyper.runs import plot, runspec
 
 GEOMETRIES = ("idealized", "BFLH_VHF_Left", "ST_VHF_Left")
 METHODS = ("lagged", "kept")
@@ -81,12 +81,12 @@ def run_case(comm, case: dict) -> dict:
 
     PETSc.Log.begin()
     clock = FirstStepTimings()
-    spec = run.RunSpec(case["geometry"], protocols.named(case["protocol"]),
+    spec = runspec.RunSpec(case["geometry"], protocols.named(case["protocol"]),
                        settings=GrowthSettings(newton=case["newton"]))
     comm.barrier()
     start, cpu0 = time.perf_counter(), time.process_time()
     with tempfile.TemporaryDirectory() as tmp:
-        outputs = run.Outputs(Path(comm.bcast(tmp, root=0)) / "run.h5")
+        outputs = runspec.Outputs(Path(comm.bcast(tmp, root=0)) / "run.h5")
         result = run.execute(comm, spec, outputs, monitor=clock, progress_every=60.0)
         comm.barrier()
     wall = time.perf_counter() - start
