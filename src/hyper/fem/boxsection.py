@@ -45,8 +45,8 @@ from dolfinx import mesh as dmesh
 from mpi4py import MPI
 
 from hyper.core.params import InputError
-from hyper.fem import section
-from hyper.model import growth
+from hyper.fem import growthfield, section
+from hyper.model import tensors
 
 THICKNESS = 1.0e-3  # m, along the first principal axis
 CELLS = (2, 30, 30)  # hexahedra through the thickness and along the second and third axes
@@ -191,7 +191,7 @@ def inside(tets, points, margin: float = 1e-9) -> np.ndarray:
     x0 = tets[:, 0]
     edges = np.transpose(tets[:, 1:] - x0[:, None, :], (0, 2, 1))  # columns x_i - x0
     with np.errstate(divide="ignore", invalid="ignore"):
-        lam = growth.solve(edges, points - x0)
+        lam = tensors.solve(edges, points - x0)
     return np.all(lam > margin, axis=1) & (1.0 - lam.sum(axis=1) > margin)
 
 
@@ -265,7 +265,7 @@ class BoxSection:
 
         self.field = fem.Function(self.V, name="u_box")
         ds = ufl.Measure("ds", domain=box, subdomain_data=self.tags, metadata={"quadrature_degree": degree})
-        density = growth.nanson_area_density(ufl.Identity(3) + ufl.grad(self.field), ufl.FacetNormal(box))
+        density = growthfield.nanson_area_density(ufl.Identity(3) + ufl.grad(self.field), ufl.FacetNormal(box))
         self._area0 = [fem.form(1.0 * ds(tag)) for tag in (INNER, RIM)]
         self._area = [fem.form(density * ds(tag)) for tag in (INNER, RIM)]
         # per cell: its staircase facet's reference and deformed area (a cell has one at most)
