@@ -17,6 +17,8 @@ The numpy kernels below work on stacks of 3×3 tensors (one per quadrature point
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import ufl
 
@@ -116,3 +118,8 @@ def elastic_part(F, Gbar):
     """A = F Ḡ⁻¹ (stacks of 3×3 tensors)."""
     return F @ inverse(Gbar)
 
+
+def step_times(t0: float, t1: float, dt: float) -> np.ndarray:
+    """[t0, …, t1] in equal steps no longer than dt (at least one step)."""
+    n = max(1, math.ceil((t1 - t0) / dt - 1e-9))
+    return np.linspace(t0, t1, n + 1)

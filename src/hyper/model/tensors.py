@@ -33,8 +33,3 @@ def inverse(M):
     out[..., 2, 0], out[..., 2, 1], out[..., 2, 2] = d * h - e * g, b * g - a * h, a * e - b * d
     out /= (a * out[..., 0, 0] + b * out[..., 1, 0] + c * out[..., 2, 0])[..., None, None]
     return out
-
-def step_times(t0: float, t1: float, dt: float) -> np.ndarray:
-    """[t0, …, t1] in equal steps no longer than dt (at least one step)."""
-    n = max(1, math.ceil((t1 - t0) / dt - 1e-9))
-    return np.linspace(t0, t1, n + 1)
