@@ -1,5 +1,9 @@
 """What a first trial tripped over (issue 18, item 9), each fixed and kept fixed."""
 
+import os
+import subprocess
+import sys
+
 import h5py
 import numpy as np
 import pytest
@@ -30,9 +34,14 @@ def test_contraction_names_its_default_output_after_the_geometry(tmp_path, monke
 
 def test_one_colour_per_protocol_name_in_every_figure():
     assert plot.protocol_colour("mwf") == "#c0392b" and plot.protocol_colour("weekly") == "#229954"
-    # another name has one colour whatever its place, and none of the built-in ones
-    assert plot.protocol_colour("tue-fri") == plot.protocol_colour("tue-fri")
+    # another name has one colour whatever its place, none of the built-in ones, and the same
+    # in every process (a colour from Python's salted hash() would differ between the ranks'
+    # and the runs' figures)
     assert plot.protocol_colour("tue-fri") not in plot.PROTOCOL_COLOURS.values()
+    code = "from hyper.runs import plot; print(plot.protocol_colour('tue-fri'))"
+    elsewhere = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                                env={**os.environ, "PYTHONHASHSEED": seed}).stdout.strip() for seed in ("1", "2")}
+    assert elsewhere == {plot.protocol_colour("tue-fri")}
     from hyper.model.signaling.integrators import run
     from hyper.runs.signalingplot import figure_protocols
 

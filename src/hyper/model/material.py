@@ -118,8 +118,3 @@ def second_piola(F, p, a0, alpha, params: MaterialParams):
 def first_piola(F, p, a0, alpha, params: MaterialParams):
     """P = F S."""
     return F * second_piola(F, p, a0, alpha, params)
-
-
-def cauchy(F, p, a0, alpha, params: MaterialParams):
-    """σ = J⁻¹ F S Fᵀ."""
-    return F * second_piola(F, p, a0, alpha, params) * F.T / ufl.det(F)

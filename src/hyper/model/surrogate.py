@@ -27,7 +27,6 @@ import numpy as np
 
 from hyper.core.params import InputError
 from hyper.model import growth, signaling
-from hyper.model.growth import step_times
 from hyper.model.protocols import Protocol, Session
 
 # (CSA/CSA0 - 1) / (N - 1) at 9 weeks of coupled runs with uniform parameters (Δtg = 168 h,
@@ -95,11 +94,6 @@ def grow(params: signaling.SignalingParams, protocol: Protocol, out_times, *, si
         kM = kM0 * growth.feedback(1.0 + factor * (y[4] - 1.0), feedback, n=hill_n)
         km[times == t1] = kM
     return Growth(times, 1.0 + factor * (N - 1.0), N, km)
-
-
-def report_times(protocol: Protocol, growth_dt: float) -> np.ndarray:
-    """The times a coupled run with growth step ``growth_dt`` reports at (its growth-step ends)."""
-    return np.unique(np.concatenate([step_times(t0, t1, growth_dt) for t0, t1, _ in protocol.periods()]))
 
 
 def intensity_batch(protocol: Protocol, intensities, params: signaling.SignalingParams | None = None
