@@ -23,6 +23,10 @@ def _sum(comm, value):
 
 def test_identifiers():
     assert list(g.GEOMETRIES)[:2] == ["idealized", "cylinder"]
+    # every id names a mesh file that is there, and every mesh folder shipped is an id
+    assert [name for name, file in g.GEOMETRIES.items() if not (g.MESHES_DIR / file).is_file()] == []
+    folders = {p.parent.name for p in g.MESHES_DIR.glob("*/*") if p.suffix in (".xdmf", ".msh")}
+    assert folders == {(g.MESHES_DIR / file).parent.name for file in g.GEOMETRIES.values()}
     assert len(g.ANATOMICAL) == 12 and len(g.GEOMETRIES) == 14 + len(g.MESHED)
     # The 19 shipped meshes of `hyper mesh`: 3 rectus femoris (no VHM right surface), 4 of each other muscle.
     assert len(g.NEW) == 19 and set(g.NEW) <= set(g.MESHED)
