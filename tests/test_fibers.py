@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
+from hyper.commands import fibers as fibers_job
 from hyper.core.io import is_complete, write_series
 from hyper.core.params import InputError
 from hyper.fem import fibers
@@ -146,22 +147,22 @@ def test_cli_computes_skips_and_recomputes(tmp_path):
         shutil.copytree(geo.MESHES_DIR / "muscle-cylinder", meshes / "muscle-cylinder")
     comm.barrier()
     argv = ["--geometries", "cylinder", "--meshes-dir", str(meshes), "--output", str(out)]
-    assert fibers.main(argv) == 0
+    assert fibers_job.main(argv) == 0
     path = meshes / "muscle-cylinder" / fibers.FILE_NAME
     assert is_complete(path) and (out / "cylinder.png").is_file()
     lines = (out / "summary.csv").read_text().splitlines()
-    assert lines[0].split(",") == list(fibers.SUMMARY_COLUMNS)
+    assert lines[0].split(",") == list(fibers_job.SUMMARY_COLUMNS)
     assert lines[1].startswith("cylinder,,,,895,272,1.0,") and lines[1].endswith(",done")
     stamp = path.stat().st_mtime_ns
-    assert fibers.main(argv) == 0  # nothing to do: the file and the picture exist
+    assert fibers_job.main(argv) == 0  # nothing to do: the file and the picture exist
     assert path.stat().st_mtime_ns == stamp
     assert (out / "summary.csv").read_text().splitlines()[1].endswith(",skipped")
-    assert fibers.main(argv + ["--force"]) == 0
+    assert fibers_job.main(argv + ["--force"]) == 0
     assert path.stat().st_mtime_ns != stamp
 
 
 def test_cli_rejects_unknown_geometry(tmp_path, capsys):
-    assert fibers.main(["--geometries", "BFLH_nobody", "--output", str(tmp_path)]) == 2
+    assert fibers_job.main(["--geometries", "BFLH_nobody", "--output", str(tmp_path)]) == 2
     assert "unknown BFLH_nobody" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
 

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from hyper.commands import cli
+from hyper.commands import mesh as mesh_job
 from hyper.core.params import InputError
 from hyper.fem import meshing as hm
 
@@ -52,7 +53,7 @@ def write_stl(path, points, tris, ascii=False):
 
 def refused(tmp_path, capsys, stl, *extra) -> str:
     out = tmp_path / "meshes" / "M_X_Left"
-    status = hm.main([str(stl), "--output", str(out), *extra])
+    status = mesh_job.main([str(stl), "--output", str(out), *extra])
     assert status == cli.EXIT_INPUT
     assert not (tmp_path / "meshes").exists()  # nothing written
     lines = capsys.readouterr().err.strip().splitlines()
@@ -130,7 +131,7 @@ def meshed(tmp_path_factory):
     root = tmp_path_factory.mktemp("meshed")
     points, tris = cylinder()
     out = root / "CYL_X_Left"
-    status = hm.main([str(write_stl(root / "c.stl", points, tris)), "--output", str(out), "--cells", "3000",
+    status = mesh_job.main([str(write_stl(root / "c.stl", points, tris)), "--output", str(out), "--cells", "3000",
                       "--quiet"])
     assert status == cli.EXIT_OK
     return out
@@ -185,7 +186,7 @@ def test_a_meshed_cylinder_has_the_analytic_volume_and_cut_area(meshed):
 
 
 def test_an_existing_output_is_kept_without_force(meshed, capsys):
-    status = hm.main([str(meshed / "missing.stl"), "--output", str(meshed)])
+    status = mesh_job.main([str(meshed / "missing.stl"), "--output", str(meshed)])
     assert status == cli.EXIT_INPUT and "exists" in capsys.readouterr().err
 
 
@@ -206,7 +207,7 @@ def test_a_real_surface_meshes_end_to_end(tmp_path):
     from hyper.fem import geometry as geo
 
     out = tmp_path / "TA_VHF_Right"
-    assert hm.main([str(REAL), "--output", str(out), "--cells", "3000", "--quiet"]) == cli.EXIT_OK
+    assert mesh_job.main([str(REAL), "--output", str(out), "--cells", "3000", "--quiet"]) == cli.EXIT_OK
     points, tris = hm.read_stl(REAL)
     record = json.loads((out / "mesh.json").read_text())
     stats = record["statistics"]

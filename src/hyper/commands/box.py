@@ -14,6 +14,7 @@ from hyper.commands import cli
 from hyper.core import io
 from hyper.core.log import info
 from hyper.core.params import InputError
+from hyper.fem import geometry as geo
 from hyper.fem.boxsection import OUTSIDE, BoxSection
 from hyper.runs import runspec
 
@@ -77,8 +78,6 @@ def remeasure(comm, result: Path, mesh_file: Path | None = None, unit: str = "m"
     if mesh_file is not None:
         mesh = runspec.MeshFile(mesh_file, unit).load(comm).mesh
     else:
-        from hyper.fem import geometry as geo
-
         if geometry not in geo.GEOMETRIES:
             raise InputError(f"{result}: ran on {geometry!r}, not a built-in geometry; give its mesh with --mesh")
         runspec.check_geometry(comm, geometry, option=f"{result}'s geometry")

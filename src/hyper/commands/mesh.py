@@ -1,3 +1,189 @@
-"""``hyper mesh`` (interim: the job still lives in `hyper.fem.meshing`)."""
+"""``hyper mesh``: a muscle's surface (STL) to a mesh folder, by the steps of
+`hyper.fem.meshing` (whose docstring is the job's help): read, check, tetrahedralize and
+tag on rank 0, then the XDMF mesh, its Stokes fibres (`hyper.fem.fibers`), its statistics
+(`hyper.fem.meshstats`), mesh.json and a picture, written to a staging folder that
+replaces ``--output`` whole."""
 
-from hyper.fem.meshing import main  # noqa: F401
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hyper.commands import cli
+from hyper.core.io import atomic_path, write_series
+from hyper.core.log import info
+from hyper.core.params import InputError, as_attributes
+from hyper.fem import fibers, meshstats
+from hyper.fem import geometry as geo
+from hyper.fem import meshing as hm
+from hyper.runs import plot
+
+ARRAYS = ("x", "tets", "facets", "tags")  # what `build` returns besides numbers
+
+
+def parser() -> cli.Parser:
+    p = cli.Parser("mesh", hm.__doc__)
+    p.add_argument("surface", type=Path, help="the muscle's closed surface (STL, binary or ASCII)")
+    p.add_argument("--output", type=Path, required=True, help="the folder to write, meshes/NAME/; NAME is the "
+                   "geometry's identifier")
+    p.add_argument("--unit", choices=tuple(hm.UNITS_MM), default="mm", help="length unit of the STL")
+    p.add_argument("--cells", type=cli.integer(200, 2_000_000), default=hm.DEFAULT_CELLS, help="target cell count")
+    p.add_argument("--end-band", type=float, default=hm.END_BAND, help="an end: the facets within this share of "
+                   "the length from an extreme along the axis")
+    p.add_argument("--axis", type=float, nargs=3, metavar=("X", "Y", "Z"), help="the muscle's long axis "
+                   "(the first principal axis of the mesh vertices by default)")
+    p.add_argument("--origin-toward", type=float, nargs=3, metavar=("X", "Y", "Z"), default=hm.ORIGIN_TOWARD,
+                   help="the origin (tag 1) is the end further along this direction")
+    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    return p
+
+
+def build(args) -> dict:
+    """Read, check, mesh and tag on rank 0 (`hyper.fem.meshing`'s docstring, steps 1-4); the arrays in mm."""
+    path = args.surface
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    start = time.perf_counter()
+    points, triangles = hm.read_stl(path)
+    hm.check_size(path, points, args.unit)
+    hm.check_surface(path, points, triangles)
+    checked = time.perf_counter()
+    points_mm = points * hm.UNITS_MM[args.unit]
+    x, tets = hm.tetrahedralize(points_mm, triangles, args.cells, args.axis)
+    x, offset = hm.fill_surface(x, tets, hm.enclosed_volume(points_mm, triangles))
+    tets, quality = hm.check_quality(x, tets)
+    quality["surface_offset_mm"] = offset
+    facets = hm.boundary_facets(tets)
+    tags, rule = hm.find_ends(x, facets, band=args.end_band, axis=args.axis, origin_toward=args.origin_toward)
+    areas = hm.facet_areas(x, facets)
+    return {"x": x, "tets": tets, "facets": facets, "tags": tags, "rule": rule, "quality": quality,
+            "surface_triangles": len(triangles), "check_s": checked - start,
+            "mesh_s": time.perf_counter() - checked,
+            "end_area_mm2": [float(areas[tags == 1].sum()), float(areas[tags == 2].sum())],
+            "sha256": hashlib.sha256(path.read_bytes()).hexdigest()}
+
+
+def run(comm, args) -> int:
+    out = args.output
+    name = out.name
+    if out.suffix or not name:
+        raise InputError(f"--output {out}: expected a folder, meshes/NAME/")
+    if out.exists() and not args.force:
+        raise InputError(f"--output {out}: exists; give --force to replace it")
+    built = error = None
+    if comm.rank == 0:
+        try:
+            built = build(args)
+        except InputError as err:
+            error = str(err)
+    error = comm.bcast(error, root=0)
+    if error is not None:
+        raise InputError(error)
+    # The arrays stay on rank 0, which hands the cells to DOLFINx; every rank gets the rest.
+    arrays = {k: built.pop(k) for k in ARRAYS} if comm.rank == 0 else dict.fromkeys(ARRAYS)
+    built = comm.bcast(built, root=0)
+    stage = out.with_name(name + ".partial")
+    if comm.rank == 0:
+        shutil.rmtree(stage, ignore_errors=True)
+        stage.mkdir(parents=True)
+    comm.barrier()
+    try:
+        start = time.perf_counter()
+        hm.write_xdmf(comm, stage / f"{name}.xdmf", *(arrays[k] for k in ARRAYS))
+        geometry = geo.load_file(stage / f"{name}.xdmf", comm, name=name, scale=geo.MM)
+        params = fibers.StokesParams()
+        a0, speed = fibers.compute(geometry, params)
+        stats = {**fibers.statistics(geometry, a0, speed), "solve_s": time.perf_counter() - start}
+        data = fibers.gather_nodal(a0, speed)
+        row = meshstats.statistics(geometry)
+        cells = fibers.cell_fibers(geometry, a0)
+        if comm.rank == 0:
+            write_series(stage / fibers.FILE_NAME, data,
+                         attrs={"geometry": name, "mesh": f"{name}/{name}.xdmf", "method": fibers.METHOD,
+                                "element": fibers.ELEMENT, "reference": "Varvik et al. 2021; MODEL.md §5",
+                                "inflow_tag": 1, "outflow_tag": 2, "lateral_tag": 3, "coordinates": "m",
+                                "ranks": comm.size, **stats},
+                         groups={"parameters": as_attributes(params)})
+            record = {"source": str(args.surface), "source_sha256": built["sha256"], "unit": args.unit,
+                      "mesher": f"gmsh {hm.gmsh_version()}", "cells_target": args.cells,
+                      "surface_triangles": built["surface_triangles"], "ends": built["rule"],
+                      "end_area_mm2": built["end_area_mm2"], "quality": built["quality"],
+                      "statistics": {k: v for k, v in row.items() if k != "geometry"},
+                      "fibers": {k: float(v) for k, v in stats.items()},
+                      "check_s": built["check_s"], "mesh_s": built["mesh_s"]}
+            with atomic_path(stage / "mesh.json") as tmp:
+                tmp.write_text(json.dumps(record, indent=2) + "\n")
+            axis = np.asarray(built["rule"]["axis"])
+            plot.save(figure(name, arrays["x"], arrays["facets"], arrays["tags"], cells[0], cells[1], axis),
+                      stage / f"{name}.png", dpi=110)
+            if out.exists():
+                shutil.rmtree(out)
+            os.replace(stage, out)
+    finally:
+        if comm.rank == 0:
+            shutil.rmtree(stage, ignore_errors=True)
+        comm.barrier()
+    q = built["quality"]
+    info(comm, f"{name}: {row['cells']} cells, {row['vertices']} vertices, min dihedral angle "
+               f"{q['min_dihedral_deg']:.1f}°; volume {row['volume_cm3']:.2f} cm³, CSA0 {row['csa0_cm2']:.2f} cm², "
+               f"length {row['length_cm']:.2f} cm; ends {built['end_area_mm2'][0]:.0f} and "
+               f"{built['end_area_mm2'][1]:.0f} mm²; fibres within 30° of the axis "
+               f"{100 * stats['share_within_30deg']:.1f} %; checks {built['check_s']:.1f} s, mesh "
+               f"{built['mesh_s']:.1f} s, fibres {stats['solve_s']:.1f} s")
+    info(comm, f"wrote {out}/")
+    return cli.EXIT_OK
+
+
+def figure(name: str, x_mm, facets, tags, centroid_m, fiber, axis):
+    """Left: the surface seen across its axis, ends coloured; right: fibre glyphs on the mid-slab."""
+    from matplotlib.collections import LineCollection, PolyCollection
+
+    plt = plot.pyplot()
+    centre = x_mm.mean(axis=0)
+    across = np.linalg.svd((x_mm - centre) - np.outer((x_mm - centre) @ axis, axis), full_matrices=False)[2][0]
+    depth = np.cross(axis, across)
+    basis = np.vstack([axis, across, depth])
+    p = (x_mm - centre) @ basis.T
+    # As high as the muscle's side view needs: a fixed height left most of a long muscle's picture blank.
+    aspect = np.ptp(p[:, 1]) / np.ptp(p[:, 0])
+    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 1.4 + 5.6 * aspect), layout="constrained")
+    corners = p[facets]
+    order = np.argsort(corners[:, :, 2].mean(axis=1))  # far facets first: the near ones cover them
+    colours = np.array(["#c0392b", "#1f5f99", "#cccccc"])[tags[order] - 1]
+    left.add_collection(PolyCollection(corners[order][:, :, :2], facecolors=colours, edgecolors="0.5",
+                                       linewidths=0.1))
+    left.autoscale()
+    left.set_aspect("equal")
+    left.set_title("surface: red origin (1), blue insertion (2), grey lateral (3)", fontsize=10)
+    q = (centroid_m * 1e3 - centre) @ basis.T
+    d = fiber @ basis.T
+    slab = np.abs(q[:, 2]) < 0.08 * np.ptp(q[:, 2])
+    glyph = 0.012 * np.ptp(q[:, 0])
+    uv = d[slab][:, :2] / np.maximum(np.linalg.norm(d[slab][:, :2], axis=1), 1e-12)[:, None] * glyph
+    angle = np.degrees(np.arccos(np.clip(np.abs(d[slab][:, 0]), 0.0, 1.0)))
+    cmap, norm = plt.get_cmap("viridis"), plt.Normalize(0.0, 45.0)
+    right.add_collection(LineCollection(np.stack([q[slab][:, :2] - uv, q[slab][:, :2] + uv], axis=1),
+                                        colors=cmap(norm(angle)), linewidths=1.0))
+    right.set_xlim(left.get_xlim())
+    right.set_ylim(left.get_ylim())
+    right.set_aspect("equal")
+    right.set_title(f"Stokes fibres on the mid-slab ({slab.sum()} cells), colour: angle to the axis (0-45°)",
+                    fontsize=10)
+    for ax in (left, right):
+        ax.set_xlabel("along the axis, toward the origin (mm)")
+    left.set_ylabel("across (mm)")
+    fig.suptitle(name)
+    return fig
+
+
+main = cli.entry(parser, run, locks=lambda args: [args.output])
+
+if __name__ == "__main__":
+    sys.exit(main())

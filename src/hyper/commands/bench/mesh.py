@@ -43,6 +43,7 @@ import dolfinx_solver  # noqa: F401  (must precede dolfinx)
 import numpy as np
 
 from hyper.commands import cli
+from hyper.commands import mesh as mesh_job
 from hyper.commands.bench import common
 from hyper.core.params import InputError
 from hyper.fem import geometry as geo
@@ -152,7 +153,6 @@ def parser() -> cli.Parser:
 def run(comm, args) -> int:
     from hyper.core.log import info
     from hyper.fem import fibers, meshstats
-    from hyper.fem import meshing as hm
 
     rows = []
     for name in args.geometries:
@@ -162,8 +162,8 @@ def run(comm, args) -> int:
         old = shipped(name)
         folder = args.output / "mesh" / name
         start = time.perf_counter()
-        status = hm.main([str(path), "--output", str(folder), "--force",
-                          "--origin-toward", *map(str, old["toward"])], comm=comm)
+        status = mesh_job.main([str(path), "--output", str(folder), "--force",
+                                "--origin-toward", *map(str, old["toward"])], comm=comm)
         seconds = time.perf_counter() - start
         if status != cli.EXIT_OK:
             raise InputError(f"{name}: hyper mesh failed (exit {status})")
