@@ -37,7 +37,7 @@ test-serial: venv
 test-mpi: venv
 	$(MPIRUN) -n 2 $(PY) -m pytest -q --with-mpi -m mpi -p no:cacheprovider
 
-# The 19 meshes/M_S_side/ of geometry.NEW from the Visible Human surfaces (README "A mesh from
+# The 19 meshes/M_S_side/ of geometry.NEW from the Visible Human surfaces (docs/meshing.md "A mesh from
 # a surface"). The VHM frame's z axis points distally (its TA lies below its thigh), the VHF
 # frame's proximally: the origin (tag 1) is the end toward +z for VHF and toward -z for VHM.
 SURFACES ?= ../shared/surfaces
