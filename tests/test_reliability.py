@@ -388,7 +388,7 @@ def test_lock_without_file_system_locks_is_reported_not_fatal(tmp_path, monkeypa
     def no_locks(fd, operation):
         raise OSError(errno.ENOLCK, "No locks available")
 
-    monkeypatch.setattr(ckpt.fcntl, "flock", no_locks)
+    monkeypatch.setattr(locks.fcntl, "flock", no_locks)
     with locks.locked([tmp_path / "a.h5", tmp_path / "b.h5"]) as unlocked:
         assert unlocked == [tmp_path / "a.h5.lock", tmp_path / "b.h5.lock"]
     assert list(tmp_path.iterdir()) == []

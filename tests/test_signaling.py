@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hyper.commands import signaling as sig_job
 from hyper.core.params import InputError
 from hyper.model import signaling as S
 from hyper.model.protocols import Protocol, Session, named
@@ -365,7 +366,7 @@ def test_cli_records_the_signaling_method(tmp_path):
     spec = tmp_path / "mine.toml"
     spec.write_text("end = 60.0\n[[session]]\nstart = 10\nduration = 2\nintensity = 0.5\n")
     path = tmp_path / "mine.h5"
-    assert S.main(["--protocol", str(spec), "--output", str(path), "--signaling-method", "rk45-original"]) == 0
+    assert sig_job.main(["--protocol", str(spec), "--output", str(path), "--signaling-method", "rk45-original"]) == 0
     with h5py.File(path) as f:
         assert f.attrs["signaling_method"] == "rk45-original" and f.attrs["integrator"] == "RK45"
         assert f["N"][0] == 1.000768
@@ -439,7 +440,8 @@ def test_cli_writes_series_and_figure(tmp_path, capsys):
     from hyper.core import io
 
     out = tmp_path / "sig"
-    assert S.main(["--protocol", "all", "--output", str(out), "--plot", str(out / "f.png"), "--sample-every", "2"]) == 0
+    assert sig_job.main(["--protocol", "all", "--output", str(out), "--plot", str(out / "f.png"),
+                         "--sample-every", "2"]) == 0
     for name in S.PAPER:
         series = io.read_series(out / f"{name}.h5")
         assert sorted(series) == sorted(["t", *S.STATES])
@@ -454,26 +456,26 @@ def test_cli_protocol_file_and_bad_input(tmp_path, capsys):
     spec = tmp_path / "mine.toml"
     spec.write_text("end = 100.0\n[[session]]\nstart = 10\nduration = 2\nintensity = 0.5\n")
     path = tmp_path / "mine.h5"
-    assert S.main(["--protocol", str(spec), "--output", str(path), "--signaling-dt", "0.1"]) == 0
+    assert sig_job.main(["--protocol", str(spec), "--output", str(path), "--signaling-dt", "0.1"]) == 0
     with h5py.File(path) as f:
         assert f.attrs["dt"] == 0.1 and f["protocol"].attrs["name"] == "mine"
         assert f["signaling"].attrs["kM"] == 0.01 and "version_hyper" in f.attrs
     bad = tmp_path / "bad.toml"
     bad.write_text("end = 100.0\n[[session]]\nstart = 10\nduration = -2\nintensity = 0.5\n")
     out = tmp_path / "none"
-    assert S.main(["--protocol", str(bad), "--output", str(out)]) == 2
+    assert sig_job.main(["--protocol", str(bad), "--output", str(out)]) == 2
     assert "error: " in capsys.readouterr().err and not out.exists()
     params = tmp_path / "p.toml"
     params.write_text("kM = 0.01\nspeed = 2\n")
-    assert S.main(["--params", str(params), "--output", str(out)]) == 2
+    assert sig_job.main(["--params", str(params), "--output", str(out)]) == 2
     assert "unknown parameter(s) speed" in capsys.readouterr().err and not out.exists()
-    assert S.main(["--signaling-dt", "2", "--output", str(out)]) == 3  # a run that failed, as in grow
+    assert sig_job.main(["--signaling-dt", "2", "--output", str(out)]) == 3  # a run that failed, as in grow
     assert "smaller dt" in capsys.readouterr().err and not out.exists()
 
 
 def test_cli_help_shows_every_default(capsys):
     with pytest.raises(SystemExit):
-        S.main(["--help"])
+        sig_job.main(["--help"])
     text = capsys.readouterr().out
     assert "--signaling-dt H      largest step (h), of either method (default: 0.05)" in text
     assert "rk45-original" in text and "(default: rk4)" in text

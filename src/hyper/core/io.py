@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from hyper.core import resources
 from hyper.core.params import InputError
 
 PARTIAL = ".partial"
@@ -39,8 +40,8 @@ def git_commit() -> str:
     """The checkout's commit (+ "-dirty" with uncommitted changes); "" outside a checkout."""
     import subprocess
 
-    root = Path(__file__).resolve().parents[2]
-    if not (root / ".git").exists():
+    root = resources.checkout()
+    if root is None or not (root / ".git").exists():
         return ""
     try:
         head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,

@@ -48,7 +48,7 @@ from hyper.commands.bench import common
 from hyper.core.params import InputError
 from hyper.fem import geometry as geo
 
-SURFACES = Path(__file__).resolve().parents[3].parent / "shared" / "surfaces"
+SURFACES = Path(__file__).resolve().parents[4].parent / "shared" / "surfaces"
 GROWTH_PROTOCOL = "mwf"
 
 
