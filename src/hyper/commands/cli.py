@@ -25,7 +25,8 @@ from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
 
-from hyper.core.log import error
+from hyper.core import io
+from hyper.core.log import PROGRESS_EVERY, error
 from hyper.core.params import InputError
 from hyper.runs.locks import Busy, hold
 
@@ -107,7 +108,6 @@ def positive(unit: str) -> Callable[[str], float]:
 
 def progress_option(p: Parser) -> None:
     """--progress-every of a long job (its progress lines, on rank 0; --quiet: none)."""
-    from hyper.core.log import PROGRESS_EVERY
 
     p.add_argument("--progress-every", type=positive("seconds"), default=PROGRESS_EVERY, metavar="SECONDS",
                    help="seconds of wall time between progress lines (the first and last always come)")
@@ -237,7 +237,6 @@ def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool 
             error(comm, str(err))
             return EXIT_INPUT
         setup_logging(rank, quiet=args.quiet, verbose=args.verbose)
-        from hyper.core import io
 
         io.record_command([*made.prog.split(), *argv])
         try:

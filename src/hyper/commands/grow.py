@@ -43,7 +43,10 @@ from hyper.commands.signaling import answer, method_option
 from hyper.core import io, log
 from hyper.core.log import info
 from hyper.core.params import InputError
+from hyper.fem import geometry as geo
+from hyper.fem.coupled import LAG_OPTION, GrowthSettings, jacobian_lag
 from hyper.model import material, protocols, signaling
+from hyper.model.growth import FEEDBACK_LAWS
 from hyper.runs import driver as run
 from hyper.runs import fidelity, measured, presets, runspec, sequence
 from hyper.runs.checkpoint import on_rank0
@@ -79,8 +82,6 @@ def parser(ask: str = "growth") -> cli.Parser:
         scene_options(p)
         p.add_argument("--output", type=cli.output(), default="results/signaling", help="an .h5 file or a folder")
         return p
-    from hyper.fem.coupled import GrowthSettings
-    from hyper.model.growth import FEEDBACK_LAWS
 
     p = cli.Parser("grow", __doc__)
     p.add_argument("--geometry", help="geometry id (idealized, cylinder, BFLH_VHF_Left, …); idealized by default")
@@ -159,8 +160,6 @@ def plan(comm, argv) -> sequence.Plan:
 
 
 def plan_from(comm, args) -> sequence.Plan:
-    from hyper.fem.coupled import LAG_OPTION, GrowthSettings, jacobian_lag
-
     if args.mesh is not None and args.geometry is not None:
         raise InputError("--geometry and --mesh exclude each other: give one of them")
     if args.mesh_unit is not None and args.mesh is None:
@@ -194,7 +193,6 @@ def plan_from(comm, args) -> sequence.Plan:
     problem = cli.unwritable(plot, folder=False)
     if problem is not None:
         raise InputError(f"--plot: {problem}")
-    from hyper.fem import geometry as geo
 
     if args.plot_box is not None:
         if mesh is None and name not in geo.ANATOMICAL + geo.MESHED:

@@ -13,14 +13,15 @@ import sys
 from pathlib import Path
 
 from hyper.commands import cli
-from hyper.core import log
+from hyper.core import io, log
 from hyper.core.params import as_attributes, positive_hours
 from hyper.model import protocols
 from hyper.model.signaling.integrators import METHODS, SMALLEST_DT, SMALLEST_SAMPLE, SignalingError, first_day
 from hyper.model.signaling.integrators import run as series
 from hyper.model.signaling.params import load_params
-from hyper.runs import locks
+from hyper.runs import locks, plot
 from hyper.runs.checkpoint import on_rank0
+from hyper.runs.signalingplot import figure_protocols
 
 METHOD_HELP = ("rk4: classical RK4 with steps landing on every switch (converged at 0.05 h); rk45-original: "
                "the original code's SciPy RK45 at rtol 1e-3, atol 1e-6, steps of at most --signaling-dt, "
@@ -55,7 +56,6 @@ def write(path: Path, series: dict, params, protocol, dt: float, sample_every: f
           method: str = "rk4") -> None:
     """A signaling result: the series, the integrator's settings, parameters and protocol
     (and any other attribute ``groups``, e.g. a fidelity choice)."""
-    from hyper.core import io
 
     io.write_series(
         path, series,
@@ -81,8 +81,6 @@ def answer(comm, runs: list, paths: list[Path], params, dt: float, sample_every:
 
 
 def run(comm, args) -> int:
-    from hyper.core import io
-
     dt = positive_hours(args.signaling_dt, "--signaling-dt", SMALLEST_DT)
     sample_every = positive_hours(args.sample_every, "--sample-every", SMALLEST_SAMPLE)
     params = load_params(args.params)
@@ -94,9 +92,6 @@ def run(comm, args) -> int:
         insets = {p.name: first_day(params, p, dt, method=method) for p in runs}
         results = answer(comm, runs, paths, params, dt, sample_every, method=method)
         if args.plot is not None:
-            from hyper.runs import plot
-            from hyper.runs.signalingplot import figure_protocols
-
             fig = figure_protocols(results, {p.name: p for p in runs}, params, insets)
             log.info(comm, f"wrote {plot.save(fig, args.plot, dpi=130)}")
 

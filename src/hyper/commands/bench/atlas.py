@@ -48,6 +48,12 @@ import numpy as np
 from hyper.commands import cli
 from hyper.commands.bench import common
 from hyper.commands.bench import growth as growth_bench
+from hyper.core import io
+from hyper.core.params import InputError
+from hyper.fem import fibers
+from hyper.fem import geometry as geo
+from hyper.fem.mechanics import MechanicsProblem, SolverError
+from hyper.model import growth, protocols
 from hyper.runs import plot
 
 THETAS = (1.005, 1.05, 1.2, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0, 10.0)
@@ -135,10 +141,6 @@ def newton_growth_step(thetas=THETAS, halvings: int = 4) -> list[dict]:
     from dolfinx import fem
     from mpi4py import MPI
 
-    from hyper.fem import fibers
-    from hyper.fem import geometry as geo
-    from hyper.fem.mechanics import MechanicsProblem, SolverError
-    from hyper.model import growth
 
     comm = MPI.COMM_SELF
     geometry = geo.load("idealized", comm)
@@ -410,16 +412,11 @@ def parser() -> cli.Parser:
 
 
 def run(comm, args) -> int:
-    from hyper.core import io
-
     if args.replot:
         result = json.loads((args.output / "atlas.json").read_text())
         _charts(args.output, result)
         return 0
 
-    from hyper.core.params import InputError
-    from hyper.fem import geometry as geo
-    from hyper.model import protocols
 
     for name in args.geometries:
         if name not in geo.GEOMETRIES:

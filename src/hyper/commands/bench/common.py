@@ -21,6 +21,10 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
+import numpy as np
+
+from hyper.core import io
+
 
 def machine() -> dict:
     """The host, its cores and its load now: a shared machine's absolute times vary, so
@@ -38,7 +42,6 @@ def add_worker_options(parser: argparse.ArgumentParser) -> None:
 def write_json(path: Path, result: dict) -> None:
     """A benchmark's result file, written atomically: a killed bench leaves the previous
     file (or none), never half of one."""
-    from hyper.core import io
 
     with io.atomic_path(Path(path)) as tmp:
         tmp.write_text(json.dumps(result, indent=2, default=float) + "\n")
@@ -102,7 +105,6 @@ class Timings:
 def plot_lu_memory(ax, levels: list[dict], fit: dict) -> None:
     """MUMPS LU's memory against the unknowns on log axes: the measured levels, the power
     law fitted to them (bench refinement's ``lu_memory``) and where it meets the memory."""
-    import numpy as np
 
     n = np.array([r["unknowns"] for r in levels], dtype=float)
     m = np.array([r["mumps_used_mb"] for r in levels], dtype=float) / 1024.0

@@ -22,13 +22,15 @@ from pathlib import Path
 from hyper.commands import cli
 from hyper.commands.bench import common
 from hyper.commands.bench import growth as growth_bench
+from hyper.core import io
+from hyper.core.params import InputError
+from hyper.fem import geometry as geo
+from hyper.runs import fidelity
 
 REFERENCE = {"growth_dt": 6.0, "signaling_dt": 0.05}
 
 
 def cases(geometry: str, accuracy: float) -> dict[str, dict]:
-    from hyper.runs import fidelity
-
     choice = fidelity.choose(fidelity.Scene(geometry, "mwf", False, "growth"), accuracy)
     return {
         "reference": {"label": "reference: Δtg 6 h, RK4 0.05 h", "geometry": geometry, "protocol": "mwf",
@@ -68,10 +70,6 @@ def parser() -> cli.Parser:
 
 
 def run(comm, args) -> int:
-    from hyper.core import io
-    from hyper.core.params import InputError
-    from hyper.fem import geometry as geo
-
     for name in args.geometries:
         if name not in geo.GEOMETRIES:
             raise InputError(f"unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")

@@ -43,8 +43,14 @@ import numpy as np
 from hyper.commands import cli
 from hyper.commands.bench import common
 from hyper.core import log
+from hyper.core.log import Progress
 from hyper.core.params import InputError
+from hyper.fem import geometry as geo
+from hyper.fem.coupled import PHASES, GrowthSettings
+from hyper.model import protocols, signaling
 from hyper.runs import plot
+from hyper.runs.driver import Series, build
+from hyper.runs.runspec import RunSpec
 
 DTS = (0.5, 1.0, 2.0, 6.0, 24.0, 1e9)  # h
 ONE_STEP_PER_PERIOD = 1e9  # h: longer than any period, so each period is one step
@@ -121,7 +127,6 @@ def _paper_signaling(params, protocol, y0, t0, t1, dt=0.05, *, out_times=None, k
     """
     from scipy.integrate import solve_ivp
 
-    from hyper.model import signaling
 
     y = np.asarray(y0, dtype=float)
     if y.ndim != 1:
@@ -149,7 +154,6 @@ def signaling_check(protocol_name: str, dt: float = 0.05) -> dict:
     """N at the protocol's end, period by period at the baseline kM (no feedback), by our
     RK4 and by RK45 with and without restarts at the switches, against ``reference``;
     errors relative to the growth of N."""
-    from hyper.model import protocols, signaling
 
     params, protocol = signaling.SignalingParams(), protocols.named(protocol_name)
     y0 = signaling.rest_state(params)
@@ -175,11 +179,6 @@ def run_case(comm, case: dict) -> dict:
     import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
     from mpi4py import MPI
 
-    from hyper.core.log import Progress
-    from hyper.fem.coupled import PHASES, GrowthSettings
-    from hyper.model import protocols
-    from hyper.runs.driver import Series, build
-    from hyper.runs.runspec import RunSpec
 
     if case.get("signaling", "rk4") not in SIGNALING:
         raise InputError(f"signaling must be one of {', '.join(SIGNALING)}, got {case['signaling']!r}")
@@ -369,8 +368,6 @@ def run(comm, args) -> int:
     if args.worker:
         common.write_worker_result(comm, args.json, run_case(comm, args.worker))
         return 0
-    from hyper.fem import geometry as geo
-    from hyper.model import protocols
 
     if args.geometry not in geo.GEOMETRIES:
         raise InputError(f"--geometry: unknown geometry {args.geometry!r}; known: {', '.join(geo.GEOMETRIES)}")

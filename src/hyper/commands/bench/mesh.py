@@ -45,8 +45,14 @@ import numpy as np
 from hyper.commands import cli
 from hyper.commands import mesh as mesh_job
 from hyper.commands.bench import common
+from hyper.core.log import info
 from hyper.core.params import InputError
+from hyper.fem import fibers, meshstats, section
 from hyper.fem import geometry as geo
+from hyper.fem import meshing as hm
+from hyper.fem.coupled import CoupledModel, GrowthSettings
+from hyper.model import protocols
+from hyper.model.material import MaterialParams
 
 SURFACES = Path(__file__).resolve().parents[4].parent / "shared" / "surfaces"
 GROWTH_PROTOCOL = "mwf"
@@ -56,7 +62,6 @@ def shipped(name: str) -> dict:
     """Cells, dihedral angle, end centroids and areas of a shipped mesh, from its file (mm)."""
     import h5py
 
-    from hyper.fem import meshing as hm
 
     with h5py.File((geo.MESHES_DIR / geo.GEOMETRIES[name]).with_suffix(".h5"), "r") as f:
         x = f["Mesh/Grid/geometry"][()]
@@ -72,7 +77,6 @@ def shipped(name: str) -> dict:
 
 def csa_at_shipped_plane(old: geo.Geometry, new: geo.Geometry) -> float:
     """(new mesh's cut area / shipped CSA0) - 1, both cut by the shipped mesh's CSA0 plane."""
-    from hyper.fem import section
 
     origin, normal = section.principal_plane(section.global_vertices(old.mesh))
     shipped_area = section.CutSection(old.mesh, origin, normal).area0()
@@ -83,7 +87,6 @@ def vertex_plane(geometry: geo.Geometry) -> dict:
     """Where the simulation's CSA0 plane (the vertices' mean and principal axis, MODEL.md §4)
     lies against the solid's (centroid, inertia axis): the distance of its origin along the
     solid's axis (mm) and the angle between the two normals (°)."""
-    from hyper.fem import section
 
     origin, normal = section.principal_plane(section.global_vertices(geometry.mesh))
     solid_origin, solid_normal = section.solid_plane(geometry.mesh)
@@ -95,7 +98,6 @@ def fibre_angle(old: geo.Geometry, new: geo.Geometry, new_fibres: Path) -> float
     """Mean angle (°) between the shipped fibres and the new ones, weighted by the shipped cells' volume."""
     from scipy.spatial import cKDTree
 
-    from hyper.fem import fibers
 
     old_cells = fibers.cell_fibers(old, fibers.load(old))
     new_cells = fibers.cell_fibers(new, fibers.load(new, new_fibres))
@@ -106,8 +108,6 @@ def fibre_angle(old: geo.Geometry, new: geo.Geometry, new_fibres: Path) -> float
 
 def surface(path: Path) -> dict:
     """Volume (mm³), CSA (mm²) and length (mm) of an STL by its solid's frame."""
-    from hyper.fem import meshing as hm
-    from hyper.fem import section
 
     points, triangles = hm.read_stl(path)
     moments = section.surface_solid_moments(points, triangles)
@@ -121,10 +121,6 @@ def growth(geometry, a0, protocol: str = GROWTH_PROTOCOL) -> dict:
     solid's plane after ``protocol`` on ``geometry`` (default settings and parameters)."""
     from dolfinx import fem
 
-    from hyper.fem import section
-    from hyper.fem.coupled import CoupledModel, GrowthSettings
-    from hyper.model import protocols
-    from hyper.model.material import MaterialParams
 
     model = CoupledModel(geometry, a0, protocols.named(protocol), material=MaterialParams(),
                          settings=GrowthSettings())
@@ -151,9 +147,6 @@ def parser() -> cli.Parser:
 
 
 def run(comm, args) -> int:
-    from hyper.core.log import info
-    from hyper.fem import fibers, meshstats
-
     rows = []
     for name in args.geometries:
         if name not in geo.ANATOMICAL:

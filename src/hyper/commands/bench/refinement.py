@@ -33,7 +33,12 @@ import numpy as np
 
 from hyper.commands import cli
 from hyper.commands.bench import common
+from hyper.core import io
+from hyper.core.log import info
 from hyper.core.params import InputError
+from hyper.fem import fibers
+from hyper.fem import geometry as geo
+from hyper.fem.mechanics import MechanicsProblem
 from hyper.runs import plot
 
 ALPHAS = (0.1, 0.2, 0.35, 0.55, 0.8, 1.0)
@@ -44,9 +49,6 @@ def run_levels(comm, levels: int, log=print) -> list[dict]:
     import dolfinx_solver  # noqa: F401
     from mpi4py import MPI
 
-    from hyper.fem import fibers
-    from hyper.fem import geometry as geo
-    from hyper.fem.mechanics import MechanicsProblem
 
     geometry = geo.load("idealized", comm)
     rows, previous = [], None
@@ -158,8 +160,6 @@ def run(comm, args) -> int:
 
     import dolfinx_solver  # noqa: F401
 
-    from hyper.core import io
-    from hyper.core.log import info
 
     rows = run_levels(comm, args.levels, log=lambda msg: info(comm, msg))
     result = {"benchmark": "refinement", "ranks": comm.size, "machine": common.machine(), "levels": rows,

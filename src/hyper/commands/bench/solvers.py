@@ -48,7 +48,13 @@ import numpy as np
 from hyper.commands import cli
 from hyper.commands.bench import common
 from hyper.commands.bench.refinement import memory_fit
+from hyper.core import io
 from hyper.core.params import InputError
+from hyper.fem import fibers
+from hyper.fem import geometry as geo
+from hyper.fem.mechanics import BLR_PRECISION, MechanicsProblem, SolverError
+from hyper.model import growth
+from hyper.model import material as mat
 from hyper.runs import plot
 
 THETA = 1.05
@@ -125,10 +131,6 @@ def run_case(case: dict, comm, save: Path | None) -> dict:
     from dolfinx import fem
     from mpi4py import MPI
 
-    from hyper.fem import fibers
-    from hyper.fem import geometry as geo
-    from hyper.fem.mechanics import BLR_PRECISION, MechanicsProblem, SolverError
-    from hyper.model import growth
 
     geometry = geo.load(case["geometry"], comm)
     for _ in range(case.get("level", 0)):
@@ -180,7 +182,6 @@ def _run_worker(case: dict, ranks: int, timeout: float, save: Path | None) -> di
 
 def compare(reference: Path, other: Path, ranks: int) -> dict:
     """max |Δu| / max |u| and max |Δp| / max |p - p0| between two saved solutions."""
-    from hyper.model import material as mat
 
     ref = [np.load(reference / f"w_{r}.npy") for r in range(ranks)]
     new = [np.load(other / f"w_{r}.npy") for r in range(ranks)]
@@ -265,7 +266,6 @@ def run(comm, args) -> int:
         common.write_worker_result(comm, args.json, run_case(args.worker, comm, args.save))
         return 0
 
-    from hyper.core import io
 
     if args.replot:
         chart(args.output / "solvers.png", json.loads((args.output / "solvers.json").read_text()))

@@ -44,7 +44,10 @@ import numpy as np
 from hyper.commands import cli
 from hyper.commands.bench import common
 from hyper.core.params import InputError
-from hyper.runs import plot, runspec
+from hyper.fem import geometry as geo
+from hyper.fem.coupled import GrowthSettings
+from hyper.model import protocols
+from hyper.runs import driver, plot, runspec
 
 GEOMETRIES = ("idealized", "BFLH_VHF_Left", "ST_VHF_Left")
 METHODS = ("lagged", "kept")
@@ -75,9 +78,6 @@ def run_case(comm, case: dict) -> dict:
     from mpi4py import MPI
     from petsc4py import PETSc
 
-    from hyper.fem.coupled import GrowthSettings
-    from hyper.model import protocols
-    from hyper.runs import driver as run
 
     PETSc.Log.begin()
     clock = FirstStepTimings()
@@ -87,7 +87,7 @@ def run_case(comm, case: dict) -> dict:
     start, cpu0 = time.perf_counter(), time.process_time()
     with tempfile.TemporaryDirectory() as tmp:
         outputs = runspec.Outputs(Path(comm.bcast(tmp, root=0)) / "run.h5")
-        result = run.execute(comm, spec, outputs, monitor=clock, progress_every=60.0)
+        result = driver.execute(comm, spec, outputs, monitor=clock, progress_every=60.0)
         comm.barrier()
     wall = time.perf_counter() - start
     cpu = time.process_time() - cpu0
@@ -218,8 +218,6 @@ def run(comm, args) -> int:
     if args.worker:
         common.write_worker_result(comm, args.json, run_case(comm, args.worker))
         return 0
-    from hyper.fem import geometry as geo
-    from hyper.model import protocols
 
     for name in args.geometries:
         if name not in geo.GEOMETRIES:
