@@ -81,7 +81,7 @@ import time
 import traceback
 from pathlib import Path
 
-from hyper.analysis import cohort
+from hyper.analysis import cohort, cohortsummary
 from hyper.commands import cli
 from hyper.core.log import PROGRESS_EVERY, info
 from hyper.core.params import InputError, as_attributes, build, positive_hours, read_toml, replace_from_mapping
@@ -459,8 +459,10 @@ def many_runs(comm, study: Study, settings, choice, stop, ranks_per_job: int,
         code = 0
         if comm.rank == 0:
             try:
-                code = cohort.finish(folder, runs, results, settings, time.perf_counter() - start,
-                                     plot_geometry=study.names[0], figures=study.output.figures)
+                outcome = cohortsummary.finish(folder, runs, results, settings, time.perf_counter() - start,
+                                               plot_geometry=study.names[0], figures=study.output.figures)
+                code = (cli.EXIT_TERMINATED if outcome.interrupted else cli.EXIT_SOME_FAILED if outcome.failed
+                        else cli.EXIT_OK)
             except Exception:  # noqa: BLE001 - the other ranks wait for the code: report, never leave them hanging
                 traceback.print_exc()
                 code = cli.EXIT_SOME_FAILED
