@@ -10,7 +10,7 @@ import pytest
 from dolfinx import fem
 from mpi4py import MPI
 
-from hyper.analysis import cohort
+from hyper.analysis import cohortsummary
 from hyper.commands import grow
 from hyper.core import io
 from hyper.core.params import InputError
@@ -259,12 +259,12 @@ def test_cohort_summary_has_both_measures(tmp_path):
     ratios = {"csa_ratio": [1.0, 1.04], "csa_ratio_cut": [1.0, 1.08], "csa_ratio_box": [1.0, 1.04],
               "volume_ratio": [1.0, 1.09]}
     io.write_series(tmp_path / "r.h5", {k: np.array(v) for k, v in ratios.items()}, attrs=attrs)
-    rows = [cohort.summary_row(tmp_path / "r.h5")]
+    rows = [cohortsummary.summary_row(tmp_path / "r.h5")]
     assert (rows[0]["final_csa_ratio"], rows[0]["final_csa_ratio_cut"], rows[0]["final_csa_ratio_box"]) == \
         (1.04, 1.08, 1.04)
-    cohort.write_csv(rows, tmp_path / "s.csv")
-    assert cohort.read_csv(tmp_path / "s.csv")[0]["final_csa_ratio_cut"] == 1.08
-    table = cohort.markdown(rows, cohort.GrowthSettings())
+    cohortsummary.write_csv(rows, tmp_path / "s.csv")
+    assert cohortsummary.read_csv(tmp_path / "s.csv")[0]["final_csa_ratio_cut"] == 1.08
+    table = cohortsummary.markdown(rows, cohortsummary.GrowthSettings())
     assert "| mid-belly CSA increase, cut (n = 1) | +8.00 % |" in table
     assert "| mid-belly CSA increase, box (n = 1) | +4.00 % |" in table
 

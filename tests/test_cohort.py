@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from hyper.analysis import cohort
+from hyper.analysis import cohort, cohortplot, cohortstats, cohortsummary
+from hyper.commands import cohort as cohort_command
+from hyper.core import io
 from hyper.fem.coupled import GrowthSettings
 from hyper.runs import driver as run
 from hyper.runs import runspec
@@ -47,20 +49,20 @@ def synthetic_rows():
 
 def test_standard_error_by_hand():
     # 4, 5, 6, 3: mean 4.5, squared deviations 0.25 + 0.25 + 2.25 + 2.25 = 5, s² = 5/3, se = s/2
-    assert cohort.standard_error([4.0, 5.0, 6.0, 3.0]) == pytest.approx(math.sqrt(5 / 3) / 2, rel=1e-14)
-    assert cohort.standard_error([2.0, 2.0]) == 0.0
-    assert math.isnan(cohort.standard_error([7.0]))
+    assert cohortstats.standard_error([4.0, 5.0, 6.0, 3.0]) == pytest.approx(math.sqrt(5 / 3) / 2, rel=1e-14)
+    assert cohortstats.standard_error([2.0, 2.0]) == 0.0
+    assert math.isnan(cohortstats.standard_error([7.0]))
 
 
 def test_group_statistics_by_hand():
-    stats = cohort.group_statistics(synthetic_rows(), "csa")
+    stats = cohortstats.group_statistics(synthetic_rows(), "csa")
     bflh = stats[("BFLH", "mwf")]
     assert bflh["n"] == 4
     assert bflh["mean"] == pytest.approx(4.5, rel=1e-12)
     assert bflh["se"] == pytest.approx(math.sqrt(5 / 3) / 2, rel=1e-10)
     assert stats[("BFLH", "weekly")]["mean"] == pytest.approx(2.5, rel=1e-12)
     # volume under mwf: 8, 9, 8.5, 9.5 -> mean 8.75, deviations² 0.5625 + 0.0625 + 0.0625 + 0.5625
-    vol = cohort.group_statistics(synthetic_rows(), "volume")[("BFLH", "mwf")]
+    vol = cohortstats.group_statistics(synthetic_rows(), "volume")[("BFLH", "mwf")]
     assert vol["mean"] == pytest.approx(8.75, rel=1e-12)
     assert vol["se"] == pytest.approx(math.sqrt(1.25 / 3) / 2, rel=1e-10)
     # one member: no standard error; failed runs are left out
@@ -70,14 +72,14 @@ def test_group_statistics_by_hand():
 
 def test_order_and_mwf_statistics():
     rows = synthetic_rows()
-    assert cohort.ordered(cohort.increases(rows, "BFLH_M0_Left", "csa")) is True
-    assert cohort.ordered(cohort.increases(rows, "TA_M0_Left", "csa")) is None  # weekly failed
-    assert cohort.ordered({"mwf": 3.0, "every3days": 3.0, "weekly": 1.0}) is False  # strict
-    s = cohort.mwf_statistics(rows, "volume")
+    assert cohortstats.ordered(cohortstats.increases(rows, "BFLH_M0_Left", "csa")) is True
+    assert cohortstats.ordered(cohortstats.increases(rows, "TA_M0_Left", "csa")) is None  # weekly failed
+    assert cohortstats.ordered({"mwf": 3.0, "every3days": 3.0, "weekly": 1.0}) is False  # strict
+    s = cohortstats.mwf_statistics(rows, "volume")
     assert s["n"] == 5
     assert s["mean"] == pytest.approx((8 + 9 + 8.5 + 9.5 + 1) / 5, rel=1e-12)
     assert (s["min"], s["max"]) == pytest.approx((1.0, 9.5), rel=1e-12)
-    table = cohort.markdown(rows, GrowthSettings())
+    table = cohortsummary.markdown(rows, GrowthSettings())
     assert "| BFLH_M0_Left | +4.00 % | +3.00 % | +2.00 % | +8.00 % | +6.00 % | +3.00 % | yes | yes |" in table
     assert "| TA_M0_Left | +2.00 % | +3.00 % | failed |" in table
     assert "both CSA and volume: 4 of 5 geometries" in table
@@ -88,9 +90,9 @@ def test_order_and_mwf_statistics():
 
 def test_csv_round_trip(tmp_path):
     rows = synthetic_rows()
-    cohort.write_csv(rows, tmp_path / "s.csv")
-    back = cohort.read_csv(tmp_path / "s.csv")
-    assert list(back[0]) == list(cohort.COLUMNS)
+    cohortsummary.write_csv(rows, tmp_path / "s.csv")
+    back = cohortsummary.read_csv(tmp_path / "s.csv")
+    assert list(back[0]) == list(cohortsummary.COLUMNS)
     assert back[0]["final_csa_ratio"] == rows[0]["final_csa_ratio"]
     assert back[-1]["status"] == "failed" and math.isnan(back[-1]["final_csa_ratio"])
 
@@ -101,7 +103,7 @@ def test_boundary_faces_of_a_cube_point_outwards():
     m = mesh.create_unit_cube(MPI.COMM_SELF, 2, 3, 2)
     x = m.geometry.x
     cells = m.geometry.dofmaps[0].astype(np.int64)
-    faces, owner = cohort.boundary_faces(x, cells)
+    faces, owner = cohortplot.boundary_faces(x, cells)
     assert len(faces) == 2 * (2 * 3 + 3 * 2 + 2 * 2) * 2
     a, b, c = (x[faces[:, i]] for i in range(3))
     n = np.cross(b - a, c - a) / 2
@@ -124,7 +126,7 @@ def test_final_fields_reads_the_last_snapshot(tmp_path):
             det.x.array[:] = 1 + t
             xdmf.write_function(u, t)
             xdmf.write_function(det, t)
-    f = cohort.final_fields(tmp_path / "f.xdmf")
+    f = cohortplot.final_fields(tmp_path / "f.xdmf")
     assert f["t"] == pytest.approx(100.0 / 3, rel=1e-14)
     assert np.all(f["u"] == pytest.approx(100.0 / 3)) and np.all(f["detGbar"] == pytest.approx(1 + 100.0 / 3))
     assert f["cells"].shape == (6, 4) and f["x"].shape == (8, 3)
@@ -149,7 +151,7 @@ def test_stale_checkpoint_is_dropped(tmp_path):
 ])
 def test_bad_options_exit_2_and_write_nothing(tmp_path, capsys, argv, message):
     out = tmp_path / "out"
-    assert cohort.main([*argv, "--output", str(out)]) == 2
+    assert cohort_command.main([*argv, "--output", str(out)]) == 2
     assert message in capsys.readouterr().err
     assert not out.exists()
 
@@ -193,9 +195,9 @@ def test_mpi_small_cohort_failure_rerun_and_skip(tmp_path, monkeypatch):
     # 1. two groups of one rank; the idealized run fails, the cylinder run finishes
     with monkeypatch.context() as m:
         m.setattr(run, "execute", failing_for("idealized"))
-        assert cohort.main(argv) == 1
+        assert cohort_command.main(argv) == 1
     rows = read_rows(out / "summary.csv")
-    assert list(rows[0]) == list(cohort.COLUMNS)
+    assert list(rows[0]) == list(cohortsummary.COLUMNS)
     assert [(r["geometry"], r["protocol"], r["status"]) for r in rows] == [
         ("cylinder", "short", "done"), ("idealized", "short", "failed")]
     assert rows[1]["final_csa_ratio"] == ""
@@ -204,14 +206,14 @@ def test_mpi_small_cohort_failure_rerun_and_skip(tmp_path, monkeypatch):
     stamp = cylinder.stat().st_mtime_ns
 
     # 2. the rerun, on one group of two ranks, runs only the failed run
-    assert cohort.main([*argv, "--ranks-per-job", "2"]) == 0
+    assert cohort_command.main([*argv, "--ranks-per-job", "2"]) == 0
     assert cylinder.stat().st_mtime_ns == stamp
     assert not (out / "failures.txt").exists()
     assert not list((out / "runs").glob("*.ckpt.h5"))  # stored runs delete their checkpoints
     rows = read_rows(out / "summary.csv")
     assert [r["status"] for r in rows] == ["done", "done"]
     for r in rows:
-        series = cohort.io.read_series(out / "runs" / f"{r['geometry']}_short.h5")
+        series = io.read_series(out / "runs" / f"{r['geometry']}_short.h5")
         assert float(r["final_csa_ratio"]) == series["csa_ratio"][-1]
         assert float(r["final_volume_ratio"]) == series["volume_ratio"][-1]
         assert float(r["final_csa_ratio"]) > 1.0005  # one session grows by about 0.09 %
@@ -225,12 +227,12 @@ def test_mpi_small_cohort_failure_rerun_and_skip(tmp_path, monkeypatch):
     first = (out / "summary.csv").read_text()
 
     # 3. nothing left to do: the same summary, read back from the files
-    assert cohort.main(argv) == 0
+    assert cohort_command.main(argv) == 0
     assert (out / "summary.csv").read_text() == first
     assert cylinder.stat().st_mtime_ns == stamp
 
     # 4. another growth step is another result: the runs are done again
-    assert cohort.main([*argv, "--growth-dt", "48"]) == 0
+    assert cohort_command.main([*argv, "--growth-dt", "48"]) == 0
     assert cylinder.stat().st_mtime_ns != stamp
 
 
@@ -273,7 +275,7 @@ def test_mpi_interrupted_run_resumes_to_the_uninterrupted_result(tmp_path):
     if comm.rank == 0:
         assert stopped[0].result == {"interrupted": True}
         assert never[0].result == {"interrupted": True}
-        rows = cohort.summarize(out, [entry, other], {}, {entry.key, other.key})
+        rows = cohortsummary.summarize(out, [entry, other], {}, {entry.key, other.key})
         assert [r["status"] for r in rows] == ["interrupted", "interrupted"]
 
     # resumed on two groups of one rank: the result of the entry that was never stopped
@@ -281,8 +283,8 @@ def test_mpi_interrupted_run_resumes_to_the_uninterrupted_result(tmp_path):
     assert resumed[0].status == "done"
     assert not runspec.Outputs(h5).checkpoint.exists()
     assert "resuming from" in (out / "runs" / "cylinder_short.log").read_text()
-    a = cohort.io.read_series(cohort.series_path(folder / "whole", entry))
-    b = cohort.io.read_series(h5)
+    a = io.read_series(cohort.series_path(folder / "whole", entry))
+    b = io.read_series(h5)
     assert np.array_equal(a["t"], b["t"])
     np.testing.assert_allclose(b["csa_ratio"], a["csa_ratio"], rtol=1e-12, atol=0)
     np.testing.assert_allclose(b["volume_ratio"], a["volume_ratio"], rtol=1e-12, atol=0)

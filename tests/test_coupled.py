@@ -217,7 +217,7 @@ def test_settings_presets_and_their_digests():
 
 
 def test_grow_and_cohort_take_the_original_preset_and_explicit_switches(tmp_path):
-    from hyper.analysis import cohort
+    from hyper.commands import cohort as cohort_command
     from hyper.commands import grow
 
     out = ["--geometry", "cylinder", "--output", str(tmp_path / "run.h5")]
@@ -239,9 +239,9 @@ def test_grow_and_cohort_take_the_original_preset_and_explicit_switches(tmp_path
     assert grow.plan(MPI.COMM_SELF, out).settings == GrowthSettings()
     with pytest.raises(InputError, match="--accuracy .* does not combine with --settings original"):
         grow.plan(MPI.COMM_SELF, [*out, "--settings", "original", "--accuracy"])
-    args = cohort.parser().parse_args(["--geometries", "cylinder", "--settings", "original",
-                                       "--signaling-method", "rk4"])
-    _, settings, _ = cohort.check(args, MPI.COMM_SELF)
+    args = cohort_command.parser().parse_args(["--geometries", "cylinder", "--settings", "original",
+                                               "--signaling-method", "rk4"])
+    _, settings, _ = cohort_command.check(args, MPI.COMM_SELF)
     assert args.shape == {"ends": "disks", "fibers": "auto"}
     assert (settings.growth_dt, settings.signaling_method, settings.growth_increment) == (1.0, "rk4", "left-point")
     assert not (tmp_path / "run.h5").exists()

@@ -8,8 +8,9 @@ import h5py
 import numpy as np
 import pytest
 
-from hyper.analysis import cohort
+from hyper.analysis import cohortplot
 from hyper.commands import cli
+from hyper.commands import cohort as cohort_command
 from hyper.model import protocols, signaling
 from hyper.runs import plot
 
@@ -70,10 +71,10 @@ def test_the_growth_figure_has_one_time_range(tmp_path):
 
 def test_the_ratio_figure_says_dots_only_with_several_members(tmp_path, monkeypatch):
     titles = []
-    monkeypatch.setattr(cohort.plot, "save", lambda fig, path, **kw: titles.extend(ax.get_title() for ax in fig.axes))
+    monkeypatch.setattr(plot, "save", lambda fig, path, **kw: titles.extend(ax.get_title() for ax in fig.axes))
     row = {"geometry": "cylinder", "muscle": "", "subject": "", "side": "", "protocol": "weekly", "status": "done",
            "final_csa_ratio": 1.03, "final_volume_ratio": 1.031}
-    cohort.ratio_figure([row], tmp_path / "r.png")
+    cohortplot.ratio_figure([row], tmp_path / "r.png")
     assert titles and not any("dots" in t for t in titles)
 
 
@@ -82,10 +83,10 @@ def test_a_shape_geometry_outside_the_cohort_is_refused(tmp_path, capsys):
                      str(tmp_path / "c")])
     assert code == cli.EXIT_INPUT
     assert "--plot-geometry idealized: not one of --geometries (cylinder)" in capsys.readouterr().err
-    args = cohort.parser().parse_args(["--geometries", "cylinder", "idealized"])
+    args = cohort_command.parser().parse_args(["--geometries", "cylinder", "idealized"])
     from mpi4py import MPI
 
-    cohort.check(args, MPI.COMM_SELF)
+    cohort_command.check(args, MPI.COMM_SELF)
     assert args.plot_geometry == "cylinder"
 
 

@@ -9,6 +9,7 @@ from mpi4py import MPI
 from scipy import optimize
 
 from hyper.analysis import ensemble
+from hyper.commands import ensemble as ensemble_command
 from hyper.core.params import InputError
 from hyper.fem import fibers
 from hyper.fem import geometry as geo
@@ -171,7 +172,7 @@ def test_ensemble_cli_rejects_bad_input_and_writes_nothing(tmp_path, capsys):
     out = tmp_path / "ens"
     for argv in (["--epsilon", "1.5"], ["--geometry", "nowhere"], ["--samples", "0"],
                  ["--model", "matern", "--length", "-1"]):
-        assert ensemble.main([*argv, "--output", str(out)]) == 2
+        assert ensemble_command.main([*argv, "--output", str(out)]) == 2
         assert "error:" in capsys.readouterr().err
     assert not out.exists()
 

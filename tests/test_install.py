@@ -42,7 +42,7 @@ def installed(tmp_path_factory):
 
 def test_the_installed_package_carries_its_inputs(installed):
     target, env = installed
-    code = ("import hyper, hyper.fem.geometry as g, hyper.core.resources as r, hyper.commands.slurm as s; "
+    code = ("import hyper, hyper.fem.geometry as g, hyper.core.resources as r, hyper.slurm as s; "
             "print(hyper.__file__); print(g.MESHES_DIR); print(r.checkout()); "
             "print(all(p.is_file() for p in s.TEMPLATES.values()))")
     lines = subprocess.run([sys.executable, "-c", code], env=env, cwd=target.parent, capture_output=True,
@@ -68,7 +68,7 @@ def test_an_installed_hyper_grows_from_an_empty_folder(installed, tmp_path):
         assert f.attrs["version_git_commit"] == ""  # not run from a checkout
         assert 1.02 < f["csa_ratio"][-1] < 1.04  # 9 weeks of weekly sessions: +3.0 %
     # the installed study files find their mesh beside them
-    code = ("from hyper.core import resources; from hyper.analysis import study; "
+    code = ("from hyper.analysis import study; from hyper.core import resources; "
             "print(study.load(resources.folder('studies') / 'custom.toml').meshes[0].path.is_file())")
     assert subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True,
                           check=True).stdout.strip() == "True"

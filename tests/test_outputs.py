@@ -17,6 +17,7 @@ from mpi4py import MPI
 
 from hyper.analysis import study
 from hyper.commands import cli, grow
+from hyper.commands import study as study_command
 from hyper.core import io, log
 from hyper.core.params import InputError
 from hyper.model import protocols
@@ -215,7 +216,7 @@ def test_study_data_and_snapshots_are_checked(tmp_path, capsys, monkeypatch, tex
     (tmp_path / "s.toml").write_text(text)
     monkeypatch.chdir(tmp_path)
     before = sorted(tmp_path.rglob("*"))
-    assert study.main([str(tmp_path / "s.toml"), "--output", str(tmp_path / "out")]) == cli.EXIT_INPUT
+    assert study_command.main([str(tmp_path / "s.toml"), "--output", str(tmp_path / "out")]) == cli.EXIT_INPUT
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and re.search(message, err[0]), err
     assert sorted(tmp_path.rglob("*")) == before

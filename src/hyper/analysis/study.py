@@ -1,98 +1,28 @@
-"""hyper study STUDY.toml: a whole study in one file.
-
-    hyper study studies/custom.toml
-    mpirun -n 4 hyper study studies/paper-cohort.toml --ranks-per-job 2
-    hyper study studies/paper-cohort.toml --growth-dt 24 --output results/coarse
-
-One geometry × one protocol runs as `hyper grow` does (OUTPUT/GEOMETRY_PROTOCOL.h5, its
-fields and OUTPUT/GEOMETRY_growth.png); more run as a cohort on the MPI farm as
-`hyper cohort` does (OUTPUT/runs/, summary.csv, ratios.png, shape.png of the first
-geometry, table.md), and a rerun skips the runs already done.
-
-The file; every key is checked when it is read, an unknown one is an error, and paths
-of inputs are relative to the study file's folder (the output folder to the current one):
-
-    geometries = ["BFLH_VHF_Left", "cylinder"]  # built-in geometry ids
-    protocols = ["mwf", "mine.toml"]            # built-in names, "all", or protocol TOML files
-
-    [[mesh]]                   # a mesh file of yours (repeatable): tetrahedral XDMF with
-    file = "muscle.xdmf"       # facet tags ft_small (1, 2 the ends, 3 the side)
-    unit = "mm"                # its length unit: m or mm
-
-    [[protocol]]               # a protocol written here (repeatable), as in a protocol file:
-    name = "twice-weekly"      # [[protocol.session]] tables (start, duration, intensity) and
-    [protocol.repeat]          # end (h), or a repeat rule:
-    weekdays = ["tue", "fri"]  # days of each training week (weeks begin on a Monday), or
-                               # every_days = 3
-    duration = 1.0             # h, each session
-    intensity = 0.8            # fraction of the maximal force
-    weeks = 6                  # training weeks; the protocol ends with the last
-    lead_in_days = 7           # rest before the first training week (0 by default)
-
-    [signaling]                # signaling parameters (fields of hyper.model.signaling.SignalingParams)
-    a10 = 0.09
-
-    [material]                 # the muscle law's parameters (fields of hyper.model.material.MaterialParams)
-    sigma_act = 2.5e5          # Pa
-
-    [heterogeneity]            # per-cell signaling parameters (hyper.model.heterogeneity), optional
-    model = "uniform-noise"    # or "matern", with length (m) and nu
-    epsilon = 0.01
-    seed = 1
-
-    [numerics]
-    growth_dt = 168.0          # h; or accuracy = 1e-3, the steps hyper.runs.fidelity chooses
-    signaling_dt = 0.05        # h, the RK4 step
-    quadrature_degree = 4      # built-in geometries only
-    linear_solver = "lu"       # lu, iterative or auto (lu; auto with accuracy)
-    max_halvings = 4
-    feedback = "hill"          # of CSA on protein synthesis: hill, linear or none
-    grow_during_sessions = true   # false: the original code's
-    consistent_stress = true      # false: the original code's P = Fe S
-
-    [output]
-    folder = "results/study"   # (the default)
-    figures = true
-    snapshot_every = 24.0      # h of simulated time between fields snapshots (and the last state)
-
-    [data]                     # measured CSA to compare every run with (hyper.runs.measured), optional;
-    file = "mine.csv"          # without it a run is compared with its protocol's own data set, if any
-
-    [sobol]                    # the sensitivity analysis of `hyper sobol --problem STUDY.toml`
-    names = ["kM", "kF"]       # (checked here, run there; see hyper.sobol)
-    bounds = [[0.005, 0.02], [0.0095, 0.038]]
-
-Precedence: a command-line option wins over the study file, and the file over the
-defaults (--output over [output] folder, --growth-dt over [numerics] growth_dt, and so on
-for each key). Wherever they come from, a growth or RK4 step given explicitly wins over
-the one that accuracy would choose, as in `hyper grow`.
-
-Exit status: as `hyper grow` (one run) or `hyper cohort` (more); 2 for a bad study
-file or option, with nothing written.
-"""
+"""A whole study in one file (`hyper study STUDY.toml`, whose help describes the file):
+its sections read and checked (`load`: every key is checked, an unknown one is an error,
+and paths of inputs are relative to the study file's folder), and what it runs: one
+geometry × one protocol as `hyper grow` does, more as a cohort on the MPI farm
+(`hyper.analysis.cohort`)."""
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
-import sys
-import time
-import traceback
 from pathlib import Path
 
-from hyper.analysis import cohort
-from hyper.commands import cli
-from hyper.core.log import PROGRESS_EVERY, info
+from hyper.analysis import cohort, sobol
+from hyper.core import io
+from hyper.core.log import PROGRESS_EVERY
 from hyper.core.params import InputError, as_attributes, build, positive_hours, read_toml, replace_from_mapping
 from hyper.fem import geometry as geo
 from hyper.fem.coupled import GrowthSettings
 from hyper.model import material as mat
 from hyper.model import protocols, signaling
+from hyper.model.growth import FEEDBACK_LAWS
 from hyper.model.heterogeneity import Heterogeneity
 from hyper.model.protocols import Protocol
 from hyper.runs import driver as run
-from hyper.runs import fidelity, locks, measured, runspec, sequence
+from hyper.runs import fidelity, measured, runspec, sequence
 
 KEYS = ("geometries", "protocols", "mesh", "protocol", "signaling", "material", "heterogeneity", "numerics",
         "output", "sobol", "data")
@@ -142,8 +72,6 @@ class Numerics:
         if isinstance(m, bool) or not isinstance(m, int) or not 0 <= m <= GrowthSettings.MAX_HALVINGS:
             raise InputError(f"expected an integer in [0, {GrowthSettings.MAX_HALVINGS}], got {m!r}",
                              field="max_halvings")
-        from hyper.model.growth import FEEDBACK_LAWS
-
         if self.feedback not in FEEDBACK_LAWS:
             raise InputError(f"expected one of {', '.join(FEEDBACK_LAWS)}, got {self.feedback!r}", field="feedback")
         for name in ("grow_during_sessions", "consistent_stress"):
@@ -161,7 +89,7 @@ class Output:
         positive_hours(self.snapshot_every, "snapshot_every")
         if not isinstance(self.folder, Path) or not str(self.folder) or "\0" in str(self.folder):
             raise InputError(f"expected a folder path, got {self.folder!r}", field="folder")
-        problem = cli.unwritable(self.folder, folder=True)
+        problem = io.unwritable(self.folder, folder=True)
         if problem is not None:
             raise InputError(problem, field="folder")
         if not isinstance(self.figures, bool):
@@ -313,8 +241,6 @@ def load(path: str | Path, overrides: dict | None = None, data_path: Path | None
     data = read_toml(path)
     keys_of(data, where, KEYS)
     if "sobol" in data:
-        from hyper.analysis import sobol
-
         sobol.read_config(path)
     overrides = overrides or {}
     protocol_list = [p for text in strings(data, "protocols", where)
@@ -349,41 +275,6 @@ def load(path: str | Path, overrides: dict | None = None, data_path: Path | None
                      seed, **sections, data=against)
     except InputError as err:
         raise InputError(f"{where}: {err}") from None
-
-
-# ----------------------------------------------------------------------- running it
-
-
-def parser() -> cli.Parser:
-    p = cli.Parser("study", __doc__)
-    p.add_argument("study", type=Path, metavar="STUDY.toml", help="the study file")
-    p.add_argument("--output", type=cli.output(folder=True), help="output folder; overrides [output] folder")
-    p.add_argument("--figures", action=argparse.BooleanOptionalAction,
-                   help="write the figures (--no-figures: none); overrides [output] figures")
-    p.add_argument("--growth-dt", type=float, help="growth step (h); overrides [numerics] growth_dt")
-    p.add_argument("--accuracy", type=float, help="fidelity choice of the steps; overrides [numerics] accuracy")
-    p.add_argument("--signaling-dt", type=float, help="RK4 step (h); overrides [numerics] signaling_dt")
-    p.add_argument("--quadrature-degree", type=cli.integer(1, 12), help="overrides [numerics] quadrature_degree")
-    p.add_argument("--linear-solver", choices=runspec.LINEAR_SOLVERS, help="overrides [numerics] linear_solver")
-    p.add_argument("--max-halvings", type=cli.integer(0), help="overrides [numerics] max_halvings")
-    p.add_argument("--snapshot-every", type=cli.positive("hours"), metavar="HOURS",
-                   help="fields snapshot every HOURS of simulated time; overrides [output] snapshot_every")
-    p.add_argument("--data", type=Path, metavar="CSV", help="measured CSA to compare with; overrides [data] file")
-    p.add_argument("--ranks-per-job", type=cli.integer(1), default=1,
-                   help="MPI ranks per run of a cohort; must divide the number of ranks")
-    cli.progress_option(p)
-    return p
-
-
-OVERRIDES = {"output": "folder", "figures": "figures", "growth_dt": "growth_dt", "accuracy": "accuracy",
-             "signaling_dt": "signaling_dt", "quadrature_degree": "quadrature_degree",
-             "linear_solver": "linear_solver", "max_halvings": "max_halvings", "snapshot_every": "snapshot_every"}
-
-
-def from_args(args) -> Study:
-    overrides = {field: ("--" + option.replace("_", "-"), getattr(args, option))
-                 for option, field in OVERRIDES.items() if getattr(args, option) is not None}
-    return load(args.study, overrides, args.data)
 
 
 def steps(study: Study) -> tuple[GrowthSettings, fidelity.Choice | None]:
@@ -425,63 +316,33 @@ def check_inputs(comm, study: Study) -> None:
 def first_spec(study: Study, settings, choice) -> runspec.RunSpec:
     """The run of the first geometry with the first protocol."""
     return runspec.RunSpec(study.names[0], study.protocols[0], study.signaling, settings, {},
-                       mesh=study.meshes[0] if study.meshes else None, **spec_options(study, choice))
+                           mesh=study.meshes[0] if study.meshes else None, **spec_options(study, choice))
 
 
-def one_run(comm, study: Study, settings, choice, stop, command, progress_every: float = PROGRESS_EVERY) -> int:
-    """One geometry × one protocol: `hyper grow`'s plan and its execution."""
+# ----------------------------------------------------------------------- running it
+
+
+def one_plan(comm, study: Study, settings, choice, progress_every: float = PROGRESS_EVERY) -> sequence.Plan:
+    """One geometry × one protocol: `hyper grow`'s plan (collective: it refuses another
+    run's checkpoint where the result goes)."""
     name, protocol = study.names[0], study.protocols[0]
     folder = study.output.folder
     spec = first_spec(study, settings, choice)
     outputs = [runspec.Outputs(folder / f"{name}_{protocol.name}.h5")]
     sequence.refuse_foreign_checkpoints(comm, [spec], outputs)
-    work = sequence.Plan([spec], outputs, folder / f"{name}_growth.png", study.output.snapshot_every,
+    return sequence.Plan([spec], outputs, folder / f"{name}_growth.png", study.output.snapshot_every,
                          run.CHECKPOINT_EVERY, False, choice, data=study.data, progress_every=progress_every)
-    return sequence.carry_out(comm, work, stop, command, figure=study.output.figures)
 
 
-def many_runs(comm, study: Study, settings, choice, stop, ranks_per_job: int,
-              progress_every: float = PROGRESS_EVERY) -> int:
-    """More runs: `hyper cohort`'s farm and its summary."""
-    start = time.perf_counter()
-    if comm.size % ranks_per_job:
-        raise InputError(f"--ranks-per-job must divide the number of MPI ranks ({comm.size}), got {ranks_per_job}")
-    folder = study.output.folder
-    runs = cohort.plan(study.names, list(study.protocols), {m.path.stem: m for m in study.meshes})
-    with locks.hold(comm, [folder]):
-        info(comm, f"study: {len(runs)} runs ({len(study.names)} geometries × {len(study.protocols)} protocols) "
-                   f"on {comm.size} rank(s) in groups of {ranks_per_job}, growth step {settings.growth_dt:g} h, "
-                   f"output {folder}")
-        results = cohort.run_cohort(comm, runs, folder, params=study.signaling, settings=settings,
-                                    ranks_per_job=ranks_per_job, stop=stop, options=spec_options(study, choice),
-                                    snapshot_every=study.output.snapshot_every, data=study.data,
-                                    progress_every=progress_every)
-        code = 0
-        if comm.rank == 0:
-            try:
-                code = cohort.finish(folder, runs, results, settings, time.perf_counter() - start,
-                                     plot_geometry=study.names[0], figures=study.output.figures)
-            except Exception:  # noqa: BLE001 - the other ranks wait for the code: report, never leave them hanging
-                traceback.print_exc()
-                code = cli.EXIT_SOME_FAILED
-        cohort.idle_barrier(comm)
-    return int(comm.bcast(code, root=0))
+def cohort_runs(study: Study) -> list[cohort.Run]:
+    """More runs: every geometry (the mesh files by their stems) with every protocol."""
+    return cohort.plan(study.names, list(study.protocols), {m.path.stem: m for m in study.meshes})
 
 
-def carry_out(comm, args, argv: list[str]) -> int:
-    study = from_args(args)
-    settings, choice = steps(study)
-    check_inputs(comm, study)
-    with run.StopOnTerm() as stop:
-        if len(study.names) * len(study.protocols) == 1:
-            return one_run(comm, study, settings, choice, stop, ["hyper", "study", *argv], args.progress_every)
-        return many_runs(comm, study, settings, choice, stop, args.ranks_per_job, args.progress_every)
-
-
-def main(argv=None, comm=None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    return cli.entry(parser, lambda comm, args: carry_out(comm, args, argv))(argv, comm)
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+def run_many(comm, study: Study, runs: list[cohort.Run], settings, choice, stop, ranks_per_job: int,
+             progress_every: float = PROGRESS_EVERY):
+    """`hyper cohort`'s farm over ``runs`` with the study's parameters, numerics and data."""
+    return cohort.run_cohort(comm, runs, study.output.folder, params=study.signaling, settings=settings,
+                             ranks_per_job=ranks_per_job, stop=stop, options=spec_options(study, choice),
+                             snapshot_every=study.output.snapshot_every, data=study.data,
+                             progress_every=progress_every)

@@ -16,7 +16,6 @@ import contextlib
 import importlib
 import logging
 import math
-import os
 import re
 import signal
 import sys
@@ -113,34 +112,6 @@ def progress_option(p: Parser) -> None:
                    help="seconds of wall time between progress lines (the first and last always come)")
 
 
-# Where results never go: the kernel's and the devices' pseudo file systems.
-SYSTEM_TREES = (Path("/proc"), Path("/sys"), Path("/dev"))
-
-
-def unwritable(path: Path, *, folder: bool | None) -> str | None:
-    """Why ``path`` cannot be written as a file (``folder`` False), a folder (True) or
-    either (None); None where it can. Looks only, creates nothing."""
-    absolute = Path(os.path.abspath(path))
-    for tree in SYSTEM_TREES:
-        if absolute == tree or tree in absolute.parents:
-            return f"{path}: under {tree}, not a place for results"
-    if absolute.exists():
-        if folder is True and not absolute.is_dir():
-            return f"{path}: exists and is not a folder"
-        if folder is False and absolute.is_dir():
-            return f"{path}: is a folder, not a file"
-        if folder is False and not absolute.is_file():
-            return f"{path}: exists and is not a regular file"
-    ancestor = absolute.parent
-    while not ancestor.exists():
-        ancestor = ancestor.parent
-    if not ancestor.is_dir():
-        return f"{path}: {ancestor} is a file, not a folder"
-    if not os.access(ancestor, os.W_OK | os.X_OK):
-        return f"{path}: {ancestor} is not writable"
-    return None
-
-
 def output(*, folder: bool | None = None, suffixes: tuple[str, ...] = ()) -> Callable[[str], Path]:
     """An argparse type for a path the job will write: a file (``folder`` False, with one
     of ``suffixes`` if given), a folder (True) or either (None). Every rank checks the same
@@ -152,7 +123,7 @@ def output(*, folder: bool | None = None, suffixes: tuple[str, ...] = ()) -> Cal
         path = Path(text)
         if suffixes and path.suffix.lower() not in suffixes:
             raise argparse.ArgumentTypeError(f"{path}: expected a {' or '.join(suffixes)} file")
-        problem = unwritable(path, folder=folder)
+        problem = io.unwritable(path, folder=folder)
         if problem is not None:
             raise argparse.ArgumentTypeError(problem)
         return path

@@ -190,7 +190,7 @@ def plan_from(comm, args) -> sequence.Plan:
     else:
         plot = results[0].with_name(f"{results[0].stem}_growth.png") if len(runs) == 1 else \
             args.output / f"{name}_growth.png"
-    problem = cli.unwritable(plot, folder=False)
+    problem = io.unwritable(plot, folder=False)
     if problem is not None:
         raise InputError(f"--plot: {problem}")
 
@@ -198,7 +198,7 @@ def plan_from(comm, args) -> sequence.Plan:
         if mesh is None and name not in geo.ANATOMICAL + geo.MESHED:
             raise InputError(f"--plot-box: {name} has a tagged mid-section, measured on its facets; the box "
                              "measure is that of the meshes without one")
-        problem = cli.unwritable(args.plot_box, folder=False)
+        problem = io.unwritable(args.plot_box, folder=False)
         if problem is not None:
             raise InputError(f"--plot-box: {problem}")
     data = None

@@ -1,3 +1,172 @@
-"""``hyper study`` (interim: the job still lives in `hyper.analysis.study`)."""
+"""hyper study STUDY.toml: a whole study in one file.
 
-from hyper.analysis.study import main  # noqa: F401
+    hyper study studies/custom.toml
+    mpirun -n 4 hyper study studies/paper-cohort.toml --ranks-per-job 2
+    hyper study studies/paper-cohort.toml --growth-dt 24 --output results/coarse
+
+One geometry × one protocol runs as `hyper grow` does (OUTPUT/GEOMETRY_PROTOCOL.h5, its
+fields and OUTPUT/GEOMETRY_growth.png); more run as a cohort on the MPI farm as
+`hyper cohort` does (OUTPUT/runs/, summary.csv, ratios.png, shape.png of the first
+geometry, table.md), and a rerun skips the runs already done.
+
+The file; every key is checked when it is read, an unknown one is an error, and paths
+of inputs are relative to the study file's folder (the output folder to the current one):
+
+    geometries = ["BFLH_VHF_Left", "cylinder"]  # built-in geometry ids
+    protocols = ["mwf", "mine.toml"]            # built-in names, "all", or protocol TOML files
+
+    [[mesh]]                   # a mesh file of yours (repeatable): tetrahedral XDMF with
+    file = "muscle.xdmf"       # facet tags ft_small (1, 2 the ends, 3 the side)
+    unit = "mm"                # its length unit: m or mm
+
+    [[protocol]]               # a protocol written here (repeatable), as in a protocol file:
+    name = "twice-weekly"      # [[protocol.session]] tables (start, duration, intensity) and
+    [protocol.repeat]          # end (h), or a repeat rule:
+    weekdays = ["tue", "fri"]  # days of each training week (weeks begin on a Monday), or
+                               # every_days = 3
+    duration = 1.0             # h, each session
+    intensity = 0.8            # fraction of the maximal force
+    weeks = 6                  # training weeks; the protocol ends with the last
+    lead_in_days = 7           # rest before the first training week (0 by default)
+
+    [signaling]                # signaling parameters (fields of hyper.model.signaling.SignalingParams)
+    a10 = 0.09
+
+    [material]                 # the muscle law's parameters (fields of hyper.model.material.MaterialParams)
+    sigma_act = 2.5e5          # Pa
+
+    [heterogeneity]            # per-cell signaling parameters (hyper.model.heterogeneity), optional
+    model = "uniform-noise"    # or "matern", with length (m) and nu
+    epsilon = 0.01
+    seed = 1
+
+    [numerics]
+    growth_dt = 168.0          # h; or accuracy = 1e-3, the steps hyper.runs.fidelity chooses
+    signaling_dt = 0.05        # h, the RK4 step
+    quadrature_degree = 4      # built-in geometries only
+    linear_solver = "lu"       # lu, iterative or auto (lu; auto with accuracy)
+    max_halvings = 4
+    feedback = "hill"          # of CSA on protein synthesis: hill, linear or none
+    grow_during_sessions = true   # false: the original code's
+    consistent_stress = true      # false: the original code's P = Fe S
+
+    [output]
+    folder = "results/study"   # (the default)
+    figures = true
+    snapshot_every = 24.0      # h of simulated time between fields snapshots (and the last state)
+
+    [data]                     # measured CSA to compare every run with (hyper.runs.measured), optional;
+    file = "mine.csv"          # without it a run is compared with its protocol's own data set, if any
+
+    [sobol]                    # the sensitivity analysis of `hyper sobol --problem STUDY.toml`
+    names = ["kM", "kF"]       # (checked here, run there; see hyper.sobol)
+    bounds = [[0.005, 0.02], [0.0095, 0.038]]
+
+Precedence: a command-line option wins over the study file, and the file over the
+defaults (--output over [output] folder, --growth-dt over [numerics] growth_dt, and so on
+for each key). Wherever they come from, a growth or RK4 step given explicitly wins over
+the one that accuracy would choose, as in `hyper grow`.
+
+Exit status: as `hyper grow` (one run) or `hyper cohort` (more); 2 for a bad study
+file or option, with nothing written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import traceback
+from pathlib import Path
+
+from hyper.analysis import cohortsummary
+from hyper.analysis.cohort import idle_barrier
+from hyper.analysis.study import Study, check_inputs, cohort_runs, load, one_plan, run_many, steps
+from hyper.commands import cli
+from hyper.commands.cohort import exit_code
+from hyper.core.log import PROGRESS_EVERY, info
+from hyper.core.params import InputError
+from hyper.runs import driver as run
+from hyper.runs import locks, runspec, sequence
+
+
+def parser() -> cli.Parser:
+    p = cli.Parser("study", __doc__)
+    p.add_argument("study", type=Path, metavar="STUDY.toml", help="the study file")
+    p.add_argument("--output", type=cli.output(folder=True), help="output folder; overrides [output] folder")
+    p.add_argument("--figures", action=argparse.BooleanOptionalAction,
+                   help="write the figures (--no-figures: none); overrides [output] figures")
+    p.add_argument("--growth-dt", type=float, help="growth step (h); overrides [numerics] growth_dt")
+    p.add_argument("--accuracy", type=float, help="fidelity choice of the steps; overrides [numerics] accuracy")
+    p.add_argument("--signaling-dt", type=float, help="RK4 step (h); overrides [numerics] signaling_dt")
+    p.add_argument("--quadrature-degree", type=cli.integer(1, 12), help="overrides [numerics] quadrature_degree")
+    p.add_argument("--linear-solver", choices=runspec.LINEAR_SOLVERS, help="overrides [numerics] linear_solver")
+    p.add_argument("--max-halvings", type=cli.integer(0), help="overrides [numerics] max_halvings")
+    p.add_argument("--snapshot-every", type=cli.positive("hours"), metavar="HOURS",
+                   help="fields snapshot every HOURS of simulated time; overrides [output] snapshot_every")
+    p.add_argument("--data", type=Path, metavar="CSV", help="measured CSA to compare with; overrides [data] file")
+    p.add_argument("--ranks-per-job", type=cli.integer(1), default=1,
+                   help="MPI ranks per run of a cohort; must divide the number of ranks")
+    cli.progress_option(p)
+    return p
+
+
+OVERRIDES = {"output": "folder", "figures": "figures", "growth_dt": "growth_dt", "accuracy": "accuracy",
+             "signaling_dt": "signaling_dt", "quadrature_degree": "quadrature_degree",
+             "linear_solver": "linear_solver", "max_halvings": "max_halvings", "snapshot_every": "snapshot_every"}
+
+
+def from_args(args) -> Study:
+    overrides = {field: ("--" + option.replace("_", "-"), getattr(args, option))
+                 for option, field in OVERRIDES.items() if getattr(args, option) is not None}
+    return load(args.study, overrides, args.data)
+
+
+def one_run(comm, study: Study, settings, choice, stop, command, progress_every: float = PROGRESS_EVERY) -> int:
+    """One geometry × one protocol: `hyper grow`'s plan and its execution."""
+    work = one_plan(comm, study, settings, choice, progress_every)
+    return sequence.carry_out(comm, work, stop, command, figure=study.output.figures)
+
+
+def many_runs(comm, study: Study, settings, choice, stop, ranks_per_job: int,
+              progress_every: float = PROGRESS_EVERY) -> int:
+    """More runs: `hyper cohort`'s farm and its summary."""
+    start = time.perf_counter()
+    if comm.size % ranks_per_job:
+        raise InputError(f"--ranks-per-job must divide the number of MPI ranks ({comm.size}), got {ranks_per_job}")
+    folder = study.output.folder
+    runs = cohort_runs(study)
+    with locks.hold(comm, [folder]):
+        info(comm, f"study: {len(runs)} runs ({len(study.names)} geometries × {len(study.protocols)} protocols) "
+                   f"on {comm.size} rank(s) in groups of {ranks_per_job}, growth step {settings.growth_dt:g} h, "
+                   f"output {folder}")
+        results = run_many(comm, study, runs, settings, choice, stop, ranks_per_job, progress_every)
+        code = 0
+        if comm.rank == 0:
+            try:
+                code = exit_code(cohortsummary.finish(folder, runs, results, settings, time.perf_counter() - start,
+                                                      plot_geometry=study.names[0], figures=study.output.figures))
+            except Exception:  # noqa: BLE001 - the other ranks wait for the code: report, never leave them hanging
+                traceback.print_exc()
+                code = cli.EXIT_SOME_FAILED
+        idle_barrier(comm)
+    return int(comm.bcast(code, root=0))
+
+
+def carry_out(comm, args, argv: list[str]) -> int:
+    study = from_args(args)
+    settings, choice = steps(study)
+    check_inputs(comm, study)
+    with run.StopOnTerm() as stop:
+        if len(study.names) * len(study.protocols) == 1:
+            return one_run(comm, study, settings, choice, stop, ["hyper", "study", *argv], args.progress_every)
+        return many_runs(comm, study, settings, choice, stop, args.ranks_per_job, args.progress_every)
+
+
+def main(argv=None, comm=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    return cli.entry(parser, lambda comm, args: carry_out(comm, args, argv))(argv, comm)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

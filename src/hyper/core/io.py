@@ -27,6 +27,34 @@ from hyper.core.params import InputError
 PARTIAL = ".partial"
 
 
+# Where results never go: the kernel's and the devices' pseudo file systems.
+SYSTEM_TREES = (Path("/proc"), Path("/sys"), Path("/dev"))
+
+
+def unwritable(path: Path, *, folder: bool | None) -> str | None:
+    """Why ``path`` cannot be written as a file (``folder`` False), a folder (True) or
+    either (None); None where it can. Looks only, creates nothing."""
+    absolute = Path(os.path.abspath(path))
+    for tree in SYSTEM_TREES:
+        if absolute == tree or tree in absolute.parents:
+            return f"{path}: under {tree}, not a place for results"
+    if absolute.exists():
+        if folder is True and not absolute.is_dir():
+            return f"{path}: exists and is not a folder"
+        if folder is False and absolute.is_dir():
+            return f"{path}: is a folder, not a file"
+        if folder is False and not absolute.is_file():
+            return f"{path}: exists and is not a regular file"
+    ancestor = absolute.parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        return f"{path}: {ancestor} is a file, not a folder"
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        return f"{path}: {ancestor} is not writable"
+    return None
+
+
 # The command this process runs, as the user typed it (`hyper.commands.cli.entry` records it).
 _command: list[str] = []
 

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from hyper.commands import cli
-from hyper.core import log
+from hyper.core import io, log
 from hyper.core.params import InputError, as_attributes
 from hyper.runs import locks, runspec
 
@@ -230,7 +230,7 @@ def run(comm, args) -> int:
     args.material = material.load(args.material) if args.material is not None else material.MaterialParams()
     if args.output is None:
         args.output = Path("results/contraction") / f"{Path(args.geometry).name}.h5"
-        problem = cli.unwritable(args.output, folder=False)
+        problem = io.unwritable(args.output, folder=False)
         if problem is not None:
             raise InputError(f"--output: {problem}")
     if args.petsc:
