@@ -181,7 +181,8 @@ def test_only_heavy_dependencies_are_imported_inside_functions():
         guarded = {id(n) for node in tree.body if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)
                    for n in ast.walk(node)}
         for node in ast.walk(tree):
-            if isinstance(node, (ast.Import, ast.ImportFrom)) and id(node) not in top | guarded and not getattr(node, "level", 0):
+            if (isinstance(node, (ast.Import, ast.ImportFrom)) and id(node) not in top | guarded
+                    and not getattr(node, "level", 0)):
                 names = [node.module] if isinstance(node, ast.ImportFrom) else [a.name for a in node.names]
                 for name in names:
                     if name.split(".")[0] not in HEAVY and name.split(".")[0] != "hyper":
