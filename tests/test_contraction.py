@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
+from hyper.commands import contraction
 from hyper.core.io import read_series
 from hyper.fem import fibers
 from hyper.fem import geometry as geo_mod
 from hyper.fem.mechanics import MechanicsProblem
-from hyper.runs import contraction
 
 
 def test_cli_writes_series_fields_and_plot(tmp_path, capsys):

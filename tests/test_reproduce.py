@@ -4,12 +4,13 @@ import json
 
 from mpi4py import MPI
 
-from hyper.analysis import reproduce
+from hyper.analysis import reproduce, reproducefigures
+from hyper.commands.reproduce import main
 
 
 def test_signaling_report(tmp_path):
     out = tmp_path / "rep"
-    assert reproduce.main(["--cases", "signaling", "--output", str(out), "--quiet"], comm=MPI.COMM_SELF) == 0
+    assert main(["--cases", "signaling", "--output", str(out), "--quiet"], comm=MPI.COMM_SELF) == 0
     text = (out / "REPORT.md").read_text()
     assert "| quantity | paper / original | hyper, original | hyper, default |" in text
     data = json.loads((out / "report.json").read_text())
@@ -77,10 +78,10 @@ def test_the_idealized_figure_shows_both_runs_and_the_mwf_data(tmp_path, monkeyp
     t = np.linspace(0.0, 1512.0, 8)
     series = {"t": t, "csa_ratio": 1 + 0.08 * t / 1512, "volume_ratio": 1 + 0.08 * t / 1512, "kM": 0.01 - 1e-6 * t}
     read = []
-    monkeypatch.setattr(reproduce.io, "is_complete", lambda p: True)
-    monkeypatch.setattr(reproduce.io, "read_series", lambda p: read.append(p.name) or series)
+    monkeypatch.setattr(reproducefigures.io, "is_complete", lambda p: True)
+    monkeypatch.setattr(reproducefigures.io, "read_series", lambda p: read.append(p.name) or series)
     for quick in (True, False):
-        path = reproduce.idealized_figure(tmp_path, tmp_path / f"fig{quick}.png", quick)
+        path = reproducefigures.idealized_figure(tmp_path, tmp_path / f"fig{quick}.png", quick)
         assert path.stat().st_size > 10_000
     assert read == ["idealized_mwf_default.h5", f"idealized_mwf_original_dt{reproduce.QUICK_GROWTH_DT:g}.h5",
                     "idealized_mwf_default.h5", f"idealized_mwf_original_dt{reproduce.ORIGINAL_GROWTH_DT:g}.h5"]

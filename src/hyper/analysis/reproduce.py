@@ -1,55 +1,33 @@
-"""hyper reproduce: the paper's claims and the original code's numbers beside hyper's, switch by switch.
+"""The reproduction of the paper and the original code (``hyper reproduce``): the cases
+and the work of running them.
 
-    mpirun -n 2 python -m hyper.reproduce --quick        # 29 runs, about 4 min on 2 cores
-    mpirun -n 2 python -m hyper.reproduce                # full: 12 muscles at Δtg = 1 h, heterogeneity
-    python -m hyper.reproduce --cases signaling          # one family of cases (no mesh)
-
-For each claim of the paper (MODEL.md §8) and each number of the original code (§9) the
-report has three columns: the paper's or the original's value, hyper with the original
-code's switches (`--settings original`: every switch of §9; reproduce sets each explicitly too),
-and hyper's default. An attribution table per headline number starts from the default
-and turns on one switch at a time. Cases (families, --cases):
-
-    signaling     ΔN at 9 weeks for mwf, every3days, weekly; IGF1 and AKT peak times (no mesh)
-    idealized     the original's 15-day demo (7 one-hour sessions at 0.8 every 48 h from
-                  t = 0, end 360 h) and the 9-week mwf run: CSA, V, kM; the switches alone
-    contraction   the activation ramp to α = 1: end force and reaction_force_original
-    cohort        the anatomical muscles under mwf: CSA by both measures and volume
-    heterogeneity ε = 0.01 per-cell signaling on BFLH_VHF_Left, 5 samples (full mode only)
-
---quick: the cohort on BFLH_VHF_Left, ST_VHF_Left and TA_VHF_Left, the original column
-there at one step per period (168 h) with the exact increment (the left-point rule needs
-short steps), the idealized original column at QUICK_GROWTH_DT (its effect measured on
-the 15-day demo against Δtg = 1 h), no heterogeneity. Full: the 12 muscles, Δtg = 1 h.
-
-Every coupled run is a job of `hyper.runs.farm` (longest first) and is stored under
-OUTPUT/runs/KEY.h5; a rerun skips every run whose result exists with the same digest
-(hyper.runs.driver's `RunSpec.digest`), so only the report is rebuilt. Writes OUTPUT/REPORT.md,
-OUTPUT/report.json and the figures cohort_ratios.png (Fig. 6C–D analog, both CSA
-measures side by side), box_section.png (the box measure's inner and rim facets on
-BFLH_VHF_Left at the end of its original-settings run) and idealized_mwf.png.
+The reference numbers (the original code's, MODEL.md §9, and the paper's claims, §8);
+the switches by which the original code differs from hyper's default; the cases, each
+one coupled run (`Case`), by family (`idealized_cases`, `cohort_cases`,
+`heterogeneity_cases`) and the contraction ramps (`CONTRACTIONS`); the farm's jobs
+(`plan`), the work of one job on a group's communicator (`work_on`), whether its result
+is stored already (`is_done_on`), and the numbers read back from the stored runs
+(`collect`). The report's text is `hyper.analysis.reproducereport`, its figures
+`hyper.analysis.reproducefigures`, the job `hyper.commands.reproduce`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
-import sys
-import time
 from argparse import Namespace
 from pathlib import Path
 
 import numpy as np
 from mpi4py import MPI
 
-from hyper.commands import cli
+from hyper.analysis import cohort
 from hyper.core import io
-from hyper.core.log import hms, info
-from hyper.core.params import InputError
-from hyper.model import protocols, signaling
+from hyper.fem import geometry as geo
+from hyper.fem.coupled import GrowthSettings
+from hyper.model import heterogeneity, material, protocols, signaling
 from hyper.model.protocols import Protocol, Session
-from hyper.runs import farm, locks, runspec
+from hyper.runs import contraction, farm, presets, runspec
+from hyper.runs import driver as run
 
 CASES = ("signaling", "idealized", "contraction", "cohort", "heterogeneity")
 QUICK_CASES = CASES[:-1]
@@ -123,10 +101,6 @@ class Case:
         return demo15() if self.protocol == "demo15" else protocols.named(self.protocol)
 
     def run_spec(self):
-        from hyper.fem.coupled import GrowthSettings
-        from hyper.model import heterogeneity
-        from hyper.runs import presets
-
         fields = dict(self.settings)
         preset = fields.pop("preset", "default")
         settings = presets.settings(GrowthSettings, preset, fields)
@@ -200,8 +174,6 @@ def base_key(step: float) -> str:
 
 
 def cohort_cases(quick: bool) -> list[Case]:
-    from hyper.fem import geometry as geo
-
     muscles = QUICK_MUSCLES if quick else geo.ANATOMICAL
     s, sp = (
         original_fields("anatomical", 168.0, exact=True) if quick else original_fields("anatomical", ORIGINAL_GROWTH_DT)
@@ -263,8 +235,6 @@ def contraction_done(path: Path, ends: str, fibers: str) -> bool:
 
 def plan(args) -> tuple[list[farm.Job], dict[str, Case]]:
     """The farm's jobs and the coupled runs by key."""
-    from hyper.analysis import cohort
-
     cases: list[Case] = []
     if "idealized" in args.cases:
         cases += idealized_cases(args.quick)
@@ -307,9 +277,6 @@ def work_on(output: Path, runs: dict[str, Case], stop, progress_every: float):
             _, method, name = job.payload
             return signaling_numbers(protocols.named(name), method) if comm.rank == 0 else None
         if kind == "contraction":
-            from hyper.model import material
-            from hyper.runs import contraction
-
             ends, fibers = CONTRACTIONS[job.payload[1]]
             args = Namespace(
                 geometry="idealized",
@@ -324,8 +291,6 @@ def work_on(output: Path, runs: dict[str, Case], stop, progress_every: float):
             )
             contraction.contract(comm, args)
             return None
-        from hyper.runs import driver as run
-
         case = runs[job.payload[1]]
         spec = case.run_spec()
         out = runspec.Outputs(series_path(output, case.key))
@@ -347,7 +312,6 @@ def work_on(output: Path, runs: dict[str, Case], stop, progress_every: float):
 
 def is_done_on(output: Path, runs: dict[str, Case]):
     def is_done(job):
-
         if job.payload[0] == "contraction":
             return contraction_done(contraction_path(output, job.payload[1]), *CONTRACTIONS[job.payload[1]])
         if job.payload[0] == "grow":
@@ -409,555 +373,3 @@ def collect(output: Path, jobs: list[farm.Job], results: list[farm.JobResult], r
         else:
             data["runs"][job.key] = final(output, job.key)
     return data
-
-
-# ------------------------------------------------------------------------- the report
-
-
-def pct(x) -> str:
-    return "–" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:+.2f} %"
-
-
-def num(x, fmt: str) -> str:
-    return "–" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, fmt)
-
-
-def table(head: list[str], rows: list[list[str]]) -> list[str]:
-    return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head), *("| " + " | ".join(r) + " |" for r in rows), ""]
-
-
-def get(d: dict | None, key: str):
-    return None if d is None else d.get(key)
-
-
-def signaling_section(data: dict) -> list[str]:
-    sig = data["signaling"]
-    if not sig:
-        return []
-    orig, dflt = sig.get("rk45-original", {}), sig.get("rk4", {})
-    rows = []
-    for p in protocols.PAPER:
-        paper = num(ORIGINAL_DN.get(p), ".6f") + (" (original)" if p in ORIGINAL_DN else "")
-        if p == "every3days":
-            paper = "agrees with converged to 3e-5 (original)"
-        rows.append(
-            [f"ΔN at 9 weeks, {p}", paper, num(get(orig.get(p), "dN"), ".6f"), num(get(dflt.get(p), "dN"), ".6f")]
-        )
-    for state, label in (("igf1", "IGF1"), ("akt", "AKT")):
-        rows.append(
-            [
-                f"{label} peak after the first mwf session (h)",
-                f"about {PAPER_PEAK_H:g} (paper)",
-                num(get(orig.get("mwf"), f"{state}_peak_h"), ".2f"),
-                num(get(dflt.get("mwf"), f"{state}_peak_h"), ".2f"),
-            ]
-        )
-    for col in (orig, dflt):
-        col["_order"] = (
-            all(p in col for p in protocols.PAPER) and col["mwf"]["dN"] > col["every3days"]["dN"] > col["weekly"]["dN"]
-        )
-    rows.append(["ΔN: mwf > every3days > weekly", "yes (paper)", yesno(orig["_order"]), yesno(dflt["_order"])])
-    rows.append(
-        ["N0", "1.000768 (original)", num(get(orig.get("mwf"), "N0"), ".6f"), num(get(dflt.get("mwf"), "N0"), ".6f")]
-    )
-    out = [
-        "## Signaling (no mesh)",
-        "",
-        "hyper original: `--signaling-method rk45-original` (SciPy RK45, rtol 1e-3, "
-        "atol 1e-6, max_step 0.05 h, restarted at session starts and ends, N0 = 1.000768); default: RK4 at "
-        "0.05 h, converged to 4e-7.",
-        "",
-    ]
-    out += table(["quantity", "paper / original", "hyper, original", "hyper, default"], rows)
-    d0, d1 = get(dflt.get("mwf"), "dN"), get(orig.get("mwf"), "dN")
-    if d0 is not None and d1 is not None:
-        out += [
-            f"Attribution (ΔN mwf): default {d0:.6f}; `--signaling-method rk45-original` alone {d1:.6f} "
-            f"({100 * (d1 / d0 - 1):+.3f} %). The N0 offset does not change ΔN (f does not depend on N "
-            "inside [Nmin, Nmax]).",
-            "",
-        ]
-    return out
-
-
-def yesno(flag) -> str:
-    return "yes" if flag else "**no**"
-
-
-def idealized_section(data: dict, quick: bool) -> list[str]:
-    runs = data["runs"]
-    if "idealized_mwf_default" not in runs:
-        return []
-    dt = QUICK_GROWTH_DT if quick else ORIGINAL_GROWTH_DT
-    orig_demo = runs.get(f"idealized_demo15_original_dt{dt:g}")
-    orig_mwf = runs.get(f"idealized_mwf_original_dt{dt:g}")
-    rows = []
-    for label, o, d in (
-        ("15-day demo (360 h)", orig_demo, runs.get("idealized_demo15_default")),
-        ("9 weeks of mwf", orig_mwf, runs.get("idealized_mwf_default")),
-    ):
-        paper = "not recorded here" if "demo" in label else "CSA, V grow; kM < kM0 = 0.01 1/h (paper)"
-        rows.append([f"{label}: CSA", paper, pct(get(o, "csa")), pct(get(d, "csa"))])
-        rows.append([f"{label}: volume", paper, pct(get(o, "volume")), pct(get(d, "volume"))])
-        rows.append([f"{label}: kM (1/h)", paper, num(get(o, "kM"), ".5f"), num(get(d, "kM"), ".5f")])
-    out = [
-        "## The idealized shape",
-        "",
-        f"hyper original: every switch of MODEL.md §9 (`--settings original`, on this shape with "
-        f"`--ends tags --fibers original`) at Δtg = {dt:g} h"
-        + (" (--quick; the original: 1 h)" if quick else "")
-        + "; default: one growth step per period.",
-        "",
-    ]
-    out += table(["quantity", "paper / original", "hyper, original", "hyper, default"], rows)
-    one, coarse = (
-        runs.get("idealized_demo15_original_dt1"),
-        runs.get(f"idealized_demo15_original_dt{QUICK_GROWTH_DT:g}"),
-    )
-    if quick and one and coarse:
-        out += [
-            f"Δtg effect under the original's switches (15-day demo): CSA {pct(one['csa'])} at 1 h against "
-            f"{pct(coarse['csa'])} at {QUICK_GROWTH_DT:g} h, volume {pct(one['volume'])} against "
-            f"{pct(coarse['volume'])} (the left-point increment f(t0)·Δtg is first order in Δtg).",
-            "",
-        ]
-    rows = [
-        [
-            "default (one step per period)",
-            pct(get(runs.get("idealized_mwf_default"), "csa")),
-            pct(get(runs.get("idealized_mwf_default"), "volume")),
-            "–",
-        ]
-    ]
-    if dt != 168.0:
-        base = runs.get(base_key(dt))
-        rows.append([f"default at Δtg = {dt:g} h", pct(get(base, "csa")), pct(get(base, "volume")), "–"])
-    total = 0.0
-    for switch in SWITCHES:
-        if applies(switch, "idealized"):
-            step = attribution_dt(switch, quick)
-            r, base = runs.get(f"idealized_mwf_dt{step:g}_{slug(switch.option)}"), runs.get(base_key(step))
-            effect = None if r is None or base is None else r["csa"] - base["csa"]
-            total += effect or 0.0
-            rows.append(
-                [
-                    f"`{switch.option}` alone (Δtg = {step:g} h)",
-                    pct(get(r, "csa")),
-                    pct(get(r, "volume")),
-                    "–" if effect is None else f"{effect:+.3f} points",
-                ]
-            )
-    base = runs.get(base_key(dt))
-    if orig_mwf and base:
-        rows.append(
-            [
-                f"all switches (hyper, original; Δtg = {dt:g} h)",
-                pct(orig_mwf["csa"]),
-                pct(orig_mwf["volume"]),
-                f"{orig_mwf['csa'] - base['csa']:+.3f} points (the single effects sum to {total:+.3f})",
-            ]
-        )
-    out += [
-        "Attribution, idealized mwf at 9 weeks (headline: the CSA increase): each switch alone, its effect "
-        "against the default at the same growth step:",
-        "",
-    ]
-    out += table(["run", "CSA", "volume", "effect on CSA"], rows)
-    return out
-
-
-def contraction_section(data: dict) -> list[str]:
-    c = data["contraction"]
-    if not c:
-        return []
-    o, d = c.get("original"), c.get("default")
-    rows = [
-        [
-            "end force d·∫P N dA (N, headline)",
-            "– (not computed by the original)",
-            num(get(o, "end_force"), ".4f"),
-            num(get(d, "end_force"), ".4f"),
-        ],
-        ["spring force (N)", "–", num(get(o, "spring_force"), ".4f"), num(get(d, "spring_force"), ".4f")],
-        [
-            "reaction_force_original ∫(σN)·N dA (N)",
-            f"{ORIGINAL_REACTION_N:.7f} (original)",
-            num(get(o, "reaction_force_original"), ".7f"),
-            num(get(d, "reaction_force_original"), ".7f"),
-        ],
-    ]
-    out = [
-        "## Contraction at α = 1 (idealized shape)",
-        "",
-        "hyper original: `--ends tags --fibers original` (the XDMF's "
-        "end tags with their lateral band; P2 fibres not normalised, UFL's estimated surface degree); default: "
-        "the flat end disks, P1 unit fibres.",
-        "",
-    ]
-    out += table(["quantity", "paper / original", "hyper, original", "hyper, default"], rows)
-    rows = [
-        [name, num(get(c.get(name), "end_force"), ".4f"), num(get(c.get(name), "reaction_force_original"), ".7f")]
-        for name in CONTRACTIONS
-    ]
-    out += ["Attribution (each switch alone from the default):", ""]
-    out += table(["ends, fibres", "end force (N)", "reaction_force_original (N)"], rows)
-    return out
-
-
-def cohort_rows(data: dict, column: str) -> dict[str, dict]:
-    return {
-        k[: -len(f"_mwf_{column}")]: v
-        for k, v in data["runs"].items()
-        if k.endswith(f"_mwf_{column}") and v is not None and "_eps" not in k and not k.startswith("idealized")
-    }
-
-
-def stats(values) -> tuple:
-    values = [v for v in values if v is not None]
-    return (float(np.mean(values)), float(np.min(values)), float(np.max(values)), len(values)) if values else None
-
-
-def mmm(s) -> str:
-    return "–" if s is None else f"{s[0]:+.2f} % ({s[1]:+.2f}, {s[2]:+.2f}; n = {s[3]})"
-
-
-def cohort_section(data: dict, quick: bool) -> list[str]:
-    orig, dflt = cohort_rows(data, "original"), cohort_rows(data, "default")
-    if not dflt and not orig:
-        return []
-    lo, hi = PAPER_MWF["volume"]
-    clo, chi = PAPER_MWF["csa"]
-    rows = [
-        [
-            "volume increase, mean (min, max)",
-            f"+{lo:g}–{hi:g} % (paper)",
-            mmm(stats(r["volume"] for r in orig.values())),
-            mmm(stats(r["volume"] for r in dflt.values())),
-        ],
-        [
-            "CSA increase, the feedback's measure",
-            f"+{clo:g}–{chi:g} % (paper)",
-            mmm(stats(r["csa"] for r in orig.values())) + " (box)",
-            mmm(stats(r["csa"] for r in dflt.values())) + " (cut)",
-        ],
-        [
-            "CSA increase, exact cut",
-            "–",
-            mmm(stats(r.get("csa_cut") for r in orig.values())),
-            mmm(stats(r.get("csa_cut") for r in dflt.values())),
-        ],
-        [
-            "CSA increase, box (the original's measure)",
-            f"+{clo:g}–{chi:g} % (paper)",
-            mmm(stats(r.get("csa_box") for r in orig.values())),
-            mmm(stats(r.get("csa_box") for r in dflt.values())),
-        ],
-    ]
-    vol_gt = [sum(r["volume"] > r["csa"] for r in col.values()) for col in (orig, dflt)]
-    rows.append(
-        [
-            "ΔV > ΔCSA (the feedback's CSA)",
-            "yes, all (paper)",
-            f"{vol_gt[0]} of {len(orig)}",
-            f"{vol_gt[1]} of {len(dflt)}",
-        ]
-    )
-    settings = (
-        "the original's switches (`--settings original`, box feedback) at one step "
-        "per period (168 h) with the exact increment (--quick: the left-point rule needs short steps)"
-        if quick
-        else "`--settings original` (box feedback, Δtg = 1 h)"
-    )
-    out = [
-        "## The anatomical cohort under mwf",
-        "",
-        f"hyper original: {settings}; default: the exact cut feeds back, "
-        "one step per period. Both runs record both CSA measures.",
-        "",
-    ]
-    out += table(["quantity", "paper / original", "hyper, original", "hyper, default"], rows)
-    per = []
-    for g in sorted(set(orig) | set(dflt)):
-        o, d = orig.get(g), dflt.get(g)
-        ref = INDEPENDENT_BOX.get(g)
-        per.append(
-            [
-                g,
-                pct(get(d, "csa_cut")),
-                pct(get(d, "csa_box")),
-                pct(get(d, "volume")),
-                pct(get(o, "csa_cut")),
-                pct(get(o, "csa_box")),
-                pct(get(o, "volume")),
-                "–" if ref is None else f"+{ref[0]:.2f} % / +{ref[1]:.2f} %",
-            ]
-        )
-    out += ["Per muscle (default: cut feedback; original: box feedback):", ""]
-    out += table(
-        [
-            "geometry",
-            "default CSA cut",
-            "default CSA box",
-            "default V",
-            "original CSA cut",
-            "original CSA box",
-            "original V",
-            "independent box restatement CSA / V (issue #15)",
-        ],
-        per,
-    )
-    d = dflt.get(BOX_FIGURE_GEOMETRY)
-    o = orig.get(BOX_FIGURE_GEOMETRY)
-    if d is not None:
-        out += [
-            f"Attribution on {BOX_FIGURE_GEOMETRY} (headline: the CSA the paper reports): default cut "
-            f"{pct(d.get('csa_cut'))}; the box measure of the same states, no feedback {pct(d.get('csa_box'))}"
-            + (
-                ""
-                if o is None
-                else f"; the original's switches with box feedback {pct(o.get('csa_box'))} "
-                f"(its exact cut {pct(o.get('csa_cut'))}, volume {pct(o.get('volume'))})"
-            )
-            + ".",
-            "",
-        ]
-    return out
-
-
-def heterogeneity_section(data: dict) -> list[str]:
-    samples = [v for k, v in data["runs"].items() if "_eps" in k and v is not None]
-    uniform = data["runs"].get(f"{BOX_FIGURE_GEOMETRY}_mwf_default")
-    if not samples:
-        return []
-    csa, vol = stats(s["csa"] for s in samples), stats(s["volume"] for s in samples)
-    rows = [
-        [
-            "CSA, mean of the samples",
-            "a little below uniform (paper)",
-            "not run",
-            f"{mmm(csa)}; uniform {pct(get(uniform, 'csa'))}",
-        ],
-        [
-            "volume, mean of the samples",
-            "a little below uniform (paper)",
-            "not run",
-            f"{mmm(vol)}; uniform {pct(get(uniform, 'volume'))}",
-        ],
-    ]
-    return ["## Heterogeneity (ε = 0.01, BFLH_VHF_Left, mwf)", ""] + table(
-        ["quantity", "paper", "hyper, original", "hyper, default"], rows
-    )
-
-
-BOX_NOTE = (
-    "The box measure's number depends on DOLFINx's `interpolate_nonmatching` extrapolating the muscle's "
-    "displacement into box nodes that lie outside the muscle but inside the bounding boxes of its cells "
-    "(MODEL.md §9 says u = 0 outside); setting every outside node to 0 instead makes the box read +0.02 % "
-    "on BFLH_VHF_Left (its staircase's edge then lies where u = 0, so the in-plane Jacobian integrates to "
-    "the reference area whatever the growth). The numbers here are those of the original code's call, which "
-    "extrapolates; `hyper box RESULT.h5` re-measures a stored run's snapshots by both rules."
-)
-
-
-def report(data: dict, quick: bool, elapsed: float, command: str) -> str:
-    lines = [
-        "# hyper against the paper and its original code",
-        "",
-        f"`{command}` ({'quick' if quick else 'full'} mode): this invocation took {hms(elapsed)} "
-        "(runs stored before are reused). "
-        "Columns: the paper's claim or the original code's number; hyper with the original code's switches "
-        "(MODEL.md §9); hyper's default (converged, physically consistent choices).",
-        "",
-    ]
-    for part in (
-        signaling_section(data),
-        idealized_section(data, quick),
-        contraction_section(data),
-        cohort_section(data, quick),
-        heterogeneity_section(data),
-    ):
-        lines += part
-    if cohort_rows(data, "default"):
-        lines += ["## Notes", "", BOX_NOTE, ""]
-    if data["failed"]:
-        lines += [f"Failed: {', '.join(data['failed'])} (see the log; rerun the same command to retry them).", ""]
-    return "\n".join(lines)
-
-
-# ------------------------------------------------------------------------- figures
-
-
-def cohort_figure(data: dict, path: Path) -> Path | None:
-    """Fig. 6C–D analog: per muscle, CSA by the cut and by the box and volume, default and original side by side."""
-    from hyper.runs import plot
-
-    orig, dflt = cohort_rows(data, "original"), cohort_rows(data, "default")
-    names = sorted(set(orig) | set(dflt))
-    if not names:
-        return None
-    plt = plot.pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(max(8, 1.1 * len(names) + 4), 4.4), layout="constrained")
-    bars = (
-        ("default, cut", dflt, "csa_cut", "tab:blue"),
-        ("default, box", dflt, "csa_box", "lightsteelblue"),
-        ("original, cut", orig, "csa_cut", "tab:red"),
-        ("original, box", orig, "csa_box", "salmon"),
-    )
-    x = np.arange(len(names))
-    for j, (label, col, key, colour) in enumerate(bars):
-        axes[0].bar(
-            x + (j - 1.5) * 0.2, [get(col.get(g), key) or np.nan for g in names], 0.18, label=label, color=colour
-        )
-    for j, (label, col, colour) in enumerate((("default", dflt, "tab:blue"), ("original", orig, "tab:red"))):
-        axes[1].bar(
-            x + (j - 0.5) * 0.3, [get(col.get(g), "volume") or np.nan for g in names], 0.28, label=label, color=colour
-        )
-    for ax, quantity, title in ((axes[0], "csa", "mid-belly CSA, both measures"), (axes[1], "volume", "volume")):
-        lo, hi = PAPER_MWF[quantity]
-        ax.axhspan(lo, hi, color="0.85", zorder=0, label="paper, mwf")
-        ax.set_xticks(x, names, rotation=45, ha="right", fontsize=8)
-        ax.set_ylabel(f"{title} change (%)")
-        ax.grid(axis="y", alpha=0.3)
-        ax.set_ylim(0.0, 1.4 * ax.get_ylim()[1])  # room above the bars for the legend
-        ax.legend(fontsize=7, ncol=3, loc="upper center")
-    fig.suptitle("cohort under mwf, 9 weeks: hyper's default and the original code's switches")
-    plot.save(fig, path, dpi=130)
-    plt.close(fig)
-    return path
-
-
-def box_figure(output: Path, path: Path) -> Path | None:
-    from hyper.runs import plot
-
-    saved = output / "runs" / f"{BOX_FIGURE_GEOMETRY}_mwf_original_box.npz"
-    if not saved.is_file():
-        return None
-    with np.load(saved) as f:
-        picture = {k: f[k] for k in f.files}
-    picture.setdefault("outline", np.empty((0, 2, 2)))
-    return plot.box_section(
-        picture,
-        path,
-        f"{BOX_FIGURE_GEOMETRY}, mwf, 9 weeks, the original's switches: the box measure's inner and rim facets",
-    )
-
-
-def idealized_figure(output: Path, path: Path, quick: bool) -> Path | None:
-    from hyper.runs import measured, plot
-
-    dt = QUICK_GROWTH_DT if quick else ORIGINAL_GROWTH_DT
-    files = {
-        "default": series_path(output, "idealized_mwf_default"),
-        "original": series_path(output, f"idealized_mwf_original_dt{dt:g}"),
-    }
-    results = {name: io.read_series(p) for name, p in files.items() if io.is_complete(p)}
-    data = measured.of_protocol(protocols.named("mwf"))
-    return plot.growth_series(results, path, [data] if data else []) if results else None
-
-
-# ------------------------------------------------------------------------- CLI
-
-
-def parser() -> cli.Parser:
-    p = cli.Parser("reproduce", __doc__)
-    p.add_argument("--output", type=cli.output(folder=True), default="results/reproduce", help="output folder")
-    p.add_argument(
-        "--quick", action="store_true", help="3 muscles, coarser steps, no heterogeneity (about 4 min on 2 ranks)"
-    )
-    p.add_argument(
-        "--cases",
-        nargs="+",
-        choices=CASES,
-        metavar="CASE",
-        help=f"families of cases ({', '.join(CASES)}); all of them (--quick: all but heterogeneity) by default",
-    )
-    p.add_argument(
-        "--ranks-per-job", type=cli.integer(1), default=1, help="MPI ranks per run; must divide the number of ranks"
-    )
-    cli.progress_option(p)
-    return p
-
-
-def reproduce(comm, args) -> int:
-    start = time.perf_counter()
-    if args.cases is None:
-        args.cases = list(QUICK_CASES if args.quick else CASES)
-    if comm.size % args.ranks_per_job:
-        raise InputError(f"--ranks-per-job must divide the number of MPI ranks ({comm.size}), got {args.ranks_per_job}")
-    if "cohort" in args.cases or "heterogeneity" in args.cases:
-        from hyper.fem import geometry
-        from hyper.runs import driver as run
-
-        for g in QUICK_MUSCLES if args.quick else geometry.ANATOMICAL:
-            runspec.check_geometry(comm, g, "--cases cohort")
-    jobs, runs = plan(args)
-    output = args.output
-    with locks.hold(comm, [output]):
-        if comm.rank == 0:
-            (output / "runs").mkdir(parents=True, exist_ok=True)
-        info(
-            comm,
-            f"reproduce: {len(jobs)} jobs ({', '.join(args.cases)}), {'quick' if args.quick else 'full'} "
-            f"mode, on {comm.size} rank(s), output {output}",
-        )
-        from hyper.runs import driver as run
-
-        with run.StopOnTerm() as stop:
-            results = farm.run(
-                comm,
-                jobs,
-                work_on(output, runs, stop, args.progress_every),
-                ranks_per_job=args.ranks_per_job,
-                is_done=is_done_on(output, runs),
-                label="reproduce",
-                progress_every=args.progress_every,
-            )
-        stopped = comm.bcast(
-            any(r.status == "done" and isinstance(r.result, dict) and r.result.get("interrupted") for r in results)
-            if comm.rank == 0
-            else None,
-            root=0,
-        )
-        if stopped:
-            info(comm, f"reproduce: stopped by SIGTERM; the finished runs are kept, the running ones have "
-                       f"checkpoints: rerun the same command to go on (exit status {cli.EXIT_TERMINATED})")
-            return cli.EXIT_TERMINATED
-        if comm.rank == 0:
-            data = collect(output, jobs, results, runs)
-            command = (
-                "hyper reproduce"
-                + (" --quick" if args.quick else "")
-                + (
-                    ""
-                    if args.cases == list(QUICK_CASES if args.quick else CASES)
-                    else " --cases " + " ".join(args.cases)
-                )
-            )
-            data.update(
-                mode="quick" if args.quick else "full",
-                cases=list(args.cases),
-                command=command,
-                wall_s=time.perf_counter() - start,
-            )
-            figures = [
-                cohort_figure(data, output / "cohort_ratios.png"),
-                box_figure(output, output / "box_section.png"),
-                idealized_figure(output, output / "idealized_mwf.png", args.quick),
-            ]
-            text = report(data, args.quick, time.perf_counter() - start, command)
-            shown = [f"![{p.stem}]({p.name})" for p in figures if p is not None]
-            text += ("\n## Figures\n\n" + "\n\n".join(shown) + "\n") if shown else ""
-            with io.atomic_path(output / "REPORT.md") as tmp:
-                tmp.write_text(text)
-            with io.atomic_path(output / "report.json") as tmp:
-                tmp.write_text(json.dumps(data, indent=1, default=float))
-            info(comm, text)
-            info(comm, f"{farm.summary_line(results)}; wrote {output / 'REPORT.md'}, {output / 'report.json'}")
-        failed = comm.bcast(any(r.status == "failed" for r in results), root=0)
-    return cli.EXIT_SOME_FAILED if failed else cli.EXIT_OK
-
-
-main = cli.entry(parser, reproduce)
-
-if __name__ == "__main__":
-    sys.exit(main())

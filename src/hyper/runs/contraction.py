@@ -1,36 +1,32 @@
-"""hyper contraction: ramp the activation α from 0 to 1 on one geometry.
+"""The contraction run: ramp the activation α from 0 to 1 on one geometry (``hyper
+contraction``, `hyper.commands.contraction`; `hyper.analysis.reproduce` and the
+mechanics benchmark run it too).
 
-Writes <output>.h5 (series alpha, end_force, spring_force, reaction_force_original,
-reaction_force_current, newton_iterations, volume_ratio, stretch_min, stretch_max; the
-groups material and settings),
-<output>_fields.xdmf (displacement u and pressure p on P1, fibre stretch λ per cell, one
-time step per activation level) and <output>.png (force against activation).
-The forces on the end Γ1 (N, positive in tension), along its mean outward normal d:
-end_force, the resultant d·∫ P N dA (the headline: converged to about 3 % on the
-idealized mesh, python -m hyper.bench refinement), equal by equilibrium to
-spring_force, the tendon spring's resultant; reaction_force_original, the original
-code's ∫ (σN)·N dA, Cauchy stress over reference area, which converges slowly and
-depends on the fibres in the end cells (MODEL.md §9); reaction_force_current, ∫ (PN)·n dA.
-The original code's idealized shape: --ends tags --fibers original (P2 fibres as they
-are, surface integrals at UFL's estimated degree) gives its reaction_force_original at
-α = 1, 0.9291244 N.
-A step whose Newton solve fails is retried as two half steps, down to --max-halvings.
-Options after the known ones go to PETSc under the prefix mechanics_ (for example
--mechanics_snes_monitor).
+`contract` writes <output>.h5 (the series `SERIES` in `UNITS`, the groups material and
+settings), <output>_fields.xdmf (`Fields`: displacement u and pressure p on P1, fibre
+stretch λ per cell, one time step per activation level) and <output>.png (`plot`: force
+against activation). `advance` moves α to a target, retrying a step whose Newton solve
+fails as two half steps.
 """
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
+import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
+from dolfinx import fem
+from mpi4py import MPI
 
-from hyper.commands import cli
-from hyper.core import io, log
-from hyper.core.params import InputError, as_attributes
-from hyper.runs import locks, runspec
+from hyper.core import io
+from hyper.core.log import Progress, info
+from hyper.core.params import as_attributes
+from hyper.fem import fibers
+from hyper.fem import geometry as geo
+from hyper.fem.mechanics import MechanicsProblem, SolverError
+from hyper.runs import checkpoint, runspec
+from hyper.runs import plot as figures
 
 SERIES = ("alpha", "end_force", "spring_force", "reaction_force_original", "reaction_force_current",
           "newton_iterations", "volume_ratio", "stretch_min", "stretch_max", "wall_s")
@@ -39,46 +35,10 @@ UNITS = {"alpha": "1", "end_force": "N", "spring_force": "N", "reaction_force_or
          "volume_ratio": "1", "stretch_min": "1", "stretch_max": "1", "wall_s": "s"}
 
 
-class _Parser(cli.Parser):
-    """Single-dash words after the known options are PETSc's: kept in ``args.petsc``."""
-
-    def parse_args(self, args=None, namespace=None):
-        args, rest = self.parse_known_args(args, namespace)
-        stray = [a for a in rest if a.startswith("--")]
-        if stray:
-            raise InputError(f"unknown option(s) {' '.join(stray)}; PETSc options take one dash")
-        args.petsc = rest
-        return args
-
-
-def parser() -> cli.Parser:
-    from hyper.fem import fibers
-    from hyper.fem import geometry as geo
-
-    p = _Parser("contraction", description=__doc__)
-    p.add_argument("--geometry", default="idealized", help="geometry identifier")
-    p.add_argument("--ends", choices=geo.IDEALIZED_ENDS, default="disks",
-                   help="the idealized shape's spring ends: the flat end disks, or the XDMF's end tags with "
-                        "their lateral band (the original code)")
-    p.add_argument("--steps", type=cli.integer(1, 10**4), default=10, help="equal activation steps from 0 to 1")
-    p.add_argument("--output", type=cli.output(folder=False, suffixes=(".h5",)),
-                   help="HDF5 series file; results/contraction/GEOMETRY.h5 by default")
-    p.add_argument("--fibers", default="auto", metavar="KIND",
-                   help=f"fibre field kind: {', '.join(fibers.FIBER_KINDS)} (see hyper.fem.fibers.fiber_field); "
-                        "original: the original code's idealized fibres, with its surface quadrature")
-    p.add_argument("--material", type=Path, metavar="F.toml",
-                   help="TOML file overriding the muscle law's parameters (hyper.model.material.MaterialParams)")
-    p.add_argument("--quadrature-degree", type=cli.integer(1, 12), default=4, help="quadrature degree of the forms")
-    p.add_argument("--max-halvings", type=cli.integer(0, 12), default=6, help="step cuts allowed per step")
-    return p
-
-
 class Fields:
     """Output fields on spaces XDMF stores: P1 displacement and pressure, DG0 fibre stretch."""
 
     def __init__(self, problem):
-        from dolfinx import fem
-
         mesh = problem.geometry.mesh
         self.problem = problem
         self.u = fem.Function(fem.functionspace(mesh, ("Lagrange", 1, (3,))), name="u")
@@ -95,8 +55,6 @@ class Fields:
         return self.u, self.p, self.stretch
 
     def stretch_range(self) -> tuple[float, float]:
-        from mpi4py import MPI
-
         values = self.stretch.x.array[: self._ncells]
         comm = self.problem.comm
         return comm.allreduce(values.min(), op=MPI.MIN), comm.allreduce(values.max(), op=MPI.MAX)
@@ -107,8 +65,6 @@ def advance(problem, target: float, max_halvings: int) -> tuple[int, int]:
 
     Returns (Newton iterations, deepest halving).
     """
-    from hyper.fem.mechanics import SolverError
-
     start = float(problem.alpha.value)
     try:
         problem.alpha.value = target
@@ -124,8 +80,6 @@ def advance(problem, target: float, max_halvings: int) -> tuple[int, int]:
 
 
 def plot(path: Path, series: dict, title: str) -> None:
-    from hyper.runs import plot as figures
-
     fig, (ax, ax2) = figures.pyplot().subplots(1, 2, figsize=(10, 4))
     ax.plot(series["alpha"], series["end_force"], "o-", label=r"$d\cdot\int_{\Gamma_1} P N\,dA$ (resultant)")
     ax.plot(series["alpha"], series["reaction_force_original"], "^--",
@@ -148,12 +102,6 @@ def plot(path: Path, series: dict, title: str) -> None:
 
 def contract(comm, args) -> dict:
     """The activation ramp of the job's ``args`` on ``comm``: the series (and the files)."""
-    from hyper.core import io
-    from hyper.core.log import Progress, info
-    from hyper.fem import fibers
-    from hyper.fem import geometry as geo
-    from hyper.fem.mechanics import MechanicsProblem
-
     original = args.fibers in fibers.UNNORMALISED_KINDS
     geometry = geo.load(args.geometry, comm, quadrature_degree=args.quadrature_degree, ends=args.ends,
                         estimated_surface_degree=original)
@@ -184,8 +132,6 @@ def contract(comm, args) -> dict:
             progress.update(k, f"α = {alpha:.3f}: end force {values[1]:.4e} N, original R {values[3]:.4e} N, "
                                f"λ in [{lo:.4f}, {hi:.4f}], {iterations} Newton its"
                                + (f" ({halvings} halvings)" if halvings else ""), force=True)
-    from hyper.runs import checkpoint
-
     attrs = {
         "geometry": args.geometry,
         "steps": args.steps,
@@ -217,38 +163,3 @@ def contract(comm, args) -> dict:
                                                   f"{problem.num_dofs} unknowns")
     comm.barrier()
     return series
-
-
-def run(comm, args) -> int:
-    import dolfinx_solver  # noqa: F401  (before petsc4py)
-    from petsc4py import PETSc
-
-    from hyper.core.log import info
-    from hyper.fem.mechanics import SolverError
-    from hyper.model import material
-
-    args.material = material.load(args.material) if args.material is not None else material.MaterialParams()
-    if args.output is None:
-        args.output = Path("results/contraction") / f"{Path(args.geometry).name}.h5"
-        problem = io.unwritable(args.output, folder=False)
-        if problem is not None:
-            raise InputError(f"--output: {problem}")
-    if args.petsc:
-        PETSc.Options().insertString(" ".join(args.petsc))
-    try:
-        with locks.hold(comm, [args.output]):
-            series = contract(comm, args)
-    except SolverError as err:
-        log.error(comm, f"{err} (after {args.max_halvings} step halvings)")
-        return cli.EXIT_SOME_FAILED
-    info(comm, f"end force at α = 1: {series['end_force'][-1]:.6f} N (spring {series['spring_force'][-1]:.6f} N; "
-               f"the original's ∫(σN)·N dA {series['reaction_force_original'][-1]:.7f} N); "
-               f"fibre stretch range at α = 1: [{series['stretch_min'][-1]:.4f}, {series['stretch_max'][-1]:.4f}]; "
-               f"wrote {args.output}")
-    return cli.EXIT_OK
-
-
-main = cli.entry(parser, run)
-
-if __name__ == "__main__":
-    sys.exit(main())

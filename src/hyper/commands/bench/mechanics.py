@@ -29,6 +29,7 @@ from hyper.commands import cli
 from hyper.commands.bench import common
 from hyper.core.params import InputError
 from hyper.runs import plot
+from hyper.runs.contraction import advance
 
 ALPHAS = (0.1, 0.2, 0.35, 0.55, 0.8, 1.0)
 
@@ -103,7 +104,6 @@ def _worker_newton(geometry_name: str) -> dict:
     from hyper.fem import fibers
     from hyper.fem import geometry as geo
     from hyper.fem.mechanics import MechanicsProblem
-    from hyper.runs.contraction import advance
 
     comm = MPI.COMM_WORLD
     start = time.perf_counter()
