@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from hyper.analysis import sobol
+from hyper.analysis import chunks, sobol, sobolplot
+from hyper.analysis import sobolmodels as models
+from hyper.commands import sobol as job
 from hyper.model import signaling as S
 from hyper.model.protocols import Protocol, Session, named
 
@@ -29,7 +31,7 @@ def design():
 def test_design_shape_and_bounds(design):
     assert design.shape == (240, 14)
     base = S.SignalingParams()
-    for k, name in enumerate(sobol.PARAMETERS):
+    for k, name in enumerate(models.PARAMETERS):
         ratio = design[:, k] / getattr(base, name)
         assert ratio.min() >= 0.5 and ratio.max() <= 2.0
 
@@ -39,24 +41,24 @@ def test_batch_equals_one_at_a_time(design):
     # members are compared over the first day of daily15: a session, the delayed IGF1
     # stimulus, the AKT bump and its end, and threshold crossings of FOXO and mTOR.
     day = Protocol((Session(0.0, 1.0, 0.8),), 30.0, "day")
-    batch = sobol.final_N(design, protocol=day)
-    single = np.array([S.integrate(sobol.sample_params(design[i : i + 1]).member(0), day, S.rest_state(),
+    batch = models.final_N(design, protocol=day)
+    single = np.array([S.integrate(models.sample_params(design[i : i + 1]).member(0), day, S.rest_state(),
                                    0.0, 30.0)[1][-1, 4]
                        for i in range(len(design))])
     assert np.max(np.abs(batch - single)) <= 1e-12
     assert np.ptp(single) > 0.01  # the parameters matter over one day already
     for i in (0, 117):  # and two members run alone over the whole protocol
-        p = sobol.sample_params(design[i : i + 1]).member(0)
+        p = models.sample_params(design[i : i + 1]).member(0)
         alone = S.integrate(p, named("daily15"), S.rest_state(), 0.0, 480.0)[1][-1, 4]
-        assert abs(alone - sobol.final_N(design[i : i + 1])[0]) <= 1e-12
+        assert abs(alone - models.final_N(design[i : i + 1])[0]) <= 1e-12
 
 
 def test_compiled_kernel_follows_signaling_bit_for_bit(design):
     # The C kernel repeats signaling's RK4 expression for expression, so both backends give
     # the same bits (chunks of either backend can be mixed in one run). A failure here means
     # signaling's RK4 arithmetic changed: update signaling.compiled.SOURCE to match it.
-    full = sobol.final_N(design)
-    assert np.array_equal(full, sobol.final_N(design, backend="numpy"))
+    full = models.final_N(design)
+    assert np.array_equal(full, models.final_N(design, backend="numpy"))
     # N stays in [Nmin, Nmax] = [0.5, 1.3] up to the last step's overshoot
     assert np.all((full >= 0.5 - 1e-3) & (full <= 1.3 + 1e-3))
 
@@ -64,14 +66,14 @@ def test_compiled_kernel_follows_signaling_bit_for_bit(design):
 def test_a_failing_member_is_masked_not_fatal():
     # beta = 0.8 makes the session stimulus 96/h: RK4 with dt = 0.05 h is unstable for that member only
     X = np.array([[0.04, 0.01], [0.8, 0.01], [0.04, 0.02]])
-    N = sobol.final_N(X, names=("beta", "kM"))
+    N = models.final_N(X, names=("beta", "kM"))
     assert np.isnan(N[1])
     for i in (0, 2):
-        p = sobol.sample_params(X[i : i + 1], ("beta", "kM")).member(0)
+        p = models.sample_params(X[i : i + 1], ("beta", "kM")).member(0)
         assert N[i] == S.integrate(p, named("daily15"), S.rest_state(), 0.0, 480.0)[1][-1, 4]
     # the numpy backend fails the whole batch
     with pytest.raises(S.SignalingError, match="member 1"):
-        sobol.final_N(X, names=("beta", "kM"), backend="numpy")
+        models.final_N(X, names=("beta", "kM"), backend="numpy")
 
 
 # --- analysis ----------------------------------------------------------------------------
@@ -93,9 +95,9 @@ def test_ishigami_exact_values():
 
 def test_ishigami_through_the_farm_and_chunks(tmp_path):
     X = sobol.sample(ISHIGAMI, 2048, seed=5)
-    Y, results = sobol.run_chunks(MPI.COMM_SELF, X, sobol.ishigami, tmp_path, "k", chunk=3000)
+    Y, results = chunks.run_chunks(MPI.COMM_SELF, X, models.ishigami, tmp_path, "k", chunk=3000)
     assert [r.status for r in results] == ["done"] * 6
-    assert np.array_equal(Y, sobol.ishigami(X))
+    assert np.array_equal(Y, models.ishigami(X))
     assert len(list((tmp_path / "k").glob("rows_*.npz"))) == 6
     check_ishigami(sobol.analyze(ISHIGAMI, Y, seed=5))
 
@@ -111,21 +113,21 @@ class Evaluator:
         if self.die_after is not None and self.calls >= self.die_after:
             raise RuntimeError("killed")
         self.calls += 1
-        return sobol.ishigami(X)
+        return models.ishigami(X)
 
 
 def test_killed_run_resumes_without_recomputing(tmp_path):
     X = sobol.sample(ISHIGAMI, 512, seed=2)  # 4096 rows, 9 chunks of 500
-    reference, _ = sobol.run_chunks(MPI.COMM_SELF, X, sobol.ishigami, tmp_path / "ref", "k", chunk=500)
+    reference, _ = chunks.run_chunks(MPI.COMM_SELF, X, models.ishigami, tmp_path / "ref", "k", chunk=500)
 
     first = Evaluator(die_after=4)
-    Y, results = sobol.run_chunks(MPI.COMM_SELF, X, first, tmp_path / "run", "k", chunk=500)
+    Y, results = chunks.run_chunks(MPI.COMM_SELF, X, first, tmp_path / "run", "k", chunk=500)
     assert Y is None and sum(r.status == "done" for r in results) == 4 and first.calls == 4
     # a half-written chunk is invisible: only whole files under their final name count
     (tmp_path / "run" / "k" / "rows_000004000_000004096.npz.partial").write_bytes(b"junk")
 
     again = Evaluator()
-    Y, results = sobol.run_chunks(MPI.COMM_SELF, X, again, tmp_path / "run", "k", chunk=500)
+    Y, results = chunks.run_chunks(MPI.COMM_SELF, X, again, tmp_path / "run", "k", chunk=500)
     assert again.calls == 9 - 4
     assert [r.status for r in results].count("skipped") == 4
     assert np.array_equal(Y, reference)
@@ -137,21 +139,21 @@ def test_killed_run_resumes_without_recomputing(tmp_path):
     path = next((tmp_path / "run" / "k").glob("rows_000000000_*.npz"))
     path.write_bytes(path.read_bytes()[:50])
     third = Evaluator()
-    Y, _ = sobol.run_chunks(MPI.COMM_SELF, X, third, tmp_path / "run", "k", chunk=500)
+    Y, _ = chunks.run_chunks(MPI.COMM_SELF, X, third, tmp_path / "run", "k", chunk=500)
     assert third.calls == 1 and np.array_equal(Y, reference)
 
 
 def test_digest_changes_with_samples_and_settings():
     X = sobol.sample(ISHIGAMI, 8, seed=1)
-    key = sobol.digest(X, {"dt": 0.05})
-    assert key == sobol.digest(X.copy(), {"dt": 0.05})
-    assert key != sobol.digest(X, {"dt": 0.1})
-    assert key != sobol.digest(sobol.sample(ISHIGAMI, 8, seed=2), {"dt": 0.05})
+    key = chunks.digest(X, {"dt": 0.05})
+    assert key == chunks.digest(X.copy(), {"dt": 0.05})
+    assert key != chunks.digest(X, {"dt": 0.1})
+    assert key != chunks.digest(sobol.sample(ISHIGAMI, 8, seed=2), {"dt": 0.05})
 
 
 def test_failures_abort_or_drop_their_base_samples():
     X = sobol.sample(ISHIGAMI, 256, seed=4)
-    Y = sobol.ishigami(X)
+    Y = models.ishigami(X)
     Y[[5, 6, 8 * 40 + 1]] = np.nan  # two failed rows in base sample 0, one in base sample 40
     with pytest.raises(ValueError, match="3 of 2048 model evaluations failed .in 2 base samples"):
         sobol.analyze(ISHIGAMI, Y, seed=1)
@@ -169,7 +171,7 @@ def test_failures_abort_or_drop_their_base_samples():
 def test_cli_ishigami_writes_results_and_resumes(tmp_path, capsys):
     out = tmp_path / "out"
     argv = ["--function", "ishigami", "--samples", "1024", "--chunk", "2000", "--output", str(out), "--seed", "7"]
-    assert sobol.main(argv, comm=MPI.COMM_SELF) == 0
+    assert job.main(argv, comm=MPI.COMM_SELF) == 0
     text = capsys.readouterr().out
     assert "failed members: 0" in text and "not a power of 2" not in text
     lines = (out / "indices.csv").read_text().splitlines()
@@ -182,12 +184,12 @@ def test_cli_ishigami_writes_results_and_resumes(tmp_path, capsys):
         S1 = f["S1"][()]
     assert (out / "spread.png").stat().st_size > 0 and (out / "indices.png").stat().st_size > 0
     # a rerun finds every chunk done and gives the same numbers
-    assert sobol.main(argv, comm=MPI.COMM_SELF) == 0
+    assert job.main(argv, comm=MPI.COMM_SELF) == 0
     assert "0 to run, 5 skipped" in capsys.readouterr().out
     with h5py.File(out / "sobol.h5") as f:
         assert np.array_equal(f["S1"][()], S1)
     # another seed is another design: the old chunks go, all are computed anew
-    assert sobol.main([*argv[:-1], "8"], comm=MPI.COMM_SELF) == 0
+    assert job.main([*argv[:-1], "8"], comm=MPI.COMM_SELF) == 0
     text = capsys.readouterr().out
     assert "removed chunks of other settings" in text and "5 to run, 0 skipped" in text
     assert len(list((out / "chunks").iterdir())) == 1
@@ -195,20 +197,20 @@ def test_cli_ishigami_writes_results_and_resumes(tmp_path, capsys):
 
 def test_cli_signaling_small(tmp_path, capsys):
     out = tmp_path / "s"
-    assert sobol.main(["--samples", "16", "--chunk", "200", "--output", str(out)], comm=MPI.COMM_SELF) == 0
+    assert job.main(["--samples", "16", "--chunk", "200", "--output", str(out)], comm=MPI.COMM_SELF) == 0
     with h5py.File(out / "sobol.h5") as f:
         assert f.attrs["evaluations"] == 480 and f.attrs["dt"] == 0.05 and f.attrs["protocol"] == "daily15"
         assert f.attrs["failures"] == 0 and f["failed_rows"].shape == (0,)
         assert f["protocol"].attrs["end"] == 480.0 and f["signaling"].attrs["kM"] == 0.01
         X, Y = f["X"][()], f["Y"][()]
-    assert np.array_equal(Y[:30], sobol.final_N(X[:30]))
+    assert np.array_equal(Y[:30], models.final_N(X[:30]))
     # the result's study text is a --problem file that reruns the same analysis
     with h5py.File(out / "sobol.h5") as f:
         study, digest = f.attrs["study"], f.attrs["digest"]
     assert study.startswith("[sobol]") and 'protocol = "daily15"' in study and "samples = 16" in study
     (tmp_path / "again.toml").write_text(study)
     again = tmp_path / "again"
-    assert sobol.main(["--problem", str(tmp_path / "again.toml"), "--chunk", "200", "--output", str(again)],
+    assert job.main(["--problem", str(tmp_path / "again.toml"), "--chunk", "200", "--output", str(again)],
                       comm=MPI.COMM_SELF) == 0
     with h5py.File(again / "sobol.h5") as f:
         assert f.attrs["digest"] == digest and np.array_equal(f["Y"][()], Y)
@@ -217,7 +219,7 @@ def test_cli_signaling_small(tmp_path, capsys):
 def test_cli_failures_are_reported(tmp_path, capsys):
     # dt = 0.7 h is beyond RK4's stability limit during sessions: every member fails
     out = tmp_path / "f"
-    assert sobol.main(["--samples", "2", "--signaling-dt", "0.7", "--output", str(out)], comm=MPI.COMM_SELF) == 1
+    assert job.main(["--samples", "2", "--signaling-dt", "0.7", "--output", str(out)], comm=MPI.COMM_SELF) == 1
     captured = capsys.readouterr()
     assert "failed members: 60" in captured.out and "60 of 60 model evaluations failed" in captured.err
     assert not (out / "sobol.h5").exists()
@@ -231,7 +233,7 @@ def test_cli_failures_are_reported(tmp_path, capsys):
 ])
 def test_cli_bad_input(tmp_path, capsys, args, message):
     out = tmp_path / "bad"
-    assert sobol.main([*args, "--output", str(out)], comm=MPI.COMM_SELF) == 2
+    assert job.main([*args, "--output", str(out)], comm=MPI.COMM_SELF) == 2
     assert message in capsys.readouterr().err
     assert not out.exists()
 
@@ -248,12 +250,12 @@ def test_mpi_ishigami_farm_equals_serial(tmp_path):
 
     def slow(rows):  # long enough for rank 1 to ask for work while rank 0 is busy
         time.sleep(0.05)
-        return sobol.ishigami(rows)
+        return models.ishigami(rows)
 
-    Y, results = sobol.run_chunks(comm, X, slow, folder / "par", "k", chunk=700)
+    Y, results = chunks.run_chunks(comm, X, slow, folder / "par", "k", chunk=700)
     assert {r.group for r in results} == {0, 1}  # both ranks evaluated chunks
     if comm.rank == 0:
-        serial, _ = sobol.run_chunks(MPI.COMM_SELF, X, sobol.ishigami, folder / "ser", "k", chunk=700)
+        serial, _ = chunks.run_chunks(MPI.COMM_SELF, X, models.ishigami, folder / "ser", "k", chunk=700)
         assert np.array_equal(Y, serial)
         a, b = sobol.analyze(ISHIGAMI, Y, seed=9), sobol.analyze(ISHIGAMI, serial, seed=9)
         assert np.array_equal(a.S1, b.S1) and np.array_equal(a.ST, b.ST) and np.array_equal(a.ST_conf, b.ST_conf)
@@ -266,34 +268,34 @@ def test_a_sigterm_lets_the_chunk_in_progress_finish_and_starts_no_other(tmp_pat
     """What Slurm's warning does to a Sobol job: the chunks done are kept, the rest left for
     the rerun, which computes only those and gives the uninterrupted outputs."""
     X = sobol.sample(sobol.ishigami_problem(), 64, seed=3)
-    reference, _ = sobol.run_chunks(MPI.COMM_SELF, X, sobol.ishigami, tmp_path / "ref", "k", chunk=100)
+    reference, _ = chunks.run_chunks(MPI.COMM_SELF, X, models.ishigami, tmp_path / "ref", "k", chunk=100)
     calls = []
 
     def stop():
         calls.append(1)
         return len(calls) > 2  # asked before each chunk: two run, then the TERM has come
 
-    Y, results = sobol.run_chunks(MPI.COMM_SELF, X, sobol.ishigami, tmp_path / "run", "k", chunk=100, stop=stop)
+    Y, results = chunks.run_chunks(MPI.COMM_SELF, X, models.ishigami, tmp_path / "run", "k", chunk=100, stop=stop)
     assert Y is None
-    assert sum(sobol.interrupted(r) for r in results) == len(results) - 2
+    assert sum(chunks.interrupted(r) for r in results) == len(results) - 2
     assert len(list((tmp_path / "run" / "k").glob("*.npz"))) == 2
-    Y, results = sobol.run_chunks(MPI.COMM_SELF, X, sobol.ishigami, tmp_path / "run", "k", chunk=100)
+    Y, results = chunks.run_chunks(MPI.COMM_SELF, X, models.ishigami, tmp_path / "run", "k", chunk=100)
     assert sum(r.status == "skipped" for r in results) == 2
     np.testing.assert_array_equal(Y, reference)
 
 
 def test_the_default_base_sample_count_is_a_power_of_two():
-    args = sobol.parser().parse_args([])
-    sobol._check(args)
+    args = job.parser().parse_args([])
+    job._check(args)
     assert args.samples == sobol.SAMPLES and args.samples & (args.samples - 1) == 0
 
 
 def test_the_problem_from_options_and_from_a_file(tmp_path):
     from hyper.model import protocols
 
-    args = sobol.parser().parse_args(["--parameters", "kM", "kF", "--range", "0.8", "1.25", "--protocol", "weekly",
+    args = job.parser().parse_args(["--parameters", "kM", "kF", "--range", "0.8", "1.25", "--protocol", "weekly",
                                       "--at", "200"])
-    protocol, prob = sobol._check(args)
+    protocol, prob = job._check(args)
     assert prob == {"num_vars": 2, "names": ["kM", "kF"], "bounds": [[0.008, 0.0125], [0.8 * 0.019, 1.25 * 0.019]]}
     assert protocol.name == "weekly" and args.at == 200.0
     # a study file's [sobol] table in SALib's form; options override it
@@ -301,20 +303,20 @@ def test_the_problem_from_options_and_from_a_file(tmp_path):
     path.write_text('geometries = ["cylinder"]\nprotocols = ["weekly"]\n[sobol]\nfunction = "csa-gain"\n'
                     'protocol = "every3days"\nnames = ["kM", "hill_n"]\nbounds = [[0.005, 0.02], [2, 8]]\n'
                     'num_vars = 2\nsamples = 64\nat = 336\n')
-    args = sobol.parser().parse_args(["--problem", str(path)])
-    protocol, prob = sobol._check(args)
+    args = job.parser().parse_args(["--problem", str(path)])
+    protocol, prob = job._check(args)
     assert (args.function, args.samples, args.at, protocol.name) == ("csa-gain", 64, 336.0, "every3days")
     assert prob["names"] == ["kM", "hill_n"] and prob["bounds"] == [[0.005, 0.02], [2.0, 8.0]]
-    args = sobol.parser().parse_args(["--problem", str(path), "--samples", "32", "--parameters", "kF"])
-    protocol, prob = sobol._check(args)
+    args = job.parser().parse_args(["--problem", str(path), "--samples", "32", "--parameters", "kF"])
+    protocol, prob = job._check(args)
     assert args.samples == 32 and prob["names"] == ["kF"] and prob["bounds"] == [[0.5 * 0.019, 2 * 0.019]]
     # N at a time is N of the run that ends there
     X = np.array([[0.01, 0.019]])
-    early = sobol.final_N(X, names=["kM", "kF"], protocol=protocols.named("mwf"), at=336.0)
+    early = models.final_N(X, names=["kM", "kF"], protocol=protocols.named("mwf"), at=336.0)
     mwf = protocols.named("mwf")
     short = protocols.Protocol(tuple(s for s in mwf.sessions if s.end <= 336.0), 336.0, "two-weeks")
     assert 0 < len(short.sessions) < len(mwf.sessions)
-    assert early == pytest.approx(sobol.final_N(X, names=["kM", "kF"], protocol=short), rel=1e-14)
+    assert early == pytest.approx(models.final_N(X, names=["kM", "kF"], protocol=short), rel=1e-14)
 
 
 @pytest.mark.parametrize("text, message", [
@@ -331,7 +333,7 @@ def test_the_problem_from_options_and_from_a_file(tmp_path):
 def test_bad_problems_are_refused_and_write_nothing(tmp_path, capsys, text, message):
     path = tmp_path / "p.toml"
     path.write_text(text)
-    assert sobol.main(["--problem", str(path), "--output", str(tmp_path / "out")], comm=MPI.COMM_SELF) == 2
+    assert job.main(["--problem", str(path), "--output", str(tmp_path / "out")], comm=MPI.COMM_SELF) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and message in err and err.count("\n") == 1, err
     assert not (tmp_path / "out").exists()
@@ -340,20 +342,20 @@ def test_bad_problems_are_refused_and_write_nothing(tmp_path, capsys, text, mess
 def test_an_analysis_of_two_parameters_at_a_time(tmp_path):
     out = tmp_path / "o"
     argv = ["--parameters", "kM", "a10", "--protocol", "mwf", "--at", "168", "--samples", "8", "--output", str(out)]
-    assert sobol.main(argv, comm=MPI.COMM_SELF) == 0
+    assert job.main(argv, comm=MPI.COMM_SELF) == 0
     with h5py.File(out / "sobol.h5") as f:
         assert [n.decode() for n in f["parameters"][()]] == ["kM", "a10"] and f["X"].shape == (48, 2)
         assert f.attrs["at_h"] == 168.0 and f["settings"].attrs["at_h"] == 168.0
         assert list(f["bounds"].attrs["kM"]) == [0.005, 0.02]
         X, Y = f["X"][()], f["Y"][()]
-    assert np.array_equal(Y, sobol.final_N(X, names=["kM", "a10"], protocol=sobol.named("mwf"), at=168.0))
+    assert np.array_equal(Y, models.final_N(X, names=["kM", "a10"], protocol=named("mwf"), at=168.0))
 
 
 def test_spread_labels_overlap_neither_each_other_nor_a_point():
     rng = np.random.default_rng(3)
     points = np.vstack([rng.normal(100.0, 6.0, (12, 2)), [[400.0, 300.0], [404.0, 302.0]]])  # a cluster, a pair
     sizes = [(20.0 + 3 * k, 13.0) for k in range(len(points))]
-    offsets = sobol.label_offsets(points, sizes, 8.0)
+    offsets = sobolplot.label_offsets(points, sizes, 8.0)
     boxes = [(x + dx, y + dy, x + dx + w, y + dy + h) for (x, y), (dx, dy), (w, h) in zip(points, offsets, sizes)]
     for i, a in enumerate(boxes):
         for b in boxes[i + 1:]:

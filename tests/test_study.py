@@ -307,7 +307,7 @@ def test_one_run_study_writes_what_grow_writes(tmp_path):
 
 
 def test_a_study_carries_the_sobol_problem(tmp_path):
-    from hyper.analysis import sobol
+    from hyper.commands import sobol
 
     path = write(tmp_path, GOOD + '[sobol]\nnames = ["kM"]\nbounds = [[0.005, 0.02]]\nprotocol = "weekly"\n')
     assert study.load(path).names == ["cylinder"]

@@ -1,3 +1,196 @@
-"""``hyper calibrate`` (interim: the job still lives in `hyper.analysis.calibrate`)."""
+"""Fit signaling parameters to measured CSA time courses by bounded least squares.
 
-from hyper.analysis.calibrate import main  # noqa: F401
+    hyper calibrate --data data/defreitas.csv --protocol mwf --fit kM
+    hyper calibrate --data data/defreitas.csv --protocol mwf --fit kM --exclude-until 3
+    hyper calibrate --data data/damas.csv --protocol data/damas.toml \\
+                    --data data/seynnes.csv --protocol data/seynnes.toml --fit kM --fit kF=0.005:0.05
+
+Each --data file (CSV: a time column named after its unit, week, day or hour, and a ``csa``
+column in any area unit) goes with the --protocol after it in order; the simulated
+CSA/CSA0 is compared with csa / csa at time 0. --fit NAME takes a parameter of
+`hyper.model.signaling.SignalingParams` with its default bounds (``BOUNDS``), NAME=LOW:HIGH with
+finite bounds of one's own. All data sets share the fitted values (a joint fit).
+
+Model. --accuracy (a fraction of the growth, as in `hyper.runs.fidelity`) picks the cheapest
+model that meets it: the ODE growth model `hyper.model.surrogate` (no mesh) where its measured
+error plus the RK4 step's stays within it, else the full coupled model on --geometry (one
+coupled run per evaluation). The optimum is then checked with a full coupled run per data
+set (`hyper.runs.driver.execute`) and the difference reported (--no-check skips it).
+
+Intervals: the Jacobian covariance scaled by the residual variance,
+s² (JᵀJ)⁻¹ with s² = RSS/(n - p), and Student's t with n - p degrees of freedom. Why: the
+model is smooth and close to linear in the rates over their intervals (the CSA gain grows
+with kM, bent only by the feedback), every evaluation is an ODE batch, and the Jacobian is
+one batch of p + 1 members; a profile likelihood would need a full fit per profile point
+for the same answer on a near-linear model. The band of the figure propagates the same
+covariance through the curve's own Jacobian. Where a fitted value sits on its bound the
+interval is clipped to the bounds and says so.
+
+Writes OUTPUT/calibration.json and OUTPUT/calibration.png (data, fit, 95 % band).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from hyper.analysis.calibrate import (
+    BOUNDS,
+    CURVE_POINTS,
+    LEVEL,
+    Dataset,
+    Fit,
+    band,
+    choose,
+    coupled_model,
+    dataset,
+    figure,
+    fit,
+    surrogate_model,
+)
+from hyper.commands import cli
+from hyper.core import io
+from hyper.core.log import info
+from hyper.core.params import InputError
+from hyper.fem import coupled
+from hyper.model import protocols, signaling, surrogate
+from hyper.runs import driver, fidelity, locks, runspec
+
+
+def fit_option(text: str) -> tuple[str, tuple[float, float]]:
+    """NAME or NAME=LOW:HIGH of --fit: a SignalingParams field with finite bounds, LOW < HIGH."""
+    name, sep, bounds = text.partition("=")
+    fields = [f.name for f in dataclasses.fields(signaling.SignalingParams)]
+    if name not in fields:
+        raise InputError(f"--fit {text}: unknown parameter {name!r}; known: {', '.join(fields)}")
+    if not sep:
+        if name not in BOUNDS:
+            raise InputError(f"--fit {name}: no default bounds (defaults for {', '.join(BOUNDS)}); "
+                             f"give them as {name}=LOW:HIGH")
+        return name, BOUNDS[name]
+    low, colon, high = bounds.partition(":")
+    try:
+        lo, hi = float(low), float(high)
+    except ValueError:
+        lo = hi = math.nan
+    if not colon or not (math.isfinite(lo) and math.isfinite(hi)):
+        raise InputError(f"--fit {text}: expected finite bounds NAME=LOW:HIGH, e.g. {name}=0.001:0.1")
+    if not lo < hi:
+        raise InputError(f"--fit {text}: need LOW < HIGH")
+    return name, (lo, hi)
+
+
+def parser() -> cli.Parser:
+    p = cli.Parser("calibrate", __doc__)
+    p.add_argument("--data", action="append", required=True, type=Path, metavar="CSV",
+                   help="a CSA time course (repeat for a joint fit)")
+    p.add_argument("--protocol", action="append", required=True, metavar="NAME|FILE",
+                   help="the protocol of each --data, in order (a name or a .toml file)")
+    p.add_argument("--fit", action="append", required=True, metavar="NAME[=LOW:HIGH]",
+                   help=f"a parameter to fit (default bounds for {', '.join(BOUNDS)})")
+    p.add_argument("--geometry", default="idealized", help="geometry of the coupled model and the check")
+    p.add_argument("--accuracy", type=float, default=fidelity.DEFAULT_ACCURACY,
+                   help="error allowed of the model, a fraction of the growth (hyper.runs.fidelity)")
+    p.add_argument("--feedback", default="hill", help="h(CSA/CSA0): hill, linear or none")
+    p.add_argument("--exclude-until", type=float, default=0.0, metavar="WEEK",
+                   help="leave out the points in (0, WEEK] weeks (early oedema)")
+    p.add_argument("--no-check", action="store_true", help="skip the coupled run at the optimum")
+    p.add_argument("--output", type=cli.output(folder=True), default="results/calibration", help="output folder")
+    return p
+
+
+def run(comm, args) -> int:
+    if len(args.data) != len(args.protocol):
+        raise InputError(f"{len(args.data)} --data but {len(args.protocol)} --protocol: "
+                         "give one protocol per data file")
+    fits = dict(fit_option(text) for text in args.fit)
+    if len(fits) != len(args.fit):
+        raise InputError("--fit: a parameter named twice")
+    if not math.isfinite(args.exclude_until) or args.exclude_until < 0:
+        raise InputError(f"--exclude-until: expected a number of weeks >= 0, got {args.exclude_until:g}")
+    runspec.check_geometry(comm, args.geometry)
+    datasets = [dataset(path, protocols.resolve(p), args.exclude_until)
+                for path, p in zip(args.data, args.protocol)]
+    names = list(fits)
+    bounds = np.array([fits[n] for n in names])
+    base = signaling.SignalingParams()
+    x0 = np.clip([float(getattr(base, n)) for n in names], bounds[:, 0], bounds[:, 1])
+    kind, choice, reasons = choose(args.geometry, datasets, args.accuracy)
+    settings = coupled.GrowthSettings(growth_dt=choice.growth_dt, signaling_dt=choice.signaling_dt,
+                                      feedback=args.feedback)
+    for why in reasons:
+        info(comm, f"calibrate: {why}")
+    if kind == "surrogate":
+        evaluate = surrogate_model(datasets, names, base, signaling_dt=choice.signaling_dt,
+                                   factor=surrogate.section_factor(args.geometry), feedback=args.feedback)
+    else:
+        evaluate = coupled_model(comm, datasets, names, base, geometry=args.geometry, settings=settings)
+    f = fit(evaluate, datasets, names, bounds, x0)
+    for j, name in enumerate(names):
+        info(comm, f"calibrate: {name} = {f.x[j]:.5g} [{f.low[j]:.5g}, {f.high[j]:.5g}] ({LEVEL:.0%})")
+    info(comm, f"calibrate: RMSE {f.rmse:.3g} of CSA/CSA0, {f.evaluations} evaluations, {f.wall_s:.1f} s")
+
+    checks = {}
+    if not args.no_check:
+        fitted = dataclasses.replace(base, **{n: float(v) for n, v in zip(names, f.x)})
+        model_at = evaluate(f.x)[0]
+        offset = 0
+        for d in datasets:
+            spec = runspec.RunSpec(args.geometry, d.protocol, fitted, settings)
+            outputs = runspec.Outputs(args.output / f"check_{d.name}.h5")
+            with locks.hold(comm, [outputs.h5]):
+                result = driver.execute(comm, spec, outputs, checkpoints=False, progress_every=1e9)
+                if comm.rank == 0:
+                    outputs.store(result.series, result.meta, runspec.result_groups(spec))
+            coupled_csa = np.interp(d.t, result.series["t"], result.series["csa_ratio"])
+            fast = model_at[offset:offset + len(d.t)]
+            offset += len(d.t)
+            diff = np.abs(fast - coupled_csa)
+            checks[d.name] = {"result": str(outputs.h5), "coupled_csa_ratio": coupled_csa.tolist(),
+                              "model_csa_ratio": fast.tolist(), "max_abs_difference": float(diff.max()),
+                              "max_difference_of_growth": float(diff.max() / abs(coupled_csa[-1] - 1.0)),
+                              "coupled_wall_s": result.meta["wall_s"]}
+            info(comm, f"calibrate: check {d.name}: coupled run at the optimum differs by at most "
+                       f"{diff.max():.2g} in CSA/CSA0 ({checks[d.name]['max_difference_of_growth']:.2g} of the growth)")
+
+    curve_t = [np.linspace(0.0, d.protocol.end, CURVE_POINTS)[1:] for d in datasets]
+    curve, half = band(evaluate, f, bounds, curve_t) if kind == "surrogate" else (evaluate(f.x, curve_t)[0], None)
+    if comm.rank == 0:
+        write(args, datasets, f, kind, reasons, choice, checks)
+        figure(args.output / "calibration.png", datasets, f, curve_t, curve, half)
+    info(comm, f"calibrate: wrote {args.output / 'calibration.json'} and {args.output / 'calibration.png'}")
+    return cli.EXIT_OK
+
+
+def write(args, datasets: list[Dataset], f: Fit, kind: str, reasons: list[str], choice, checks: dict) -> Path:
+    result = {
+        "parameters": {name: {"value": float(f.x[j]), "low": float(f.low[j]), "high": float(f.high[j]),
+                              "level": LEVEL, "at_bound": name in f.at_bound,
+                              "constrained_by_data": name not in f.unseen,
+                              "method": "Jacobian covariance s^2 (J^T J)^-1, s^2 = RSS/(n-p), Student t",
+                              "bounds": f.bounds[j].tolist()}
+                       for j, name in enumerate(f.names)},
+        "rmse": f.rmse,
+        "points": len(f.residuals),
+        "data": {d.name: {"t_h": d.t.tolist(), "csa_ratio": d.csa_ratio.tolist(), "protocol": d.protocol.name}
+                 for d in datasets},
+        "exclude_until_weeks": args.exclude_until,
+        "model": kind, "reasons": reasons, "accuracy": args.accuracy, "geometry": args.geometry,
+        "signaling_dt": choice.signaling_dt, "growth_dt": choice.growth_dt, "feedback": args.feedback,
+        "evaluations": f.evaluations, "fit_wall_s": f.wall_s, "check": checks, "versions": io.versions(),
+    }
+    path = args.output / "calibration.json"
+    with io.atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(result, indent=2) + "\n")
+    return path
+
+
+
+main = cli.entry(parser, run, locks=lambda args: [args.output])
+
+if __name__ == "__main__":
+    raise SystemExit(main())

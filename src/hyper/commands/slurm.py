@@ -24,9 +24,11 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from hyper.analysis import sobol
 from hyper.commands import cli
 from hyper.core import log, resources
 from hyper.core.params import InputError
+from hyper.fem import geometry
 from hyper.model import protocols
 
 # the folder a job runs in by default: the checkout, or (installed) the current folder
@@ -71,8 +73,6 @@ def render_template(path: str | Path, **values) -> str:
 
 def cohort_runs(geometries: Sequence[str] | None, protocol_names: Sequence[str] | None) -> list[tuple[str, str]]:
     """(geometry, protocol) pairs, geometry-major; by default the paper's cohort."""
-    from hyper.fem import geometry
-
     geometries = list(geometry.ANATOMICAL) if not geometries else list(geometries)
     protocol_names = list(protocols.PAPER) if not protocol_names else list(protocol_names)
     for g in geometries:
@@ -191,8 +191,6 @@ class _KindParser(cli.Parser):
 
 
 def parser() -> cli.Parser:
-    from hyper.analysis import sobol
-
     p = cli.Parser("slurm", description=__doc__)
     kinds = p.add_subparsers(dest="kind", required=True, metavar="{cohort,grow-array,sobol}",
                              parser_class=_KindParser, help="the template to render")

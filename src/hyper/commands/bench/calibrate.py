@@ -20,14 +20,16 @@ from pathlib import Path
 
 import numpy as np
 
+from hyper.analysis import calibrate, dose
 from hyper.commands import cli
 from hyper.commands.bench import common
-from hyper.runs import runspec
+from hyper.core import io
+from hyper.fem import coupled
+from hyper.model import protocols, signaling, surrogate
+from hyper.runs import driver, fidelity, runspec
 
 
 def timed_fit(evaluate, data) -> dict:
-    from hyper.analysis import calibrate
-
     bounds = np.array([calibrate.BOUNDS["kM"]])
     f = calibrate.fit(evaluate, [data], ["kM"], bounds, np.array([0.01]))
     return {"kM": float(f.x[0]), "low": float(f.low[0]), "high": float(f.high[0]), "rmse": f.rmse,
@@ -35,14 +37,11 @@ def timed_fit(evaluate, data) -> dict:
 
 
 def surrogate_check(comm) -> dict:
-    from hyper.model import protocols, signaling, surrogate
-    from hyper.runs import driver as run
-
     out = {}
     factor = surrogate.section_factor("idealized")
     for name in ("mwf", "every3days", "weekly"):
         protocol = protocols.named(name)
-        model, *_ = run.build(comm, runspec.RunSpec("idealized", protocol))
+        model, *_ = driver.build(comm, runspec.RunSpec("idealized", protocol))
         reports = list(model.run())
         t = np.array([r.t for r in reports])
         csa = np.array([r.csa_ratio for r in reports])
@@ -62,12 +61,6 @@ def parser() -> cli.Parser:
 
 
 def run(comm, args) -> int:
-    from hyper.analysis import calibrate, dose
-    from hyper.core import io
-    from hyper.fem import coupled
-    from hyper.model import protocols, signaling, surrogate
-    from hyper.runs import fidelity
-
     mwf = protocols.named("mwf")
     data = calibrate.dataset("data/defreitas.csv", mwf)
     choice = fidelity.choose(fidelity.Scene("idealized", "mwf", False, "growth"), fidelity.DEFAULT_ACCURACY)

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from hyper.analysis import sobol
+from hyper.analysis import sobolmodels as models
 from hyper.commands import cli
 from hyper.commands.bench import common
 from hyper.core import io
@@ -65,14 +66,14 @@ def _cli(ranks: int, samples: int, chunk: int, folder: Path) -> dict:
 def _backends(members: int) -> dict:
     X = sobol.sample(sobol.problem(), max(2, -(-members // 30)), seed=11)[:members]
     protocol = named("daily15")
-    steps = S.step_count(sobol.sample_params(X[:2]), protocol, 0.0, protocol.end)
+    steps = S.step_count(models.sample_params(X[:2]), protocol, 0.0, protocol.end)
     if S.c_backend_error() is not None:  # builds or loads the kernel before timing
         raise RuntimeError(f"the C backend is unavailable: {S.c_backend_error()}")
     out = {"members": int(X.shape[0]), "steps": steps}
     values = {}
     for backend in ("c", "numpy"):
         start = time.process_time()
-        values[backend] = sobol.final_N(X, backend=backend)
+        values[backend] = models.final_N(X, backend=backend)
         cpu = time.process_time() - start
         out[backend] = {"cpu_s": cpu, "member_steps_per_s": X.shape[0] * steps / cpu}
     out["identical"] = bool(np.array_equal(values["c"], values["numpy"]))
