@@ -28,6 +28,10 @@ import numpy as np
 from hyper.commands import cli
 from hyper.commands.bench import common
 from hyper.core.params import InputError
+from hyper.fem import fibers
+from hyper.fem import geometry as geo
+from hyper.fem.geometry import GEOMETRIES
+from hyper.fem.mechanics import MechanicsProblem
 from hyper.runs import plot
 from hyper.runs.contraction import advance
 
@@ -62,9 +66,6 @@ def _worker_jacobian(geometry_name: str, degree: str) -> dict:
     from dolfinx import fem
     from mpi4py import MPI
 
-    from hyper.fem import fibers
-    from hyper.fem import geometry as geo
-    from hyper.fem.mechanics import MechanicsProblem
 
     comm = MPI.COMM_WORLD
     geometry = geo.load(geometry_name, comm)
@@ -101,9 +102,6 @@ def _worker_newton(geometry_name: str) -> dict:
     import dolfinx_solver  # noqa: F401
     from mpi4py import MPI
 
-    from hyper.fem import fibers
-    from hyper.fem import geometry as geo
-    from hyper.fem.mechanics import MechanicsProblem
 
     comm = MPI.COMM_WORLD
     start = time.perf_counter()
@@ -199,7 +197,6 @@ def run(comm, args) -> int:
         common.write_worker_result(comm, args.json, result)
         return 0
 
-    from hyper.fem.geometry import GEOMETRIES
 
     unknown = [g for g in args.geometries + [args.quadrature_geometry] if g not in GEOMETRIES]
     if unknown:
