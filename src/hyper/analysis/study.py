@@ -82,7 +82,7 @@ import traceback
 from pathlib import Path
 
 from hyper.analysis import cohort
-from hyper.commands import cli
+from hyper.commands import cli, grow
 from hyper.core.log import PROGRESS_EVERY, info
 from hyper.core.params import InputError, as_attributes, build, positive_hours, read_toml, replace_from_mapping
 from hyper.fem import geometry as geo
@@ -428,7 +428,7 @@ def first_spec(study: Study, settings, choice) -> runspec.RunSpec:
                        mesh=study.meshes[0] if study.meshes else None, **spec_options(study, choice))
 
 
-def one_run(comm, study: Study, settings, choice, stop, command, progress_every: float = PROGRESS_EVERY) -> int:
+def one_run(comm, study: Study, settings, choice, stop, progress_every: float = PROGRESS_EVERY) -> int:
     """One geometry × one protocol: `hyper grow`'s plan and its execution."""
     name, protocol = study.names[0], study.protocols[0]
     folder = study.output.folder
@@ -437,7 +437,7 @@ def one_run(comm, study: Study, settings, choice, stop, command, progress_every:
     sequence.refuse_foreign_checkpoints(comm, [spec], outputs)
     work = sequence.Plan([spec], outputs, folder / f"{name}_growth.png", study.output.snapshot_every,
                          run.CHECKPOINT_EVERY, False, choice, data=study.data, progress_every=progress_every)
-    return sequence.carry_out(comm, work, stop, command, figure=study.output.figures)
+    return grow.exit_status(comm, sequence.carry_out(comm, work, stop, figure=study.output.figures))
 
 
 def many_runs(comm, study: Study, settings, choice, stop, ranks_per_job: int,
@@ -474,7 +474,7 @@ def carry_out(comm, args, argv: list[str]) -> int:
     check_inputs(comm, study)
     with run.StopOnTerm() as stop:
         if len(study.names) * len(study.protocols) == 1:
-            return one_run(comm, study, settings, choice, stop, ["hyper", "study", *argv], args.progress_every)
+            return one_run(comm, study, settings, choice, stop, args.progress_every)
         return many_runs(comm, study, settings, choice, stop, args.ranks_per_job, args.progress_every)
 
 

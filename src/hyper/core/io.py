@@ -26,12 +26,18 @@ from hyper.core.params import InputError
 PARTIAL = ".partial"
 
 
-# The command this process runs, as the user typed it (`hyper.commands.cli.entry` records it).
+# The command this process runs, as the user typed it: `hyper.commands.cli.entry` records
+# it, and whatever records a run reads it here (`write_series`, a failed run's status file).
 _command: list[str] = []
 
 
 def record_command(words: list[str]) -> None:
     _command[:] = [str(w) for w in words]
+
+
+def command() -> list[str]:
+    """The words of the recorded command (none if no command was recorded)."""
+    return list(_command)
 
 
 @functools.cache

@@ -184,6 +184,7 @@ def contract(comm, args) -> dict:
             progress.update(k, f"α = {alpha:.3f}: end force {values[1]:.4e} N, original R {values[3]:.4e} N, "
                                f"λ in [{lo:.4f}, {hi:.4f}], {iterations} Newton its"
                                + (f" ({halvings} halvings)" if halvings else ""), force=True)
+    from hyper.core.collective import on_rank0
     from hyper.runs import checkpoint
 
     attrs = {
@@ -195,7 +196,7 @@ def contract(comm, args) -> dict:
         "end_areas_m2": [geometry.area(tag) for tag in geometry.ends],
         "end_axis": problem.end_axis,
         "surface_quadrature_degree": "estimated" if geometry.estimated_surface_degree else geometry.quadrature_degree,
-        "mesh_sha256": checkpoint.on_rank0(comm, lambda: checkpoint.file_digest(
+        "mesh_sha256": on_rank0(comm, lambda: checkpoint.file_digest(
             *runspec.mesh_files(geo.MESHES_DIR / geo.GEOMETRIES[args.geometry]))),
         "cells": geometry.num_cells(),
         "unknowns": problem.num_dofs,

@@ -121,11 +121,11 @@ def growth(geometry, a0, protocol: str = GROWTH_PROTOCOL) -> dict:
     from dolfinx import fem
 
     from hyper.fem import section
-    from hyper.fem.coupled import CoupledModel, GrowthSettings
+    from hyper.fem.coupled import GrowthSettings, build_model
     from hyper.model import protocols
     from hyper.model.material import MaterialParams
 
-    model = CoupledModel(geometry, a0, protocols.named(protocol), material=MaterialParams(),
+    model = build_model(geometry, a0, protocols.named(protocol), material=MaterialParams(),
                          settings=GrowthSettings())
     *_, last = model.run()
     # The displacement alone, to measure Nanson's area on another plane of the same run.
