@@ -14,13 +14,16 @@ import functools
 import os
 import platform
 import shutil
+import subprocess
 import sys
 from collections.abc import Iterator, Mapping
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+import hyper
 from hyper.core.params import InputError
 
 PARTIAL = ".partial"
@@ -43,9 +46,7 @@ def command() -> list[str]:
 @functools.cache
 def git_commit() -> str:
     """The checkout's commit (+ "-dirty" with uncommitted changes); "" outside a checkout."""
-    import subprocess
-
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]  # src/hyper/core/io.py: the checkout
     if not (root / ".git").exists():
         return ""
     try:
@@ -62,11 +63,7 @@ def git_commit() -> str:
 def _installed_versions() -> dict[str, str]:
     """The versions of the packages a result depends on, read once per process: the
     package metadata cost a checkpoint 15 ms, and importing scipy for its version 50 ms."""
-    from importlib import metadata
-
     import h5py
-
-    import hyper
 
     out = {
         "hyper": hyper.__version__,

@@ -10,6 +10,8 @@ from __future__ import annotations
 import zlib
 from pathlib import Path
 
+from hyper.core import io
+
 # One colour per protocol name in every figure (signaling, growth, cohort): the built-in
 # protocols their own, any other name one of OTHER_COLOURS picked by the name itself, not
 # by its place in a figure (two such names may share one).
@@ -34,8 +36,6 @@ def pyplot():
 
 def save(fig, path: str | Path, *, dpi: int = 150) -> Path:
     """Write ``fig`` to ``path`` (format from its suffix) atomically and close it."""
-    from hyper.core import io
-
     path = Path(path)
     with io.atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or "png")
