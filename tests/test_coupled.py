@@ -10,7 +10,7 @@ from mpi4py import MPI
 from hyper.core.params import InputError
 from hyper.fem import fibers, growthfield
 from hyper.fem import geometry as geo
-from hyper.fem.coupled import CoupledModel, GrowthSettings
+from hyper.fem.coupled import GrowthSettings, build_model
 from hyper.fem.mechanics import MechanicsProblem
 from hyper.model import growth, material, signaling
 from hyper.model.protocols import Protocol, Session
@@ -93,7 +93,7 @@ GROWING = signaling.SignalingParams(thetaM=0.46)
 def csa_series(comm) -> np.ndarray:
     g = geo.load("idealized", comm)
     a0 = fibers.fiber_field(g)
-    model = CoupledModel(g, a0, short_protocol(), params=GROWING, settings=GrowthSettings(growth_dt=24.0))
+    model = build_model(g, a0, short_protocol(), params=GROWING, settings=GrowthSettings(growth_dt=24.0))
     return np.array([[r.t, r.csa_ratio, r.volume_ratio, r.kM] for r in model.run()])
 
 
@@ -103,7 +103,7 @@ def test_dg1_growth_fields_give_the_quadrature_answer_for_uniform_growth():
     a0 = fibers.fiber_field(g)
     series = {}
     for fields in growthfield.GROWTH_FIELDS:
-        model = CoupledModel(g, a0, short_protocol(), params=GROWING,
+        model = build_model(g, a0, short_protocol(), params=GROWING,
                              settings=GrowthSettings(growth_dt=24.0, growth_fields=fields))
         series[fields] = np.array([[r.csa_ratio, r.volume_ratio, r.kM] for r in model.run()])
     assert series["quadrature"][-1, 0] > 1.0005  # it grew
@@ -145,7 +145,7 @@ def test_a_monitor_times_the_phases_and_an_integrator_replaces_the_signaling():
     g = geo.load("cylinder", MPI.COMM_SELF)
     a0 = fibers.fiber_field(g)
     settings = GrowthSettings(growth_dt=24.0)
-    plain = [r.csa_ratio for r in CoupledModel(g, a0, short_protocol(), params=GROWING, settings=settings).run()]
+    plain = [r.csa_ratio for r in build_model(g, a0, short_protocol(), params=GROWING, settings=settings).run()]
 
     periods = []
 
@@ -154,7 +154,7 @@ def test_a_monitor_times_the_phases_and_an_integrator_replaces_the_signaling():
         return signaling.integrate(*args, **kwargs)
 
     clock = Timings()
-    model = CoupledModel(g, a0, short_protocol(), params=GROWING, settings=settings, integrator=integrator,
+    model = build_model(g, a0, short_protocol(), params=GROWING, settings=settings, integrator=integrator,
                          monitor=clock)
     reports = list(model.run())
     assert [r.csa_ratio for r in reports] == plain
@@ -175,7 +175,7 @@ def test_left_point_grows_by_f_at_the_step_start_times_the_step():
     a0 = fibers.fiber_field(g)
     series = {}
     for rule in growth.INCREMENTS:
-        model = CoupledModel(g, a0, short_protocol(), params=GROWING,
+        model = build_model(g, a0, short_protocol(), params=GROWING,
                              settings=GrowthSettings(growth_dt=24.0, growth_increment=rule),
                              petsc_options={"snes_atol": 1e-11})
         series[rule] = list(model.run())

@@ -13,7 +13,7 @@ from hyper.commands import ensemble as ensemble_command
 from hyper.core.params import InputError
 from hyper.fem import fibers
 from hyper.fem import geometry as geo
-from hyper.fem.coupled import CoupledModel, GrowthSettings
+from hyper.fem.coupled import GrowthSettings, build_model
 from hyper.model import heterogeneity as het
 from hyper.model import signaling
 from hyper.model.protocols import Protocol, Session
@@ -29,7 +29,7 @@ def short_protocol() -> Protocol:
 
 def coupled_run(params):
     g = geo.load("idealized", MPI.COMM_SELF)
-    model = CoupledModel(g, fibers.fiber_field(g), short_protocol(),
+    model = build_model(g, fibers.fiber_field(g), short_protocol(),
                          params=params(g.mesh) if callable(params) else params,
                          settings=GrowthSettings(growth_dt=24.0))
     series = np.array([[r.t, r.csa_ratio, r.volume_ratio, r.kM, *r.states] for r in model.run()])
@@ -254,6 +254,6 @@ def test_an_ensemble_sample_stopped_by_sigterm_resumes_to_the_uninterrupted_resu
 
 
 def ckpt_status(path):
-    from hyper.runs import checkpoint
+    from hyper.runs import status
 
-    return checkpoint.read_status(path)["state"]
+    return status.read_status(path)["state"]

@@ -9,7 +9,7 @@ from mpi4py import MPI
 
 from hyper.fem import fibers
 from hyper.fem import geometry as geo
-from hyper.fem.coupled import CoupledModel, GrowthSettings
+from hyper.fem.coupled import GrowthSettings, build_model
 from hyper.model import signaling
 from hyper.model.protocols import Protocol, Session
 
@@ -20,7 +20,7 @@ GROWING = signaling.SignalingParams(thetaM=0.46)
 
 def series(name: str, newton: str, growth_dt: float):
     g = geo.load(name, MPI.COMM_SELF)
-    model = CoupledModel(g, fibers.fiber_field(g), PROTOCOL, params=GROWING,
+    model = build_model(g, fibers.fiber_field(g), PROTOCOL, params=GROWING,
                          settings=GrowthSettings(growth_dt=growth_dt, newton=newton))
     rows = np.array([[r.t, r.csa_ratio, r.volume_ratio] for r in model.run()])
     return rows, model.jacobian.assemblies

@@ -26,6 +26,7 @@ from hyper.core import io
 from hyper.runs import checkpoint as ckpt
 from hyper.runs import driver as run
 from hyper.runs import locks, runspec
+from hyper.runs.status import read_status
 
 ROOT = Path(__file__).resolve().parents[1]
 PYTHON = sys.executable
@@ -156,7 +157,7 @@ def test_sigterm_saves_at_the_next_step_boundary_and_exits_143(inputs, reference
         proc.kill()
         proc.wait()
     assert proc.returncode == cli.EXIT_TERMINATED == 143, log
-    status = ckpt.read_status(runspec.Outputs(out).status)
+    status = read_status(runspec.Outputs(out).status)
     assert status["state"] == "interrupted" and status["reason"] == "SIGTERM"
     with h5py.File(runspec.Outputs(out).checkpoint, "r") as f:
         assert f.attrs["status"] == "interrupted" and f.attrs["complete"]
@@ -203,7 +204,7 @@ def test_unrecoverable_failure_saves_the_last_step_and_the_reason(inputs, tmp_pa
     assert grow.main(failing) == cli.EXIT_FAILED == 3
     err = capsys.readouterr().err
     assert "Newton did not converge" in err and "run.status.json" in err
-    status = ckpt.read_status(runspec.Outputs(out).status)
+    status = read_status(runspec.Outputs(out).status)
     assert status["state"] == "failed"
     # step 1 is the first session (0-1 h), step 2 the first half of the rest after it
     assert status["failed_step"] == 2 and status["from_h"] == 1.0 and status["to_h"] == 24.5
@@ -237,7 +238,7 @@ def test_a_full_disk_stops_the_run_in_one_line_and_keeps_the_previous_checkpoint
     assert grow.main(command(inputs, out, "--checkpoint-every", "3")) == cli.EXIT_FAILED
     lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert len(lines) == 1 and "No space left on device; the previous checkpoint is kept" in lines[0], lines
-    status = ckpt.read_status(runspec.Outputs(out).status)
+    status = read_status(runspec.Outputs(out).status)
     assert status["state"] == "failed" and status["step"] == 6 and "No space left" in status["reason"]
     assert attrs(runspec.Outputs(out).checkpoint)["step"] == 3  # the one written before the disk filled
     assert not out.exists() and not runspec.Outputs(out).fields.exists()
@@ -326,14 +327,14 @@ def heterogeneous_model(comm):
     growth, Ḡ, A and the stress then differ from cell to cell and point to point."""
     from hyper.fem import fibers
     from hyper.fem import geometry as geo
-    from hyper.fem.coupled import CoupledModel, GrowthSettings
+    from hyper.fem.coupled import GrowthSettings, build_model
     from hyper.model import protocols, signaling
 
     g = geo.load("cylinder", comm)
     original = np.asarray(g.mesh.topology.original_cell_index)[: g.mesh.topology.index_map(3).size_local]
     params = signaling.SignalingParams(thetaM=0.46, kM=0.01 * (1.0 + 0.5 * np.sin(original)))
     protocol = protocols.Protocol((protocols.Session(0.0, 1.0, 0.8),), end=25.0, name="one")  # 4 steps
-    return CoupledModel(g, fibers.fiber_field(g), protocol, params=params, settings=GrowthSettings(growth_dt=8.0))
+    return build_model(g, fibers.fiber_field(g), protocol, params=params, settings=GrowthSettings(growth_dt=8.0))
 
 
 def measures(model, until=None) -> list:
@@ -346,13 +347,13 @@ def measures(model, until=None) -> list:
 
 
 def save_state(comm, model, path):
-    ckpt.write(comm, path, *ckpt.model_state(model), series={}, attrs={"run_digest": "test"})
+    state = model.state()
+    ckpt.write(comm, path, state.original, state.per_cell, state.glob, series={}, attrs={"run_digest": "test"})
 
 
 def resumed(comm, path) -> list:
     model = heterogeneous_model(comm)
-    saved = ckpt.read(comm, path, "test", ckpt.local_original_cells(model.geometry.mesh))
-    ckpt.restore_model(model, saved.rows, saved.glob)
+    model.restore(ckpt.read(comm, path, "test", model.local_original_cells()))
     return measures(model)
 
 

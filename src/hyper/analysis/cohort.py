@@ -21,6 +21,7 @@ from pathlib import Path
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 from mpi4py import MPI
 
+from hyper.core.collective import on_rank0
 from hyper.core.log import PROGRESS_EVERY
 from hyper.core.params import InputError
 from hyper.fem import geometry as geo
@@ -167,7 +168,7 @@ def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: Gr
         if subcomm.allreduce(bool(stop is not None and stop()), op=MPI.LOR):
             return interrupted
         out = runspec.Outputs(series_path(output, entry))
-        ckpt.on_rank0(subcomm, lambda: drop_stale_checkpoint(out.checkpoint, digests[entry.key]))
+        on_rank0(subcomm, lambda: drop_stale_checkpoint(out.checkpoint, digests[entry.key]))
         try:
             with _RunLog(out.h5.with_suffix(".log")) if subcomm.rank == 0 else contextlib.nullcontext():
                 done = run.execute(subcomm, specs[entry.key], out, snapshot_every=snapshot_every, stop=stop,

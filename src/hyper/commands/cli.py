@@ -242,7 +242,3 @@ def main(argv=None) -> int:
     p.add_argument("--version", action="version", version=f"hyper {version()}")
     p.parse_args(argv)  # only reached for --help, --version or a bad job name
     return EXIT_INPUT
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -41,6 +41,7 @@ from pathlib import Path
 from hyper.commands import cli
 from hyper.commands.signaling import answer, method_option
 from hyper.core import io, log
+from hyper.core.collective import on_rank0
 from hyper.core.log import info
 from hyper.core.params import InputError
 from hyper.fem import geometry as geo
@@ -49,7 +50,6 @@ from hyper.model import material, protocols, signaling
 from hyper.model.growth import FEEDBACK_LAWS
 from hyper.runs import driver as run
 from hyper.runs import fidelity, measured, presets, runspec, sequence
-from hyper.runs.checkpoint import on_rank0
 
 SIGNALING_SAMPLE_EVERY = 0.5  # h, the series of --ask signaling, as hyper signaling samples it
 # the options that set GrowthSettings' fields, for errors that name what the user typed
@@ -237,9 +237,21 @@ def answer_signaling(comm, args) -> int:
     return cli.EXIT_OK
 
 
-def grow(comm, args, argv: list[str]) -> int:
+EXIT_STATUS = {sequence.Ending.DONE: cli.EXIT_OK, sequence.Ending.FAILED: cli.EXIT_FAILED,
+               sequence.Ending.INTERRUPTED: cli.EXIT_TERMINATED}
+
+
+def exit_status(comm, outcome: sequence.Outcome) -> int:
+    """The exit status of a `sequence.carry_out`; an interruption says so, with the status."""
+    code = EXIT_STATUS[outcome.ending]
+    if outcome.ending is sequence.Ending.INTERRUPTED:
+        info(comm, f"{outcome.message}; exit status {code}")
+    return code
+
+
+def grow(comm, args) -> int:
     with run.StopOnTerm() as stop:
-        return sequence.carry_out(comm, plan_from(comm, args), stop, ["hyper", "grow", *argv])
+        return exit_status(comm, sequence.carry_out(comm, plan_from(comm, args), stop))
 
 
 def asks(argv: list[str]) -> str:
@@ -253,8 +265,4 @@ def main(argv=None, comm=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if asks(argv) == "signaling":
         return cli.entry(lambda: parser("signaling"), answer_signaling)(argv, comm)
-    return cli.entry(parser, lambda comm, args: grow(comm, args, argv))(argv, comm)
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    return cli.entry(parser, grow)(argv, comm)

@@ -14,25 +14,15 @@ from pathlib import Path
 
 from hyper.commands import cli
 from hyper.core import io, log
+from hyper.core.collective import on_rank0
 from hyper.core.params import as_attributes, positive_hours
 from hyper.model import protocols
-from hyper.model.signaling.integrators import METHODS, SMALLEST_DT, SMALLEST_SAMPLE, SignalingError, first_day
+from hyper.model.signaling.integrators import SMALLEST_DT, SMALLEST_SAMPLE, SignalingError, first_day
 from hyper.model.signaling.integrators import run as series
 from hyper.model.signaling.params import load_params
 from hyper.runs import locks, plot
-from hyper.runs.checkpoint import on_rank0
+from hyper.runs.presets import method_option
 from hyper.runs.signalingplot import figure_protocols
-
-METHOD_HELP = ("rk4: classical RK4 with steps landing on every switch (converged at 0.05 h); rk45-original: "
-               "the original code's SciPy RK45 at rtol 1e-3, atol 1e-6, steps of at most --signaling-dt, "
-               "restarted only at session starts and ends, from its N0 = 1.000768 (MODEL.md §9)")
-
-
-def method_option(p: cli.Parser, default: str | None = "rk4") -> None:
-    """--signaling-method, the same for every job that integrates the signaling ODEs
-    (default None where a preset may choose it: rk4 unless it does)."""
-    p.add_argument("--signaling-method", choices=METHODS, default=default,
-                   help=METHOD_HELP + ("" if default else "; rk4 unless --settings sets it"))
 
 
 def parser() -> cli.Parser:

@@ -74,7 +74,6 @@ file or option, with nothing written.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 import traceback
 from pathlib import Path
@@ -82,7 +81,7 @@ from pathlib import Path
 from hyper.analysis import cohortsummary
 from hyper.analysis.cohort import idle_barrier
 from hyper.analysis.study import Study, check_inputs, cohort_runs, load, one_plan, run_many, steps
-from hyper.commands import cli
+from hyper.commands import cli, grow
 from hyper.commands.cohort import exit_code
 from hyper.core.log import PROGRESS_EVERY, info
 from hyper.core.params import InputError
@@ -122,10 +121,10 @@ def from_args(args) -> Study:
     return load(args.study, overrides, args.data)
 
 
-def one_run(comm, study: Study, settings, choice, stop, command, progress_every: float = PROGRESS_EVERY) -> int:
+def one_run(comm, study: Study, settings, choice, stop, progress_every: float = PROGRESS_EVERY) -> int:
     """One geometry × one protocol: `hyper grow`'s plan and its execution."""
     work = one_plan(comm, study, settings, choice, progress_every)
-    return sequence.carry_out(comm, work, stop, command, figure=study.output.figures)
+    return grow.exit_status(comm, sequence.carry_out(comm, work, stop, figure=study.output.figures))
 
 
 def many_runs(comm, study: Study, settings, choice, stop, ranks_per_job: int,
@@ -153,20 +152,14 @@ def many_runs(comm, study: Study, settings, choice, stop, ranks_per_job: int,
     return int(comm.bcast(code, root=0))
 
 
-def carry_out(comm, args, argv: list[str]) -> int:
+def carry_out(comm, args) -> int:
     study = from_args(args)
     settings, choice = steps(study)
     check_inputs(comm, study)
     with run.StopOnTerm() as stop:
         if len(study.names) * len(study.protocols) == 1:
-            return one_run(comm, study, settings, choice, stop, ["hyper", "study", *argv], args.progress_every)
+            return one_run(comm, study, settings, choice, stop, args.progress_every)
         return many_runs(comm, study, settings, choice, stop, args.ranks_per_job, args.progress_every)
 
 
-def main(argv=None, comm=None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    return cli.entry(parser, lambda comm, args: carry_out(comm, args, argv))(argv, comm)
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+main = cli.entry(parser, carry_out)

@@ -14,13 +14,17 @@ import functools
 import os
 import platform
 import shutil
+import subprocess
 import sys
+import xml.etree.ElementTree as ET
 from collections.abc import Iterator, Mapping
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+import hyper
 from hyper.core import resources
 from hyper.core.params import InputError
 
@@ -55,7 +59,8 @@ def unwritable(path: Path, *, folder: bool | None) -> str | None:
     return None
 
 
-# The command this process runs, as the user typed it (`hyper.commands.cli.entry` records it).
+# The command this process runs, as the user typed it: `hyper.commands.cli.entry` records
+# it, and whatever records a run reads it here (`write_series`, a failed run's status file).
 _command: list[str] = []
 
 
@@ -63,10 +68,14 @@ def record_command(words: list[str]) -> None:
     _command[:] = [str(w) for w in words]
 
 
+def command() -> list[str]:
+    """The words of the recorded command (none if no command was recorded)."""
+    return list(_command)
+
+
 @functools.cache
 def git_commit() -> str:
     """The checkout's commit (+ "-dirty" with uncommitted changes); "" outside a checkout."""
-    import subprocess
 
     root = resources.checkout()
     if root is None or not (root / ".git").exists():
@@ -85,11 +94,7 @@ def git_commit() -> str:
 def _installed_versions() -> dict[str, str]:
     """The versions of the packages a result depends on, read once per process: the
     package metadata cost a checkpoint 15 ms, and importing scipy for its version 50 ms."""
-    from importlib import metadata
-
     import h5py
-
-    import hyper
 
     out = {
         "hyper": hyper.__version__,
@@ -234,7 +239,6 @@ def one_grid(xml: str) -> str:
     again) and every function, a function written less often (the fibres, once) with the
     value it was last written with. The HDF5 file is untouched.
     """
-    import xml.etree.ElementTree as ET
 
     domain = ET.fromstring(xml).find("Domain")
     grids = list(domain)
@@ -302,7 +306,6 @@ def read_point_field(path: str | Path, name: str) -> tuple[np.ndarray, list[tupl
     """The mesh's nodes (n, 3) and each snapshot (t, values (n, k)) of the nodal field
     ``name`` in an XDMF file `atomic_xdmf` wrote (one grid per time), in time order.
     InputError where the file or the field is not there."""
-    import xml.etree.ElementTree as ET
 
     import h5py
 

@@ -13,6 +13,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 
 class InputError(ValueError):
     """A user input (file, field or option) is malformed; the message says where and why.
@@ -108,7 +110,6 @@ def load_params(cls, path: str | Path | None = None, **overrides):
 
 def check_positive(obj, *names: str) -> None:
     """Raise InputError unless every named field is finite and > 0 (arrays: elementwise)."""
-    import numpy as np
 
     for name in names:
         v = np.asarray(getattr(obj, name), dtype=float)

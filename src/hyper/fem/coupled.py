@@ -16,6 +16,7 @@ import dataclasses
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
@@ -25,9 +26,11 @@ from petsc4py import PETSc
 
 from hyper.core.params import InputError, positive_hours
 from hyper.fem import boxsection as box
-from hyper.fem import growthfield, newton, section
+from hyper.fem import growthfield, section
 from hyper.fem.mechanics import MechanicsProblem, SolverError
+from hyper.fem.newton import KeptFactors, LaggedJacobian, NoTiming
 from hyper.model import growth, signaling
+from hyper.model.failure import GrowthFailure
 from hyper.model.protocols import Protocol
 from hyper.model.signaling import SignalingError
 
@@ -110,22 +113,11 @@ class GrowthSettings:
 # Growth steps change the equilibrium by a fraction of a percent, so a Jacobian (and its
 # LU factors) stays a good Newton matrix for many steps: refreshing it every 10
 # iterations made the 9-week idealized run 4.8× faster with the same CSA to 1e-11.
-# `LaggedJacobian` applies the lag; snes_lag_jacobian (in petsc_options or as
+# `hyper.fem.newton.LaggedJacobian` applies the lag; snes_lag_jacobian (in petsc_options or as
 # -mechanics_snes_lag_jacobian) sets it and never reaches PETSc.
 JACOBIAN_LAG = 10
 LAG_OPTION = "snes_lag_jacobian"
 NEWTON_METHODS = ("kept", "lagged")
-
-
-class NoTiming:
-    """The monitor a model has unless given one: it times nothing.
-
-    A monitor is any object whose ``track(name)`` is a context manager around one
-    phase of the work; `CoupledModel` names its phases in `PHASES`.
-    """
-
-    def track(self, name: str) -> contextlib.AbstractContextManager:
-        return contextlib.nullcontext()
 
 
 # The phases a model times through its monitor. "jacobian assembly", "residual
@@ -134,67 +126,6 @@ class NoTiming:
 # the others do not overlap.
 PHASES = ("signaling", "mechanics", "jacobian assembly", "residual assembly", "factorisation", "back-solves",
           "growth update", "measures")
-
-
-class GrowthFailure(RuntimeError):
-    """A growth step failed for good (Newton after every allowed cut, or the signaling
-    ODEs); the model is back at the state after its last completed step."""
-
-    def __init__(self, message: str, *, step: int, t0: float, t1: float):
-        super().__init__(message)
-        self.step = step  # the step that failed (1-based: steps done before it + 1)
-        self.t0 = t0  # h, its start
-        self.t1 = t1  # h, its end
-
-
-class LaggedJacobian:
-    """The Newton matrix, reassembled every ``lag`` Newton iterations counted across
-    solves (PETSc's snes_lag_jacobian with persistence), or when `refresh` asks.
-
-    PETSc keeps that count inside the SNES where a restart cannot reach it. Here SNES
-    asks at every iteration (its own lag is 1) and this object decides; an unchanged
-    matrix keeps its LU factors, since PETSc refactors only a matrix whose state changed.
-    The state is the count and the point (w and Ḡ) of the last assembly: `rebuild`
-    assembles the same matrix again there.
-    """
-
-    def __init__(self, problem: MechanicsProblem, growth_function: fem.Function, lag: int, monitor=None):
-        self.problem = problem
-        self.monitor = monitor if monitor is not None else NoTiming()
-        self.growth_function = growth_function
-        self.lag = lag if lag >= 1 else 0  # PETSc's -1/-2: never again after the first
-        self.count = 0  # Newton iterations so far, over all solves
-        self.assemblies = 0
-        self.point: tuple[np.ndarray, np.ndarray] | None = None  # (w, Ḡ) local arrays
-        self._refresh = False
-        K = problem.jacobian_matrix
-        problem.snes.setJacobian(self._jacobian, K, K)
-        problem.snes.setFunction(self._residual, problem.snes.getFunction()[0])
-
-    def _residual(self, snes, x, f) -> None:
-        with self.monitor.track("residual assembly"):
-            self.problem.assemble_residual(x, f)
-
-    def refresh(self) -> None:
-        """Assemble anew at the next Newton iteration."""
-        self._refresh = True
-
-    def _jacobian(self, snes, x, K, P) -> None:
-        due = self.count == 0 or (self.lag > 0 and self.count % self.lag == 0)
-        if due or self._refresh:
-            with self.monitor.track("jacobian assembly"):
-                self.problem.assemble_jacobian(x)
-                self.point = (self.problem.w.x.array.copy(), self.growth_function.x.array.copy())
-            self.assemblies += 1
-            self._refresh = False
-        self.count += 1
-
-    def rebuild(self, count: int, point: tuple[np.ndarray, np.ndarray] | None) -> None:
-        """Take over a saved state: the count and the matrix assembled at ``point``."""
-        self.count = count
-        self.point = point
-        if point is not None:
-            newton.assemble_jacobian_at(self.problem, self.growth_function, point, self.problem.solution_vector)
 
 
 @dataclass
@@ -235,65 +166,64 @@ class PlaneSection:
                 "box": self.box.deformed_area() / self.areas0["box"]}
 
 
+@dataclass
+class State:
+    """A model's state for a checkpoint (`CoupledModel.state`): the original (mesh file)
+    index of each owned cell, arrays with one row per owned cell, in that order, and
+    values equal on every rank."""
+
+    original: np.ndarray
+    per_cell: dict[str, np.ndarray]
+    glob: dict[str, Any]
+
+
+def local_original_cells(mesh) -> np.ndarray:
+    """The original (mesh file) index of each local cell, owned then ghost."""
+    imap = mesh.topology.index_map(mesh.topology.dim)
+    return np.asarray(mesh.topology.original_cell_index, dtype=np.int64)[: imap.size_local + imap.num_ghosts]
+
+
 class CoupledModel:
-    """Owns the mechanics problem, the growth field and the signaling state of one run.
+    """Owns the signaling state of one run and the parts it steps: the mechanics
+    ``problem`` (`MechanicsProblem`), the ``growth_field`` (`growthfield.GrowthField`, its
+    deformation set to the problem's F), the ``section`` that measures the CSA
+    (`growthfield.FacetSection` or `PlaneSection`) and the ``jacobian`` that solves each
+    step (`hyper.fem.newton.KeptFactors` or `LaggedJacobian`, as ``settings.newton`` says).
+    `build_model` assembles the default parts.
 
     ``integrator`` advances the signaling ODEs, with the signature of
-    `signaling.integrate` (the default); ``monitor`` times the `PHASES` of the run
-    (default `NoTiming`); ``normalize_fibres`` goes to `MechanicsProblem`.
+    `signaling.integrate` (default: ``settings.signaling_method``'s); ``monitor`` times
+    the `PHASES` of the run (default `NoTiming`; the jacobian's should be the same).
     """
 
     def __init__(
         self,
-        geometry,
-        a0,
+        problem: MechanicsProblem,
+        growth_field: growthfield.GrowthField,
+        section,
+        jacobian,
         protocol: Protocol,
         *,
         params: signaling.SignalingParams | None = None,
-        material=None,
         settings: GrowthSettings = GrowthSettings(),
-        petsc_options: dict | None = None,
-        linear_solver: str = "lu",
         integrator: Callable | None = None,
         monitor=None,
-        normalize_fibres: bool = True,
     ):
-        self.geometry = geometry
-        self.comm = geometry.mesh.comm
+        self.geometry = problem.geometry
+        self.comm = self.geometry.mesh.comm
         self.protocol = protocol
         self.params = params if params is not None else signaling.SignalingParams()
         self.settings = settings
         self.integrator = integrator if integrator is not None else signaling.integrator(settings.signaling_method)
         self.monitor = monitor if monitor is not None else NoTiming()
-        self.growth = growthfield.GrowthField(geometry.mesh, a0, geometry.quadrature_degree, settings.growth_fields)
-        kwargs = {} if material is None else {"material": material}
-        options = dict(petsc_options or {})
-        lag = jacobian_lag(options.pop(LAG_OPTION, JACOBIAN_LAG))
-        with _taken_from_database(MECHANICS_PREFIX + LAG_OPTION) as value:
-            if value is not None:
-                lag = jacobian_lag(value)
-            self.problem = MechanicsProblem(
-                geometry,
-                a0,
-                growth=self.growth.function,
-                consistent_stress=settings.consistent_stress,
-                petsc_options=options,
-                options_prefix=MECHANICS_PREFIX,
-                linear_solver=linear_solver,
-                normalize_fibres=normalize_fibres,
-                **kwargs,
-            )
-        self.growth.set_deformation(self.problem.F)
-        if settings.newton == "kept":
-            self.jacobian = newton.KeptFactors(self.problem, self.growth.function, self.monitor)
+        self.growth = growth_field
+        self.problem = problem
+        self.jacobian = jacobian
+        self.section = section
+        if isinstance(section, PlaneSection):
+            self.csa0 = section.areas0[settings.csa_method]
         else:
-            self.jacobian = LaggedJacobian(self.problem, self.growth.function, lag, self.monitor)
-        if geometry.midsection is not None:
-            self.section = growthfield.FacetSection(geometry, self.problem.F)
-            self.csa0 = self.section.area0
-        else:
-            self.section = PlaneSection(self.problem)
-            self.csa0 = self.section.areas0[settings.csa_method]
+            self.csa0 = section.area0
         # CSA0 (m²) and CSA/CSA0 by every method of a plane section (none for a tagged one)
         self.csa0_by_method = dict(self.section.areas0) if isinstance(self.section, PlaneSection) else {}
         self.csa_ratios = dict.fromkeys(self.csa0_by_method, 1.0)
@@ -328,6 +258,11 @@ class CoupledModel:
         self.period_states: np.ndarray | None = None
         self.period_kM = self.kM
         self.resumed = False
+
+    def local_original_cells(self) -> np.ndarray:
+        """The original (mesh file) index of each local cell, owned then ghost: what
+        `hyper.runs.checkpoint.read` needs to send this rank the rows of its cells."""
+        return local_original_cells(self.geometry.mesh)
 
     def _mean_states(self, y) -> np.ndarray:
         if y.ndim == 1:
@@ -470,6 +405,145 @@ class CoupledModel:
     def settings_attributes(self) -> dict:
         return dataclasses.asdict(self.settings)
 
+    # ------------------------------------------------------------------- checkpoints
+
+    def state(self) -> State:
+        """The whole state of the run after its last step, for a checkpoint (collective).
+
+        The mixed solution is stored as each cell's own dof values in the element's
+        order: that order follows the cell's vertices as the mesh file lists them, so it
+        is the same on any partition (P2 has one dof per edge, so no dof transformation
+        enters); so are the arrays of w's layout the jacobian keeps. Ḡ is per quadrature
+        point of the cell (`growthfield.GrowthField.state`), whose points are placed by
+        the same vertex order. Per-cell signaling parameters (random fields) are part of it.
+        """
+        problem, growth_field = self.problem, self.growth
+        cells = growth_field.cells
+        original = local_original_cells(self.geometry.mesh)[cells]
+        wdofs = problem.W.dofmap.list[cells]
+        per_cell = {"w": problem.w.x.array[wdofs], **growth_field.state()}
+        jacobian = self.jacobian.state()
+        glob = {
+            "multipliers": np.asarray(problem.multipliers, dtype=float),
+            "csa_ratio": self.csa_ratio,
+            "volume_ratio": self.volume_ratio,
+            "t": self.t,
+            "step": self.step,
+            "period": self.period,
+            "period_step": self.period_step,
+            "jacobian_count": jacobian["count"],
+            "csa0": self.csa0,
+            "volume0": self.volume0,
+            **{name: value for name, value in zip(self.measures, self.csa_ratios.values())},
+        }
+        if jacobian["point"] is not None:
+            w_j, g_j = jacobian["point"]
+            per_cell["jacobian_w"] = w_j[wdofs]
+            per_cell["jacobian_Gbar"] = growth_field.cell_rows(g_j)
+        history = jacobian.get("history", [])  # the solutions kept for a predictor
+        if history:
+            glob["predictor_amounts"] = np.array([s for s, _, _ in history])
+            glob["predictor_multipliers"] = np.array([m for _, _, m in history], dtype=float)
+            per_cell["predictor_w"] = np.stack([w_k[wdofs] for _, w_k, _ in history], axis=1)
+        arrays, multipliers = jacobian.get("secants", ([], None))
+        if arrays:
+            per_cell["secant_w"] = np.stack([a[wdofs] for a in arrays], axis=1)
+            glob["secant_multipliers"] = multipliers
+        per_cell_y = self.y.ndim == 2
+        (per_cell if per_cell_y else glob)["y"] = self.y.T if per_cell_y else self.y
+        if np.ndim(self.kM):
+            per_cell["kM"] = np.asarray(self.kM)
+        else:
+            glob["kM"] = float(self.kM)
+        if self.period_states is not None:
+            glob["period_times"] = self.period_times
+            if np.ndim(self.period_kM):
+                per_cell["period_kM"] = np.asarray(self.period_kM)
+            else:
+                glob["period_kM"] = float(self.period_kM)
+            ys = self.period_states
+            if per_cell_y:
+                per_cell["period_states"] = np.moveaxis(ys, 2, 0)  # (cell, time, species)
+            else:
+                glob["period_states"] = ys
+        for f in dataclasses.fields(self.params):
+            value = getattr(self.params, f.name)
+            if isinstance(value, np.ndarray):
+                per_cell[f"params.{f.name}"] = value
+        return State(original, per_cell, glob)
+
+    def restore(self, state) -> None:
+        """Take over a `state` read back on this partition, perhaps another than the one
+        that saved it: ``state.rows(name)`` gives a per-cell array for this rank's local
+        cells, owned then ghost, or None where the state has no such array;
+        ``state.glob`` the global values (`hyper.runs.checkpoint.Checkpoint`). The next
+        `run` goes on from there."""
+        rows, glob = state.rows, state.glob
+        problem, growth_field = self.problem, self.growth
+        nowned = len(growth_field.cells)
+        mesh = self.geometry.mesh
+        nlocal = nowned + mesh.topology.index_map(mesh.topology.dim).num_ghosts
+        local = np.arange(nlocal, dtype=np.int32)
+        wdofs = problem.W.dofmap.list[local]
+        w = problem.w
+        w.x.array[wdofs] = rows("w")
+        w.x.scatter_forward()
+        problem.multipliers = np.array(glob["multipliers"], dtype=float)
+        growth_field.restore({"Gbar": rows("Gbar")})  # after w: the fibre directions come from it
+
+        # per-cell parameters (random fields) come from the state: they are part of it
+        names = [f"params.{f.name}" for f in dataclasses.fields(self.params)]
+        params = {name.split(".", 1)[1]: rows(name)[:nowned] for name in names if rows(name) is not None}
+        if params:
+            self.params = dataclasses.replace(self.params, **params)
+            self.kM0 = self.params.kM
+        y = rows("y")
+        self.y = np.ascontiguousarray(y[:nowned].T) if y is not None else np.array(glob["y"], dtype=float)
+        kM = rows("kM")
+        self.kM = np.array(kM[:nowned]) if kM is not None else float(glob["kM"])
+        self.csa_ratio = float(glob["csa_ratio"])
+        self.volume_ratio = float(glob["volume_ratio"])
+        # a checkpoint from before both CSA measures were kept has neither: unknown until measured
+        self.csa_ratios = {method: float(glob[name]) if name in glob else float("nan")
+                           for method, name in zip(self.csa_ratios, self.measures)}
+        self.t = float(glob["t"])
+        self.step = int(glob["step"])
+        self.period = int(glob["period"])
+        self.period_step = int(glob["period_step"])
+        if "period_times" in glob:
+            self.period_times = np.array(glob["period_times"], dtype=float)
+            ys = rows("period_states")
+            self.period_states = (np.ascontiguousarray(np.moveaxis(ys[:nowned], 0, 2)) if ys is not None
+                                  else np.array(glob["period_states"], dtype=float))
+            kM = rows("period_kM")
+            if kM is not None:
+                self.period_kM = np.array(kM[:nowned])
+            else:  # uniform; or a checkpoint from before it was kept (only the left-point increment reads it)
+                self.period_kM = float(glob["period_kM"]) if "period_kM" in glob else self.kM
+        else:
+            self.period_times = self.period_states = None
+
+        def w_array(values) -> np.ndarray:
+            out = np.zeros_like(w.x.array)
+            out[wdofs] = values
+            return out
+
+        jw = rows("jacobian_w")
+        point = None if jw is None else (w_array(jw), growth_field.from_cell_rows(rows("jacobian_Gbar")))
+        jacobian = {"count": int(glob["jacobian_count"]), "point": point}
+        kept = rows("predictor_w")
+        if kept is not None:
+            jacobian["history"] = [
+                (float(amount), w_array(kept[:, i]), np.array(glob["predictor_multipliers"][i], dtype=float))
+                for i, amount in enumerate(np.asarray(glob["predictor_amounts"], dtype=float))
+            ]
+        pairs = rows("secant_w")
+        if pairs is not None:
+            jacobian["secants"] = ([w_array(pairs[:, i]) for i in range(pairs.shape[1])],
+                                   np.asarray(glob["secant_multipliers"], dtype=float))
+        self.jacobian.restore(jacobian)
+        self.resumed = True
+
 
 MECHANICS_PREFIX = "mechanics_"
 
@@ -499,3 +573,55 @@ def _taken_from_database(name: str):
         if value is not None:
             db.setValue(name, value)
 
+
+def build_model(
+    geometry,
+    a0,
+    protocol: Protocol,
+    *,
+    params: signaling.SignalingParams | None = None,
+    material=None,
+    settings: GrowthSettings = GrowthSettings(),
+    petsc_options: dict | None = None,
+    linear_solver: str = "lu",
+    integrator: Callable | None = None,
+    monitor=None,
+    normalize_fibres: bool = True,
+) -> CoupledModel:
+    """The `CoupledModel` of a geometry with fibres ``a0``, with its default parts: a
+    `growthfield.GrowthField` as ``settings`` place it, the `MechanicsProblem` of
+    ``material`` (default: its own) with ``petsc_options`` (snes_lag_jacobian, here or
+    as -mechanics_snes_lag_jacobian, goes to a `LaggedJacobian` and never reaches PETSc),
+    ``linear_solver`` and ``normalize_fibres``, the Newton solver ``settings.newton``
+    names, and the section of the mesh (its tagged facets, else a `PlaneSection`).
+    ``monitor`` (default `NoTiming`) times the model and its Newton solver."""
+    monitor = monitor if monitor is not None else NoTiming()
+    growth_field = growthfield.GrowthField(geometry.mesh, a0, geometry.quadrature_degree, settings.growth_fields)
+    kwargs = {} if material is None else {"material": material}
+    options = dict(petsc_options or {})
+    lag = jacobian_lag(options.pop(LAG_OPTION, JACOBIAN_LAG))
+    with _taken_from_database(MECHANICS_PREFIX + LAG_OPTION) as value:
+        if value is not None:
+            lag = jacobian_lag(value)
+        problem = MechanicsProblem(
+            geometry,
+            a0,
+            growth=growth_field.function,
+            consistent_stress=settings.consistent_stress,
+            petsc_options=options,
+            options_prefix=MECHANICS_PREFIX,
+            linear_solver=linear_solver,
+            normalize_fibres=normalize_fibres,
+            **kwargs,
+        )
+    growth_field.set_deformation(problem.F)
+    if settings.newton == "kept":
+        jacobian = KeptFactors(problem, growth_field.function, monitor)
+    else:
+        jacobian = LaggedJacobian(problem, growth_field.function, lag, monitor)
+    if geometry.midsection is not None:
+        section_ = growthfield.FacetSection(geometry, problem.F)
+    else:
+        section_ = PlaneSection(problem)
+    return CoupledModel(problem, growth_field, section_, jacobian, protocol, params=params, settings=settings,
+                        integrator=integrator, monitor=monitor)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import io
+import xml.etree.ElementTree as ET
 from collections import OrderedDict
 from pathlib import Path
 
@@ -280,7 +281,6 @@ def _unreadable(xdmf: Path) -> str | None:
     """Why the HDF5 data an XDMF mesh file points to cannot be read (None where it can, or
     where the file is no XDMF: XDMFFile says so), found by h5py, which reports it in one
     line where the HDF5 library under XDMFFile prints pages."""
-    import xml.etree.ElementTree as ET
 
     import h5py
 

@@ -8,6 +8,7 @@ import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
 import ufl
 from dolfinx import fem
+from mpi4py import MPI
 
 from hyper.model.growth import elastic_part, fibre_directions_ufl, transverse_update
 
@@ -84,6 +85,29 @@ class GrowthField:
         self._write(Gbar)
         self.directions = self._fibre_directions()
 
+    def state(self) -> dict[str, np.ndarray]:
+        """Ḡ, one row per owned cell (quadrature point, 3, 3), for a checkpoint. What the
+        next increment needs besides (`directions`) follows from the mechanics' solution."""
+        return {"Gbar": self.Gbar}
+
+    def restore(self, state) -> None:
+        """Take over a `state` (rows of the local cells, owned then ghost, or of the owned
+        ones) with the equilibrium now in the mechanics' solution (`set`)."""
+        self.set(np.array(state["Gbar"][: len(self.cells)]))
+
+    def cell_rows(self, values: np.ndarray) -> np.ndarray:
+        """A local array of Ḡ's space (the function's, or a copy) as rows of the owned
+        cells: (owned cell, quadrature point, 9)."""
+        return values.reshape(-1, 9)[self.dofs]
+
+    def from_cell_rows(self, rows: np.ndarray) -> np.ndarray:
+        """The local array of Ḡ's space (ghosts filled) with the values of `cell_rows`
+        (rows of the local or the owned cells)."""
+        g = fem.Function(self.space)
+        g.x.array.reshape(-1, 9)[self.dofs.ravel()] = rows[: len(self.cells)].reshape(-1, 9)
+        g.x.scatter_forward()
+        return g.x.array.copy()
+
     def set_deformation(self, F) -> None:
         """Give the UFL deformation gradient whose values the next increment reads after each solve."""
         self._F_ufl = F
@@ -159,8 +183,6 @@ class FacetSection:
         self.area0 = self._assemble(self._area0)
 
     def _assemble(self, form) -> float:
-        from mpi4py import MPI
-
         return self._comm.allreduce(fem.assemble_scalar(form), op=MPI.SUM)
 
     def area(self) -> float:

@@ -33,10 +33,13 @@ The stopping test is SNES's, with its tolerances (snes_atol, snes_rtol, snes_max
 and snes_divergence_tolerance of the mechanics solver's options), so that a step ends
 as converged as a SNES Newton solve would.
 
-State kept across solves, all in the checkpoint: the point (w, Ḡ) where the matrix was
-assembled, so that a resumed run assembles the same matrix (`rebuild`); the solutions
-the predictor extrapolates (`history`); the secant pairs (`secants`); the iteration
-count (`count`). So a resumed run continues bit for bit.
+State kept across solves, all in the checkpoint (`KeptFactors.state`): the point (w, Ḡ)
+where the matrix was assembled, so that a resumed run assembles the same matrix
+(`rebuild`); the solutions the predictor extrapolates (`history`); the secant pairs
+(`secants`); the iteration count (`count`). So a resumed run continues bit for bit.
+
+`LaggedJacobian` is the other way to solve a step: SNES's Newton with a matrix
+reassembled every few iterations (before issue 17).
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ import math
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
+from dolfinx import fem
 from mpi4py import MPI
 
 from hyper.fem.mechanics import SolverError
@@ -62,8 +66,14 @@ KEPT_ITERATIONS = 10
 RCOND = 1e-12  # of the scaled least-squares problem: nearly dependent residuals are dropped
 
 
-class _NoTiming:
-    def track(self, name):
+class NoTiming:
+    """The monitor a model has unless given one: it times nothing.
+
+    A monitor is any object whose ``track(name)`` is a context manager around one
+    phase of the work; `hyper.fem.coupled.CoupledModel` names its phases in `PHASES`.
+    """
+
+    def track(self, name: str) -> contextlib.AbstractContextManager:
         return contextlib.nullcontext()
 
 
@@ -92,7 +102,7 @@ class KeptFactors:
     def __init__(self, problem, growth_function, monitor=None, depth: int = DEPTH):
         self.problem = problem
         self.growth_function = growth_function
-        self.monitor = monitor if monitor is not None else _NoTiming()
+        self.monitor = monitor if monitor is not None else NoTiming()
         self.count = 0  # iterations over all solves
         self.assemblies = 0  # Newton matrices assembled (each factorised once)
         self.point: tuple[np.ndarray, np.ndarray] | None = None  # (w, Ḡ) local arrays of the last assembly
@@ -185,9 +195,25 @@ class KeptFactors:
             self.secants.add(s, y)
 
     def _scratch(self):
-        from dolfinx import fem
-
         return fem.Function(self.problem.W)
+
+    def state(self) -> dict:
+        """What the next solves need of the earlier ones, for a checkpoint (collective):
+        ``count`` (iterations so far), ``point`` ((w, Ḡ) local arrays where the matrix
+        was assembled, or None), ``history`` (the solutions kept for the predictor:
+        (growth amount, w local array, multipliers), oldest first) and ``secants`` (the
+        pairs as `secant_state` gives them)."""
+        return {"count": self.count, "point": self.point, "history": self.history, "secants": self.secant_state()}
+
+    def restore(self, state: dict) -> None:
+        """Take over a `state` (w's arrays laid out for this partition): the matrix is
+        assembled again at its point; ``history`` and ``secants``, where given, replace
+        the solutions and pairs kept."""
+        self.rebuild(int(state["count"]), state["point"])
+        if state.get("history") is not None:
+            self.history = list(state["history"])
+        if state.get("secants") is not None:
+            self.restore_secants(*state["secants"])
 
     def forget(self) -> None:
         """Drop the solutions kept for the predictor (the state went back before them)."""
@@ -281,6 +307,65 @@ class KeptFactors:
     def _message(self, iterations: int, reason: str) -> str:
         return (f"Newton did not converge after {iterations} iterations with kept factors ({reason}); "
                 "previous solution restored")
+
+
+class LaggedJacobian:
+    """The Newton matrix, reassembled every ``lag`` Newton iterations counted across
+    solves (PETSc's snes_lag_jacobian with persistence), or when `refresh` asks.
+
+    PETSc keeps that count inside the SNES where a restart cannot reach it. Here SNES
+    asks at every iteration (its own lag is 1) and this object decides; an unchanged
+    matrix keeps its LU factors, since PETSc refactors only a matrix whose state changed.
+    The state is the count and the point (w and Ḡ) of the last assembly: `rebuild`
+    assembles the same matrix again there.
+    """
+
+    def __init__(self, problem, growth_function, lag: int, monitor=None):
+        self.problem = problem
+        self.monitor = monitor if monitor is not None else NoTiming()
+        self.growth_function = growth_function
+        self.lag = lag if lag >= 1 else 0  # PETSc's -1/-2: never again after the first
+        self.count = 0  # Newton iterations so far, over all solves
+        self.assemblies = 0
+        self.point: tuple[np.ndarray, np.ndarray] | None = None  # (w, Ḡ) local arrays
+        self._refresh = False
+        K = problem.jacobian_matrix
+        problem.snes.setJacobian(self._jacobian, K, K)
+        problem.snes.setFunction(self._residual, problem.snes.getFunction()[0])
+
+    def _residual(self, snes, x, f) -> None:
+        with self.monitor.track("residual assembly"):
+            self.problem.assemble_residual(x, f)
+
+    def refresh(self) -> None:
+        """Assemble anew at the next Newton iteration."""
+        self._refresh = True
+
+    def _jacobian(self, snes, x, K, P) -> None:
+        due = self.count == 0 or (self.lag > 0 and self.count % self.lag == 0)
+        if due or self._refresh:
+            with self.monitor.track("jacobian assembly"):
+                self.problem.assemble_jacobian(x)
+                self.point = (self.problem.w.x.array.copy(), self.growth_function.x.array.copy())
+            self.assemblies += 1
+            self._refresh = False
+        self.count += 1
+
+    def rebuild(self, count: int, point: tuple[np.ndarray, np.ndarray] | None) -> None:
+        """Take over a saved state: the count and the matrix assembled at ``point``."""
+        self.count = count
+        self.point = point
+        if point is not None:
+            assemble_jacobian_at(self.problem, self.growth_function, point, self.problem.solution_vector)
+
+    def state(self) -> dict:
+        """``count`` and ``point`` (as `KeptFactors.state`), for a checkpoint."""
+        return {"count": self.count, "point": self.point}
+
+    def restore(self, state: dict) -> None:
+        """Take over a `state`: the count and the matrix at its point (the solutions and
+        secants a `KeptFactors` state may have besides are not this solver's)."""
+        self.rebuild(int(state["count"]), state["point"])
 
 
 class Secants:

@@ -1,4 +1,4 @@
-"""Checkpoints of a coupled run, run digests, output locks and status files.
+"""Checkpoints of a coupled run, and run digests: the file format, not what is in it.
 
 Checkpoint file (HDF5, one per run, ``{result stem}.ckpt.h5``). Rank 0 gathers the
 state and writes it through `hyper.core.io.atomic_path` (temporary name, fsync, rename):
@@ -8,7 +8,7 @@ a kill during the write leaves the previous checkpoint in place, never half a fi
                 ranks (that wrote it), created, versions, complete (written last)
     cells/original      (n,) original cell indices (the mesh file's), ascending
     cells/<name>        (n, ...) one row per cell in that order: the model's per-cell
-                        state (see `model_state`) and the snapshots
+                        state (`hyper.fem.coupled.CoupledModel.state`) and the snapshots
     global/<name>       scalars and small arrays (CSA/V ratios, time, step, protocol
                         position, multipliers, Jacobian count, uniform signaling state,
                         growth amounts and multipliers of the predictor's solutions,
@@ -16,7 +16,8 @@ a kill during the write leaves the previous checkpoint in place, never half a fi
     series/<name>       the time series so far
 
 Keyed by the original cell index, the file is read back on any number of ranks: rank
-0 reads it and sends each rank the rows of its own cells (owned and ghost).
+0 reads it and sends each rank the rows of its own cells (owned and ghost), which the
+model takes over (`hyper.fem.coupled.CoupledModel.restore`).
 
 A run digest is the SHA-256 of a canonical JSON description of everything that
 defines a run's result (geometry, protocol, parameters, settings, solver options); a
@@ -25,22 +26,18 @@ checkpoint is resumed only by a run with the same digest.
 
 from __future__ import annotations
 
-import dataclasses
 import datetime
 import hashlib
 import json
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from hyper.core import io
 from hyper.core.params import InputError
-
-if TYPE_CHECKING:
-    from hyper.fem.coupled import CoupledModel
 
 KIND = "hyper.grow checkpoint"
 FORMAT = 1
@@ -49,14 +46,14 @@ FORMAT = 1
 # ----------------------------------------------------------------------------- digests
 
 
-def _plain(value: Any):
+def plain(value: Any):
     """JSON-able form of attribute values: arrays as lists, floats exact (repr)."""
     if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in sorted(value.items(), key=lambda kv: str(kv[0]))}
+        return {str(k): plain(v) for k, v in sorted(value.items(), key=lambda kv: str(kv[0]))}
     if isinstance(value, np.ndarray):
-        return [_plain(v) for v in value.tolist()]
+        return [plain(v) for v in value.tolist()]
     if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
+        return [plain(v) for v in value]
     if isinstance(value, (bool, np.bool_)):
         return bool(value)
     if isinstance(value, (int, np.integer)):
@@ -71,7 +68,7 @@ def _plain(value: Any):
 
 def digest(description: Mapping[str, Any]) -> str:
     """SHA-256 (hex) of the canonical JSON of ``description``."""
-    text = json.dumps(_plain(description), sort_keys=True, separators=(",", ":"))
+    text = json.dumps(plain(description), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -201,191 +198,3 @@ def read(comm, path: Path, run_digest: str, local_original: np.ndarray) -> Check
     if isinstance(mine, str):
         raise InputError(mine)
     return Checkpoint(*mine)
-
-
-# ------------------------------------------------------------------- the model's state
-
-
-def local_original_cells(mesh) -> np.ndarray:
-    """The original (mesh file) index of each local cell, owned then ghost."""
-    imap = mesh.topology.index_map(mesh.topology.dim)
-    return np.asarray(mesh.topology.original_cell_index, dtype=np.int64)[: imap.size_local + imap.num_ghosts]
-
-
-def model_state(model: CoupledModel) -> tuple[np.ndarray, dict, dict]:
-    """(original index of each owned cell, per-cell arrays, global values) of a model.
-
-    Per-cell arrays have one row per owned cell. The mixed solution is stored as
-    each cell's own dof values in the element's order: that order follows the cell's
-    vertices as the mesh file lists them, so it is the same on any partition (P2 has
-    one dof per edge, so no dof transformation enters). Ḡ is per quadrature point of
-    the cell, whose points are placed by the same vertex order; what the next growth
-    increment needs besides (`hyper.fem.growthfield.GrowthField.directions`) follows from w.
-    """
-    problem, growth, jacobian = model.problem, model.growth, model.jacobian
-    cells = growth.cells
-    original = local_original_cells(model.geometry.mesh)[cells]
-    wdofs = problem.W.dofmap.list[cells]
-    per_cell = {
-        "w": problem.w.x.array[wdofs],
-        "Gbar": growth.Gbar,
-    }
-    glob = {
-        "multipliers": np.asarray(problem.multipliers, dtype=float),
-        "csa_ratio": model.csa_ratio,
-        "volume_ratio": model.volume_ratio,
-        "t": model.t,
-        "step": model.step,
-        "period": model.period,
-        "period_step": model.period_step,
-        "jacobian_count": jacobian.count,
-        "csa0": model.csa0,
-        "volume0": model.volume0,
-        **{name: value for name, value in zip(model.measures, model.csa_ratios.values())},
-    }
-    if jacobian.point is not None:
-        w_j, g_j = jacobian.point
-        per_cell["jacobian_w"] = w_j[wdofs]
-        per_cell["jacobian_Gbar"] = g_j.reshape(-1, 9)[growth.dofs]
-    history = getattr(jacobian, "history", [])  # the solutions kept for a predictor
-    if history:
-        glob["predictor_amounts"] = np.array([s for s, _, _ in history])
-        glob["predictor_multipliers"] = np.array([m for _, _, m in history], dtype=float)
-        per_cell["predictor_w"] = np.stack([w_k[wdofs] for _, w_k, _ in history], axis=1)
-    if hasattr(jacobian, "secant_state"):
-        arrays, multipliers = jacobian.secant_state()
-        if arrays:
-            per_cell["secant_w"] = np.stack([a[wdofs] for a in arrays], axis=1)
-            glob["secant_multipliers"] = multipliers
-    per_cell_y = model.y.ndim == 2
-    (per_cell if per_cell_y else glob)["y"] = model.y.T if per_cell_y else model.y
-    if np.ndim(model.kM):
-        per_cell["kM"] = np.asarray(model.kM)
-    else:
-        glob["kM"] = float(model.kM)
-    if model.period_states is not None:
-        glob["period_times"] = model.period_times
-        if np.ndim(model.period_kM):
-            per_cell["period_kM"] = np.asarray(model.period_kM)
-        else:
-            glob["period_kM"] = float(model.period_kM)
-        ys = model.period_states
-        if per_cell_y:
-            per_cell["period_states"] = np.moveaxis(ys, 2, 0)  # (cell, time, species)
-        else:
-            glob["period_states"] = ys
-    for f in dataclasses.fields(model.params):
-        value = getattr(model.params, f.name)
-        if isinstance(value, np.ndarray):
-            per_cell[f"params.{f.name}"] = value
-    return original, per_cell, glob
-
-
-def restore_model(model: CoupledModel, rows: Callable[[str], np.ndarray | None], glob: Mapping[str, Any]) -> None:
-    """Take over a state saved by `model_state` (on any partition).
-
-    ``rows(name)`` gives a per-cell array for this rank's cells, owned then ghost (the
-    local cell numbering), or None where the state has no such array.
-    """
-    import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
-    from dolfinx import fem
-
-    problem, growth = model.problem, model.growth
-    nowned = len(growth.cells)
-    mesh = model.geometry.mesh
-    nlocal = nowned + mesh.topology.index_map(mesh.topology.dim).num_ghosts
-    local = np.arange(nlocal, dtype=np.int32)
-    wdofs = problem.W.dofmap.list[local]
-    w = problem.w
-    w.x.array[wdofs] = rows("w")
-    w.x.scatter_forward()
-    problem.multipliers = np.array(glob["multipliers"], dtype=float)
-    growth.set(np.array(rows("Gbar")[:nowned]))  # after w: the fibre directions come from it
-
-    # per-cell parameters (random fields) come from the state: they are part of it
-    names = [f"params.{f.name}" for f in dataclasses.fields(model.params)]
-    params = {name.split(".", 1)[1]: rows(name)[:nowned] for name in names if rows(name) is not None}
-    if params:
-        model.params = dataclasses.replace(model.params, **params)
-        model.kM0 = model.params.kM
-    y = rows("y")
-    model.y = np.ascontiguousarray(y[:nowned].T) if y is not None else np.array(glob["y"], dtype=float)
-    kM = rows("kM")
-    model.kM = np.array(kM[:nowned]) if kM is not None else float(glob["kM"])
-    model.csa_ratio = float(glob["csa_ratio"])
-    model.volume_ratio = float(glob["volume_ratio"])
-    # a checkpoint from before both CSA measures were kept has neither: unknown until measured
-    model.csa_ratios = {method: float(glob[name]) if name in glob else float("nan")
-                        for method, name in zip(model.csa_ratios, model.measures)}
-    model.t = float(glob["t"])
-    model.step = int(glob["step"])
-    model.period = int(glob["period"])
-    model.period_step = int(glob["period_step"])
-    if "period_times" in glob:
-        model.period_times = np.array(glob["period_times"], dtype=float)
-        ys = rows("period_states")
-        model.period_states = (np.ascontiguousarray(np.moveaxis(ys[:nowned], 0, 2)) if ys is not None
-                               else np.array(glob["period_states"], dtype=float))
-        kM = rows("period_kM")
-        if kM is not None:
-            model.period_kM = np.array(kM[:nowned])
-        else:  # uniform; or a checkpoint from before it was kept (only the left-point increment reads it)
-            model.period_kM = float(glob["period_kM"]) if "period_kM" in glob else model.kM
-    else:
-        model.period_times = model.period_states = None
-
-    point = None
-    jw = rows("jacobian_w")
-    if jw is not None:
-        pw = np.zeros_like(w.x.array)
-        pw[wdofs] = jw
-        g = fem.Function(growth.space)
-        g.x.array.reshape(-1, 9)[growth.dofs.ravel()] = rows("jacobian_Gbar")[:nowned].reshape(-1, 9)
-        g.x.scatter_forward()
-        point = (pw, g.x.array.copy())
-    model.jacobian.rebuild(int(glob["jacobian_count"]), point)
-    kept = rows("predictor_w")
-    if kept is not None and hasattr(model.jacobian, "history"):
-        history = []
-        for i, amount in enumerate(np.asarray(glob["predictor_amounts"], dtype=float)):
-            w_k = np.zeros_like(w.x.array)
-            w_k[wdofs] = kept[:, i]
-            history.append((float(amount), w_k, np.array(glob["predictor_multipliers"][i], dtype=float)))
-        model.jacobian.history = history
-    pairs = rows("secant_w")
-    if pairs is not None and hasattr(model.jacobian, "restore_secants"):
-        arrays = []
-        for i in range(pairs.shape[1]):
-            a = np.zeros_like(w.x.array)
-            a[wdofs] = pairs[:, i]
-            arrays.append(a)
-        model.jacobian.restore_secants(arrays, np.asarray(glob["secant_multipliers"], dtype=float))
-    model.resumed = True
-
-
-# ------------------------------------------------------------------------ status files
-
-
-def write_status(path: Path, status: Mapping[str, Any]) -> None:
-    """A JSON status file, written atomically (call on one rank)."""
-    text = json.dumps(_plain({**status, "written": datetime.datetime.now(datetime.UTC).isoformat()}), indent=2)
-    with io.atomic_path(path) as tmp:
-        tmp.write_text(text + "\n")
-
-
-def read_status(path: Path) -> dict:
-    return json.loads(Path(path).read_text())
-
-
-def on_rank0(comm, action: Callable[[], Any]) -> Any:
-    """Run ``action`` on rank 0 and raise its error on every rank (collective)."""
-    result = error = None
-    if comm.rank == 0:
-        try:
-            result = action()
-        except Exception as err:  # noqa: BLE001 - re-raised on every rank below
-            error = err
-    error = comm.bcast(error, root=0)
-    if error is not None:
-        raise error
-    return comm.bcast(result, root=0)

@@ -20,13 +20,15 @@ from dolfinx import fem
 from mpi4py import MPI
 
 from hyper.core import io
+from hyper.core.collective import on_rank0
 from hyper.core.log import Progress, info
 from hyper.core.params import as_attributes
 from hyper.fem import fibers
 from hyper.fem import geometry as geo
 from hyper.fem.mechanics import MechanicsProblem, SolverError
-from hyper.runs import checkpoint, runspec
+from hyper.runs import checkpoint as ckpt
 from hyper.runs import plot as figures
+from hyper.runs import runspec
 
 SERIES = ("alpha", "end_force", "spring_force", "reaction_force_original", "reaction_force_current",
           "newton_iterations", "volume_ratio", "stretch_min", "stretch_max", "wall_s")
@@ -141,7 +143,7 @@ def contract(comm, args) -> dict:
         "end_areas_m2": [geometry.area(tag) for tag in geometry.ends],
         "end_axis": problem.end_axis,
         "surface_quadrature_degree": "estimated" if geometry.estimated_surface_degree else geometry.quadrature_degree,
-        "mesh_sha256": checkpoint.on_rank0(comm, lambda: checkpoint.file_digest(
+        "mesh_sha256": on_rank0(comm, lambda: ckpt.file_digest(
             *runspec.mesh_files(geo.MESHES_DIR / geo.GEOMETRIES[args.geometry]))),
         "cells": geometry.num_cells(),
         "unknowns": problem.num_dofs,

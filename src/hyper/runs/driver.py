@@ -12,7 +12,7 @@ derives the files of a run from its result path:
                           series of grids, each with every field (hyper.core.io.one_grid)
     RESULT.ckpt.h5        the whole state, every --checkpoint-every growth steps, at the
                           first step boundary after a SIGTERM and when a step fails
-    RESULT.status.json    why an unfinished run stopped, and how to resume it
+    RESULT.status.json    why an unfinished run stopped, and how to resume it (hyper.runs.status)
     RESULT.h5.lock        held while a run writes (hyper.runs.locks.hold)
 
 `execute` runs the model (`hyper.fem.coupled.CoupledModel.run`, which writes no files)
@@ -37,12 +37,15 @@ import numpy as np
 from mpi4py import MPI
 
 from hyper.core import io
+from hyper.core.collective import on_rank0
 from hyper.core.log import PROGRESS_EVERY, Progress, info
 from hyper.core.params import as_attributes
 from hyper.model import signaling
+from hyper.model.failure import GrowthFailure
 from hyper.runs import checkpoint as ckpt
 from hyper.runs import fidelity, provenance
 from hyper.runs.runspec import Outputs, RunSpec
+from hyper.runs.status import write_status
 
 # growth steps. A checkpoint with the Newton state of BFLH_VHF_Left (8512 cells) takes longer
 # to write than a step takes to solve: `python -m hyper.bench speed` put the I/O of its kept run
@@ -269,8 +272,9 @@ def build(comm, spec: RunSpec, *, monitor=None, integrator=None):
     """The coupled model of ``spec``, its fibre field, the linear solver's attributes and
     the fidelity choice completed with it (``auto``: by `fidelity.linear_solver` from the
     unknowns and the memory available). ``monitor`` and ``integrator`` go to the model
-    (`hyper.fem.coupled.CoupledModel`): a timing monitor, another ODE integrator."""
-    from hyper.fem.coupled import CoupledModel
+    (`hyper.fem.coupled.build_model`): a timing monitor, another ODE integrator."""
+    # the finite elements load DOLFINx: not at the driver's import, which the signaling-only jobs share
+    from hyper.fem.coupled import build_model
     from hyper.fem.mechanics import taylor_hood_unknowns
 
     geometry = spec.load_geometry(comm)
@@ -286,16 +290,16 @@ def build(comm, spec: RunSpec, *, monitor=None, integrator=None):
             solver, reason = choice.linear_solver, choice.linear_solver_reason
         info(comm, f"fidelity: {reason}")
     kwargs = {name: value for name, value in (("monitor", monitor), ("integrator", integrator)) if value is not None}
-    model = CoupledModel(geometry, a0, spec.protocol, params=spec.cell_params(geometry), material=spec.material,
-                         settings=spec.settings, petsc_options=dict(spec.petsc_options), linear_solver=solver,
-                         normalize_fibres=spec.unit_fibres, **kwargs)
+    model = build_model(geometry, a0, spec.protocol, params=spec.cell_params(geometry), material=spec.material,
+                        settings=spec.settings, petsc_options=dict(spec.petsc_options), linear_solver=solver,
+                        normalize_fibres=spec.unit_fibres, **kwargs)
     return model, a0, {"linear_solver": solver, "linear_solver_reason": reason}, choice
 
 
 def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: float = SNAPSHOT_EVERY,
             checkpoint_every: int = CHECKPOINT_EVERY, stop: Callable[[], bool] | None = None,
             extra_series: tuple[tuple[str, ...], Callable] | None = None, checkpoints: bool = True,
-            progress_every: float = PROGRESS_EVERY, monitor=None, command: list[str] | None = None) -> Result:
+            progress_every: float = PROGRESS_EVERY, monitor=None) -> Result:
     """Run ``spec``, writing its snapshots to ``outputs.fields`` (the first state, then every
     ``snapshot_every`` simulated hours and the last); return its `Result`. Progress
     lines come at most every ``progress_every`` seconds of wall time.
@@ -306,10 +310,9 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: float = SN
     on some rank (then raises `Interrupted`) and before a `GrowthFailure` propagates
     (whose ``checkpoint`` attribute names the file); either way ``outputs.status`` says
     what happened. The caller stores the result (`Outputs.store`), which drops the
-    checkpoint. ``command`` goes into the status file of a failed run. Collective over ``comm``.
+    checkpoint. The status file of a failed run records the command (`hyper.core.io.command`).
+    Collective over ``comm``.
     """
-    from hyper.fem.coupled import GrowthFailure
-
     run_digest = spec.digest()
     model, a0, solver, choice = build(comm, spec, monitor=monitor)
     snaps = Snapshots(model, a0)
@@ -319,10 +322,10 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: float = SN
     path = outputs.checkpoint
     if checkpoints:
         # a checkpoint write killed halfway leaves its temporary file: never read, remove it
-        ckpt.on_rank0(comm, lambda: Path(str(path) + io.PARTIAL).unlink(missing_ok=True))
-        if ckpt.on_rank0(comm, path.is_file):
-            saved = ckpt.read(comm, path, run_digest, ckpt.local_original_cells(model.geometry.mesh))
-            ckpt.restore_model(model, saved.rows, saved.glob)
+        on_rank0(comm, lambda: Path(str(path) + io.PARTIAL).unlink(missing_ok=True))
+        if on_rank0(comm, path.is_file):
+            saved = ckpt.read(comm, path, run_digest, model.local_original_cells())
+            model.restore(saved)
             series.restore(saved.series)
             segments = int(saved.attrs["segments"]) + 1
             info(comm, f"{spec.label}: resuming from {path} at step {model.step} (t = {model.t:g} h), "
@@ -330,21 +333,22 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: float = SN
     wall0 = series.wall_s
 
     def save(status: str) -> None:
-        original, per_cell, glob = ckpt.model_state(model)
+        state = model.state()
         snap_cells, snap_glob = snaps.state()
         try:
-            ckpt.write(comm, path, original, {**per_cell, **snap_cells}, {**glob, **snap_glob}, series.arrays(),
+            ckpt.write(comm, path, state.original, {**state.per_cell, **snap_cells}, {**state.glob, **snap_glob},
+                       series.arrays(),
                        {"run_digest": run_digest, "step": model.step, "t": model.t, "segments": segments,
                         "status": status, "geometry": spec.geometry, "protocol": spec.protocol.name})
         except OSError as err:  # raised on every rank alike
-            kept = "the previous checkpoint is kept" if ckpt.on_rank0(comm, path.is_file) else "no checkpoint yet"
+            kept = "the previous checkpoint is kept" if on_rank0(comm, path.is_file) else "no checkpoint yet"
             with contextlib.suppress(OSError):  # a disk too full for the checkpoint may take no status either
                 stopped("failed", reason=str(err), step=model.step, t_h=model.t, checkpoint=kept,
                         resume="make room, then run the same command again")
             raise Unsaved(f"{err}; {kept}") from None
 
     def stopped(state: str, **status) -> None:
-        ckpt.on_rank0(comm, lambda: ckpt.write_status(outputs.status, {"state": state, **status}))
+        on_rank0(comm, lambda: write_status(outputs.status, {"state": state, **status}))
 
     end = spec.protocol.end
     progress = Progress(comm, end, spec.label, every=progress_every)
@@ -384,13 +388,13 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: float = SN
                 stopped("failed", reason=str(err), failed_step=err.step, from_h=err.t0, to_h=err.t1,
                         checkpoint=path, geometry=spec.geometry, protocol=spec.protocol.to_attributes(),
                         params=as_attributes(spec.params), settings=dataclasses.asdict(spec.settings),
-                        petsc_options=dict(spec.petsc_options), ranks=comm.size, command=list(command or ()),
+                        petsc_options=dict(spec.petsc_options), ranks=comm.size, command=io.command(),
                         resume="run the command again, e.g. with a larger --max-halvings")
                 err.args = (f"{err}; state after step {err.step - 1} saved in {path}, details in {outputs.status}",)
             raise
     meta = {
         "geometry": spec.geometry,
-        "mesh_sha256": ckpt.on_rank0(comm, lambda: ckpt.file_digest(*spec.mesh_files())),
+        "mesh_sha256": on_rank0(comm, lambda: ckpt.file_digest(*spec.mesh_files())),
         "quadrature_degree": model.geometry.quadrature_degree,
         "ends": spec.ends,
         "fibers": spec.fibers,

@@ -26,6 +26,7 @@ from hyper.core import resources
 from hyper.core.params import InputError
 from hyper.model import protocols
 from hyper.model.protocols import Protocol
+from hyper.runs.checkpoint import file_digest
 
 DATA_DIR = resources.folder("data")
 TIME_UNITS = {"week": protocols.WEEK, "day": 24.0, "hour": 1.0}  # h per unit
@@ -164,8 +165,6 @@ class Comparison:
 
     def attributes(self) -> dict:
         """The result's ``data`` group."""
-        from hyper.runs.checkpoint import file_digest
-
         return {"file": str(self.data.path), "file_sha256": file_digest(self.data.path), "label": self.data.label,
                 "rmse_pp": self.rmse_pp, "last_difference_pp": self.last_difference_pp,
                 "last_time_h": float(self.data.t[-1]), "time_h": self.data.t,

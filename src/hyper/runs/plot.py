@@ -10,6 +10,10 @@ from __future__ import annotations
 import zlib
 from pathlib import Path
 
+import numpy as np
+
+from hyper.core import io
+
 # One colour per protocol name in every figure (signaling, growth, cohort): the built-in
 # protocols their own, any other name one of OTHER_COLOURS picked by the name itself, not
 # by its place in a figure (two such names may share one).
@@ -34,8 +38,6 @@ def pyplot():
 
 def save(fig, path: str | Path, *, dpi: int = 150) -> Path:
     """Write ``fig`` to ``path`` (format from its suffix) atomically and close it."""
-    from hyper.core import io
-
     path = Path(path)
     with io.atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or "png")
@@ -79,7 +81,6 @@ def box_section(picture: dict, path: str | Path, title: str = "") -> Path:
     """The original code's box measure on a muscle (`hyper.fem.boxsection.BoxSection.picture`):
     the staircase facets, inner or rim, with the exact cut's outline (left), and each
     facet's deformed / reference area (right)."""
-    import numpy as np
     from matplotlib import colors
     from matplotlib.collections import LineCollection, PolyCollection
 

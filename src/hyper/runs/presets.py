@@ -18,6 +18,7 @@ import dataclasses
 from collections.abc import Mapping
 
 from hyper.core.params import InputError, build
+from hyper.model.signaling.integrators import METHODS
 
 PRESETS: dict[str, dict] = {
     "default": {},
@@ -58,10 +59,21 @@ def settings(cls, name: str, chosen: Mapping, options: Mapping[str, str] | None 
     return build(cls, {**OPTIONS, **(options or {})}, **values)
 
 
+METHOD_HELP = ("rk4: classical RK4 with steps landing on every switch (converged at 0.05 h); rk45-original: "
+               "the original code's SciPy RK45 at rtol 1e-3, atol 1e-6, steps of at most --signaling-dt, "
+               "restarted only at session starts and ends, from its N0 = 1.000768 (MODEL.md §9)")
+
+
+def method_option(p: argparse.ArgumentParser, default: str | None = "rk4") -> None:
+    """--signaling-method, the same for every job that integrates the signaling ODEs
+    (default None where a preset may choose it: rk4 unless it does)."""
+    p.add_argument("--signaling-method", choices=METHODS, default=default,
+                   help=METHOD_HELP + ("" if default else "; rk4 unless --settings sets it"))
+
+
 def add_options(p: argparse.ArgumentParser, *, signaling_method: bool = True) -> None:
     """--settings and the switches of a growth run; ``signaling_method`` False where the
     parser has its --signaling-method already."""
-    from hyper.commands.signaling import method_option
     from hyper.fem.coupled import CSA_METHODS
     from hyper.fem.geometry import IDEALIZED_ENDS
     from hyper.fem.growthfield import GROWTH_FIELDS

@@ -10,6 +10,7 @@ the study it is equivalent to; PETSc options, which no study key sets, are a com
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import numpy as np
@@ -31,7 +32,6 @@ def value(v) -> str:
         return ("inf" if v > 0 else "-inf") if math.isinf(v) else repr(v)
     if isinstance(v, str):
         # TOML's basic strings escape as JSON's do
-        import json
 
         return json.dumps(v, ensure_ascii=False)
     if isinstance(v, (list, tuple, np.ndarray)):

@@ -11,6 +11,7 @@ import numpy as np
 from mpi4py import MPI
 
 from hyper.core import io
+from hyper.core.collective import on_rank0
 from hyper.core.params import InputError, as_attributes
 from hyper.model import signaling
 from hyper.model.material import MaterialParams
@@ -81,10 +82,10 @@ def check_geometry(comm, name: str, option: str = "--geometry") -> None:
     if name not in geo.GEOMETRIES:
         raise InputError(f"{option}: unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
     path = geo.MESHES_DIR / geo.GEOMETRIES[name]
-    if not ckpt.on_rank0(comm, path.is_file):
+    if not on_rank0(comm, path.is_file):
         raise InputError(f"{option} {name}: {path}: no such mesh file")
     fibres = fibers.fiber_path(name) if name in geo.ANATOMICAL + geo.MESHED else None
-    if fibres is not None and not ckpt.on_rank0(comm, lambda: io.is_complete(fibres)):
+    if fibres is not None and not on_rank0(comm, lambda: io.is_complete(fibres)):
         raise InputError(f"{option} {name}: {fibres}: no complete fibre file; compute it with "
                          f"`hyper fibers --geometries {name}`")
 

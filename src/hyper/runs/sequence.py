@@ -6,14 +6,34 @@ after the second keeps the first; the figure comes last.
 from __future__ import annotations
 
 import dataclasses
+import enum
 from pathlib import Path
 
-from hyper.commands import cli
 from hyper.core import log
+from hyper.core.collective import on_rank0
 from hyper.core.log import PROGRESS_EVERY, hms, info
+from hyper.model.failure import GrowthFailure
 from hyper.runs import driver as run
 from hyper.runs import fidelity, locks, measured, runspec
-from hyper.runs.checkpoint import inspect, on_rank0
+from hyper.runs.checkpoint import inspect
+from hyper.runs.plot import box_section, growth_series
+
+
+class Ending(enum.Enum):
+    """How a sequence of runs ended (the command maps it to its exit status)."""
+
+    DONE = "done"  # every run stored, the figure drawn
+    FAILED = "failed"  # a run failed for good, or its checkpoint could not be written (said on stderr)
+    INTERRUPTED = "interrupted"  # stopped on request (SIGTERM), the state saved
+
+
+@dataclasses.dataclass(frozen=True)
+class Outcome:
+    """The `Ending` of `carry_out`, and for an interruption what to say (the command adds
+    its exit status)."""
+
+    ending: Ending
+    message: str = ""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,22 +67,20 @@ def refuse_foreign_checkpoints(comm, specs: list[runspec.RunSpec], outputs: list
 
 def draw_box(comm, model, path: Path, title: str) -> None:
     """The box measure's staircase of ``model`` as it is (`hyper.runs.plot.box_section`). Collective."""
-    from hyper.runs.plot import box_section
-
     picture = model.section.box.picture()
     if comm.rank == 0:
         info(comm, f"box figure: {box_section(picture, path, title)}")
+
+
 def data_of(work: Plan, spec: runspec.RunSpec) -> measured.Measured | None:
     """What a run is compared with: the plan's data, else its protocol's (`measured.of_protocol`)."""
     return work.data if work.data is not None else measured.of_protocol(spec.protocol)
 
 
-def carry_out(comm, work: Plan, stop, command: list[str], figure: bool = True) -> int:
+def carry_out(comm, work: Plan, stop, figure: bool = True) -> Outcome:
     """Run a checked plan: every run in turn, its result stored (with its error against
-    its data, `data_of`), then the figure (unless ``figure`` is false). Returns the exit
-    status; ``command`` goes into the checkpoints."""
-    from hyper.fem.coupled import GrowthFailure
-
+    its data, `data_of`), then the figure (unless ``figure`` is false). Returns how it
+    ended; the status file of a failed run records the command (`hyper.core.io.command`)."""
     with locks.hold(comm, [o.h5 for o in work.outputs]):
         if work.choice is not None:
             info(comm, f"fidelity: {work.choice.describe()}")
@@ -72,14 +90,13 @@ def carry_out(comm, work: Plan, stop, command: list[str], figure: bool = True) -
                 on_rank0(comm, lambda: out.checkpoint.unlink(missing_ok=True))
             try:
                 done = run.execute(comm, spec, out, snapshot_every=work.snapshot_every,
-                                   checkpoint_every=work.checkpoint_every, stop=stop, command=command,
+                                   checkpoint_every=work.checkpoint_every, stop=stop,
                                    progress_every=work.progress_every)
             except run.Interrupted as err:
-                info(comm, f"{spec.protocol.name}: {err}; exit status {cli.EXIT_TERMINATED}")
-                return cli.EXIT_TERMINATED
+                return Outcome(Ending.INTERRUPTED, f"{spec.protocol.name}: {err}")
             except (run.Unsaved, GrowthFailure) as err:
                 log.error(comm, f"{spec.label}: {err}")
-                return cli.EXIT_FAILED
+                return Outcome(Ending.FAILED)
             groups = runspec.result_groups(spec, done.choice)
             data = data_of(work, spec)
             if data is not None:
@@ -95,8 +112,6 @@ def carry_out(comm, work: Plan, stop, command: list[str], figure: bool = True) -
                 draw_box(comm, done.model, box_plot, f"{spec.label}, day {done.model.t / 24:g}")
             done = None  # the model goes before the next run builds its own
         if comm.rank == 0 and figure:
-            from hyper.runs.plot import growth_series
-
             shown = list({id(e.data): e.data for e in errors.values()}.values())
             info(comm, f"figure: {growth_series(results, work.plot, shown, errors)}")
-    return cli.EXIT_OK
+    return Outcome(Ending.DONE)

@@ -50,7 +50,7 @@ from hyper.core.params import InputError
 from hyper.fem import fibers, meshstats, section
 from hyper.fem import geometry as geo
 from hyper.fem import meshing as hm
-from hyper.fem.coupled import CoupledModel, GrowthSettings
+from hyper.fem.coupled import GrowthSettings, build_model
 from hyper.model import protocols
 from hyper.model.material import MaterialParams
 
@@ -122,7 +122,7 @@ def growth(geometry, a0, protocol: str = GROWTH_PROTOCOL) -> dict:
     from dolfinx import fem
 
 
-    model = CoupledModel(geometry, a0, protocols.named(protocol), material=MaterialParams(),
+    model = build_model(geometry, a0, protocols.named(protocol), material=MaterialParams(),
                          settings=GrowthSettings())
     *_, last = model.run()
     # The displacement alone, to measure Nanson's area on another plane of the same run.
