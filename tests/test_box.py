@@ -17,8 +17,7 @@ from hyper.core.params import InputError
 from hyper.fem import boxsection as box
 from hyper.fem import geometry as geo
 from hyper.fem import section
-from hyper.runs import driver as run
-from hyper.runs import runspec
+from hyper.runs import driver, runspec
 
 # A prism [-A, A] × [-B, B] × [-L, L] (m), long along z: the box is 2.4 A × 2.4 B in 30 × 30
 # squares of 0.08 A × 0.08 B, and the prism's sides cross the middle of columns and rows
@@ -286,12 +285,12 @@ def test_a_resumed_run_records_both_measures_as_an_uninterrupted_one(tmp_path):
                        signaling.SignalingParams(thetaM=0.46), GrowthSettings(growth_dt=8.0, csa_method="box"),
                        mesh=runspec.MeshFile(tmp_path / "prism.xdmf"))
     comm = MPI.COMM_SELF
-    whole = run.execute(comm, spec, runspec.Outputs(tmp_path / "whole.h5"), checkpoints=False).series
+    whole = driver.execute(comm, spec, runspec.Outputs(tmp_path / "whole.h5"), checkpoints=False).series
     out = runspec.Outputs(tmp_path / "parts.h5")
     reports = iter(range(100))
-    with pytest.raises(run.Interrupted):
-        run.execute(comm, spec, out, stop=lambda: next(reports) >= 2)
-    parts = run.execute(comm, spec, out).series
+    with pytest.raises(driver.Interrupted):
+        driver.execute(comm, spec, out, stop=lambda: next(reports) >= 2)
+    parts = driver.execute(comm, spec, out).series
     assert len(parts["t"]) == len(whole["t"]) > 4
     for name in ("csa_ratio", "csa_ratio_cut", "csa_ratio_box", "volume_ratio", "kM"):
         np.testing.assert_array_equal(parts[name], whole[name], err_msg=name)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from hyper.analysis import calibrate
-from hyper.commands import calibrate as job
+from hyper.commands import calibrate as calibrate_job
 from hyper.model import protocols, signaling, surrogate
 from hyper.runs import runspec
 
@@ -54,10 +54,10 @@ def test_the_ode_growth_model_equals_the_coupled_idealized_run(name):
     """Within SURROGATE_ERROR of the 9-week growth, at every growth-step end (same steps)."""
     from mpi4py import MPI
 
-    from hyper.runs import driver as run
+    from hyper.runs import driver
 
     protocol = protocols.named(name)
-    model, *_ = run.build(MPI.COMM_WORLD, runspec.RunSpec("idealized", protocol))
+    model, *_ = driver.build(MPI.COMM_WORLD, runspec.RunSpec("idealized", protocol))
     reports = list(model.run())
     t = np.array([r.t for r in reports])
     coupled = np.array([r.csa_ratio for r in reports])
@@ -99,7 +99,7 @@ def write(tmp_path, text: str):
 ])
 def test_bad_data_files_are_refused_with_one_line(tmp_path, capsys, text, message):
     path = write(tmp_path, text)
-    assert job.main(["--data", str(path), "--protocol", "mwf", "--fit", "kM", "--output", str(tmp_path)]) == 2
+    assert calibrate_job.main(["--data", str(path), "--protocol", "mwf", "--fit", "kM", "--output", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error:") and message in err[0]
 
@@ -113,7 +113,7 @@ def test_bad_data_files_are_refused_with_one_line(tmp_path, capsys, text, messag
 ])
 def test_unknown_or_unbounded_fit_parameters_are_refused(tmp_path, capsys, option, message):
     args = ["--data", "data/defreitas.csv", "--protocol", "mwf", "--fit", option, "--output", str(tmp_path)]
-    assert job.main(args) == 2
+    assert calibrate_job.main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error:") and message in err[0]
 
@@ -121,7 +121,7 @@ def test_unknown_or_unbounded_fit_parameters_are_refused(tmp_path, capsys, optio
 def test_every_data_file_needs_its_protocol(tmp_path, capsys):
     args = ["--data", "data/damas.csv", "--data", "data/seynnes.csv", "--protocol", "data/damas.toml", "--fit", "kM",
             "--output", str(tmp_path)]
-    assert job.main(args) == 2
+    assert calibrate_job.main(args) == 2
     assert "one protocol per data file" in capsys.readouterr().err
 
 

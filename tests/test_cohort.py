@@ -10,11 +10,10 @@ import pytest
 from mpi4py import MPI
 
 from hyper.analysis import cohort, cohortplot, cohortstats, cohortsummary
-from hyper.commands import cohort as cohort_command
+from hyper.commands import cohort as cohort_job
 from hyper.core import io
 from hyper.fem.coupled import GrowthSettings
-from hyper.runs import driver as run
-from hyper.runs import runspec
+from hyper.runs import driver, runspec
 
 SHORT_PROTOCOL = """name = "short"
 end = 96.0
@@ -151,7 +150,7 @@ def test_stale_checkpoint_is_dropped(tmp_path):
 ])
 def test_bad_options_exit_2_and_write_nothing(tmp_path, capsys, argv, message):
     out = tmp_path / "out"
-    assert cohort_command.main([*argv, "--output", str(out)]) == 2
+    assert cohort_job.main([*argv, "--output", str(out)]) == 2
     assert message in capsys.readouterr().err
     assert not out.exists()
 
@@ -165,7 +164,7 @@ def shared_tmp(comm, tmp_path):
 
 def failing_for(geometry):
     """run.execute, except that it fails (on every rank of the group) for one geometry."""
-    real = run.execute
+    real = driver.execute
 
     def execute(comm, spec, *args, **kwargs):
         if spec.geometry == geometry:
@@ -194,8 +193,8 @@ def test_mpi_small_cohort_failure_rerun_and_skip(tmp_path, monkeypatch):
 
     # 1. two groups of one rank; the idealized run fails, the cylinder run finishes
     with monkeypatch.context() as m:
-        m.setattr(run, "execute", failing_for("idealized"))
-        assert cohort_command.main(argv) == 1
+        m.setattr(driver, "execute", failing_for("idealized"))
+        assert cohort_job.main(argv) == 1
     rows = read_rows(out / "summary.csv")
     assert list(rows[0]) == list(cohortsummary.COLUMNS)
     assert [(r["geometry"], r["protocol"], r["status"]) for r in rows] == [
@@ -206,7 +205,7 @@ def test_mpi_small_cohort_failure_rerun_and_skip(tmp_path, monkeypatch):
     stamp = cylinder.stat().st_mtime_ns
 
     # 2. the rerun, on one group of two ranks, runs only the failed run
-    assert cohort_command.main([*argv, "--ranks-per-job", "2"]) == 0
+    assert cohort_job.main([*argv, "--ranks-per-job", "2"]) == 0
     assert cylinder.stat().st_mtime_ns == stamp
     assert not (out / "failures.txt").exists()
     assert not list((out / "runs").glob("*.ckpt.h5"))  # stored runs delete their checkpoints
@@ -227,12 +226,12 @@ def test_mpi_small_cohort_failure_rerun_and_skip(tmp_path, monkeypatch):
     first = (out / "summary.csv").read_text()
 
     # 3. nothing left to do: the same summary, read back from the files
-    assert cohort_command.main(argv) == 0
+    assert cohort_job.main(argv) == 0
     assert (out / "summary.csv").read_text() == first
     assert cylinder.stat().st_mtime_ns == stamp
 
     # 4. another growth step is another result: the runs are done again
-    assert cohort_command.main([*argv, "--growth-dt", "48"]) == 0
+    assert cohort_job.main([*argv, "--growth-dt", "48"]) == 0
     assert cylinder.stat().st_mtime_ns != stamp
 
 

@@ -6,16 +6,16 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from hyper.commands import contraction
+from hyper.commands import contraction as contraction_job
 from hyper.core.io import read_series
 from hyper.fem import fibers
-from hyper.fem import geometry as geo_mod
+from hyper.fem import geometry as geo
 from hyper.fem.mechanics import MechanicsProblem
 
 
 def test_cli_writes_series_fields_and_plot(tmp_path, capsys):
     out = tmp_path / "cyl.h5"
-    assert contraction.main(["--geometry", "cylinder", "--steps", "2", "--output", str(out)]) == 0
+    assert contraction_job.main(["--geometry", "cylinder", "--steps", "2", "--output", str(out)]) == 0
     series = read_series(out)
     assert np.allclose(series["alpha"], [0.0, 0.5, 1.0])
     assert list(series["newton_iterations"][:1]) == [0]
@@ -43,7 +43,7 @@ def test_original_switches_give_the_original_reaction_force(tmp_path):
     lateral band, the P2 fibres used as they are, surface integrals at UFL's estimated
     degree, no vertex pinned. Its reported number at α = 1 is 0.9291244 N."""
     out = tmp_path / "orig.h5"
-    assert contraction.main(["--ends", "tags", "--fibers", "original", "--steps", "2", "--output", str(out)]) == 0
+    assert contraction_job.main(["--ends", "tags", "--fibers", "original", "--steps", "2", "--output", str(out)]) == 0
     series = read_series(out)
     assert series["reaction_force_original"][-1] == pytest.approx(0.9291244, abs=5e-8)
     assert series["end_force"][-1] == pytest.approx(series["spring_force"][-1], rel=1e-7)
@@ -68,7 +68,7 @@ def test_original_switches_give_the_original_reaction_force(tmp_path):
 )
 def test_cli_rejects_bad_input_and_writes_nothing(tmp_path, capsys, argv, message):
     out = tmp_path / "res" / "c.h5"
-    assert contraction.main(argv + (["--output", str(out)] if "--output" not in argv else [])) == 2
+    assert contraction_job.main(argv + (["--output", str(out)] if "--output" not in argv else [])) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "res").exists() or not any((tmp_path / "res").iterdir())
 
@@ -82,7 +82,7 @@ def test_end_force_converges_under_refinement():
     0.556 N, MODEL.md §9); the original's ∫ (σN)·N dA moves by 6 % and sits 30 % below.
     """
     comm = MPI.COMM_WORLD
-    geometry = geo_mod.load("idealized", comm)
+    geometry = geo.load("idealized", comm)
     problems = []
     for level in range(2):
         # Newton converges quadratically: stopping at 1e-6 changes the forces by < 1e-9.
@@ -95,7 +95,7 @@ def test_end_force_converges_under_refinement():
             problem.start_from(problems[-1])
             problem.solve()
         problems.append(problem)
-        geometry = geo_mod.refine(geometry)
+        geometry = geo.refine(geometry)
     # rows: level; columns: end force, spring resultant, R (original), R along the current normal (N)
     values = np.array([[p.end_force(), p.spring_force(), p.reaction_force_original(), p.reaction_force_current()]
                        for p in problems])

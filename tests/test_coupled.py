@@ -12,7 +12,8 @@ from hyper.fem import fibers, growthfield
 from hyper.fem import geometry as geo
 from hyper.fem.coupled import GrowthSettings, build_model
 from hyper.fem.mechanics import MechanicsProblem
-from hyper.model import growth, material, signaling
+from hyper.model import growth, signaling
+from hyper.model import material as mat
 from hyper.model.protocols import Protocol, Session
 
 
@@ -56,7 +57,7 @@ def test_uniform_growth_of_a_cylinder_is_stress_free_and_exact(fields):
     np.testing.assert_allclose(u.x.array.reshape(-1, 3), exact, rtol=0, atol=1e-10 * scale)
 
     p = problem.w.sub(1).collapse().x.array
-    p_ref = material.reference_pressure(material.MaterialParams())
+    p_ref = mat.reference_pressure(mat.MaterialParams())
     np.testing.assert_allclose(p, p_ref, rtol=1e-10)
     # A = F Ḡ⁻¹ is the identity: nothing elastic is left.
     A = field.elastic_tensor()
@@ -217,7 +218,7 @@ def test_settings_presets_and_their_digests():
 
 
 def test_grow_and_cohort_take_the_original_preset_and_explicit_switches(tmp_path):
-    from hyper.commands import cohort as cohort_command
+    from hyper.commands import cohort as cohort_job
     from hyper.commands import grow
 
     out = ["--geometry", "cylinder", "--output", str(tmp_path / "run.h5")]
@@ -239,9 +240,9 @@ def test_grow_and_cohort_take_the_original_preset_and_explicit_switches(tmp_path
     assert grow.plan(MPI.COMM_SELF, out).settings == GrowthSettings()
     with pytest.raises(InputError, match="--accuracy .* does not combine with --settings original"):
         grow.plan(MPI.COMM_SELF, [*out, "--settings", "original", "--accuracy"])
-    args = cohort_command.parser().parse_args(["--geometries", "cylinder", "--settings", "original",
+    args = cohort_job.parser().parse_args(["--geometries", "cylinder", "--settings", "original",
                                                "--signaling-method", "rk4"])
-    _, settings, _ = cohort_command.check(args, MPI.COMM_SELF)
+    _, settings, _ = cohort_job.check(args, MPI.COMM_SELF)
     assert args.shape == {"ends": "disks", "fibers": "auto"}
     assert (settings.growth_dt, settings.signaling_method, settings.growth_increment) == (1.0, "rk4", "left-point")
     assert not (tmp_path / "run.h5").exists()

@@ -13,8 +13,7 @@ import pytest
 
 from hyper.core.params import InputError
 from hyper.model import protocols, signaling
-from hyper.runs import driver as run
-from hyper.runs import fidelity
+from hyper.runs import driver, fidelity
 from hyper.runs.fidelity import Scene, choose
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -183,4 +182,4 @@ def test_grow_takes_the_linear_solver_asked_for_or_auto_with_accuracy(tmp_path):
     assert grow.plan(MPI.COMM_WORLD, [*out, "--accuracy"]).linear_solver == "auto"
     assert grow.plan(MPI.COMM_WORLD, [*out, "--accuracy", "--linear-solver", "lu"]).linear_solver == "lu"
     assert grow.plan(MPI.COMM_WORLD, [*out, "--linear-solver", "iterative"]).linear_solver == "iterative"
-    assert run.available_memory_mb(MPI.COMM_WORLD) > 100.0
+    assert driver.available_memory_mb(MPI.COMM_WORLD) > 100.0

@@ -10,7 +10,7 @@ import pytest
 
 from hyper.analysis import cohortplot
 from hyper.commands import cli
-from hyper.commands import cohort as cohort_command
+from hyper.commands import cohort as cohort_job
 from hyper.model import protocols, signaling
 from hyper.runs import plot
 
@@ -83,10 +83,10 @@ def test_a_shape_geometry_outside_the_cohort_is_refused(tmp_path, capsys):
                      str(tmp_path / "c")])
     assert code == cli.EXIT_INPUT
     assert "--plot-geometry idealized: not one of --geometries (cylinder)" in capsys.readouterr().err
-    args = cohort_command.parser().parse_args(["--geometries", "cylinder", "idealized"])
+    args = cohort_job.parser().parse_args(["--geometries", "cylinder", "idealized"])
     from mpi4py import MPI
 
-    cohort_command.check(args, MPI.COMM_SELF)
+    cohort_job.check(args, MPI.COMM_SELF)
     assert args.plot_geometry == "cylinder"
 
 

@@ -11,7 +11,7 @@ from mpi4py import MPI
 
 from hyper.core.params import InputError
 from hyper.fem import fibers
-from hyper.fem import geometry as g
+from hyper.fem import geometry as geo
 
 # Paper: group means of the baseline volumes (cm³), MODEL.md §5.
 PAPER_MEANS = {"BFLH": 252.4, "ST": 190.1, "TA": 132.4}
@@ -22,28 +22,28 @@ def _sum(comm, value):
 
 
 def test_identifiers():
-    assert list(g.GEOMETRIES)[:2] == ["idealized", "cylinder"]
+    assert list(geo.GEOMETRIES)[:2] == ["idealized", "cylinder"]
     # every id names a mesh file that is there, and every mesh folder shipped is an id
-    assert [name for name, file in g.GEOMETRIES.items() if not (g.MESHES_DIR / file).is_file()] == []
-    folders = {p.parent.name for p in g.MESHES_DIR.glob("*/*") if p.suffix in (".xdmf", ".msh")}
-    assert folders == {(g.MESHES_DIR / file).parent.name for file in g.GEOMETRIES.values()}
-    assert len(g.ANATOMICAL) == 12 and len(g.GEOMETRIES) == 14 + len(g.MESHED)
+    assert [name for name, file in geo.GEOMETRIES.items() if not (geo.MESHES_DIR / file).is_file()] == []
+    folders = {p.parent.name for p in geo.MESHES_DIR.glob("*/*") if p.suffix in (".xdmf", ".msh")}
+    assert folders == {(geo.MESHES_DIR / file).parent.name for file in geo.GEOMETRIES.values()}
+    assert len(geo.ANATOMICAL) == 12 and len(geo.GEOMETRIES) == 14 + len(geo.MESHED)
     # The 19 shipped meshes of `hyper mesh`: 3 rectus femoris (no VHM right surface), 4 of each other muscle.
-    assert len(g.NEW) == 19 and set(g.NEW) <= set(g.MESHED)
-    assert {m: sum(n.startswith(m + "_") for n in g.NEW) for m in g.NEW_MUSCLES} == {
+    assert len(geo.NEW) == 19 and set(geo.NEW) <= set(geo.MESHED)
+    assert {m: sum(n.startswith(m + "_") for n in geo.NEW) for m in geo.NEW_MUSCLES} == {
         "RF": 3, "VL": 4, "VM": 4, "VI": 4, "GM": 4}
-    assert g.split_id("VL_VHM_Right") == ("VL", "VHM", "Right")
-    assert g.split_id("ST_VHM_Right") == ("ST", "VHM", "Right")
-    assert {g.split_id(n)[0] for n in g.ANATOMICAL} == set(g.MUSCLES)
+    assert geo.split_id("VL_VHM_Right") == ("VL", "VHM", "Right")
+    assert geo.split_id("ST_VHM_Right") == ("ST", "VHM", "Right")
+    assert {geo.split_id(n)[0] for n in geo.ANATOMICAL} == set(geo.MUSCLES)
     with pytest.raises(InputError, match="not an anatomical geometry"):
-        g.split_id("cylinder")
+        geo.split_id("cylinder")
 
 
 def test_anatomical_meshes_load_in_metres_with_the_paper_volumes():
     comm = MPI.COMM_WORLD
     volumes = {}
-    for name in g.ANATOMICAL:
-        geometry = g.load(name, comm)
+    for name in geo.ANATOMICAL:
+        geometry = geo.load(name, comm)
         assert 6707 <= geometry.num_cells() <= 9668
         assert geometry.midsection is None
         total = _sum(comm, fem.assemble_scalar(fem.form(1.0 * geometry.ds)))
@@ -65,21 +65,21 @@ def test_anatomical_meshes_load_in_metres_with_the_paper_volumes():
 )
 def test_gmsh_meshes(name, cells, volume, end_area, mid_area):
     comm = MPI.COMM_WORLD
-    geometry = g.load(name, comm)
+    geometry = geo.load(name, comm)
     assert geometry.num_cells() == cells
-    assert (geometry.ends, geometry.lateral, geometry.midsection) == ((1, 2), g.LATERAL_TAG, 3)
+    assert (geometry.ends, geometry.lateral, geometry.midsection) == ((1, 2), geo.LATERAL_TAG, 3)
     assert geometry.reference_volume() * 1e6 == pytest.approx(volume, rel=1e-6)
     for tag in geometry.ends:
         assert geometry.area(tag) == pytest.approx(end_area, rel=1e-6)
     assert geometry.area(geometry.midsection) == pytest.approx(mid_area, rel=1e-6)
     total = _sum(comm, fem.assemble_scalar(fem.form(1.0 * geometry.ds)))
-    assert sum(geometry.area(t) for t in (1, 2, g.LATERAL_TAG)) == pytest.approx(total, rel=1e-12)
+    assert sum(geometry.area(t) for t in (1, 2, geo.LATERAL_TAG)) == pytest.approx(total, rel=1e-12)
     assert geometry.ds.metadata() == {"quadrature_degree": 4}
 
 
 def _refinement(comm):
-    geometry = g.load("idealized", comm)
-    fine = g.refine(geometry)
+    geometry = geo.load("idealized", comm)
+    fine = geo.refine(geometry)
     assert fine.num_cells() == 8 * geometry.num_cells()
     assert fine.reference_volume() == pytest.approx(geometry.reference_volume(), rel=1e-12)
     for tag in (1, 2, 3, 4):
@@ -103,7 +103,7 @@ def _nodal(a0):
 
 def test_fibres():
     comm = MPI.COMM_WORLD
-    idealized = g.load("idealized", comm)
+    idealized = geo.load("idealized", comm)
     x, a = _nodal(fibers.fiber_field(idealized))
     assert np.allclose(np.linalg.norm(a, axis=1), 1.0, atol=1e-14)
     assert np.allclose(a, fibers.idealized_fiber(x.T).T, atol=1e-14)
@@ -113,14 +113,14 @@ def test_fibres():
         assert np.allclose(fibers.idealized_fiber(np.array([[0.01], [0.0], [z]]))[:, 0], expected)
     assert np.allclose(fibers.idealized_fiber(np.array([[0.0], [0.0], [0.03]]))[:, 0], [0, 0, 1])
 
-    _, a = _nodal(fibers.fiber_field(g.load("cylinder", comm)))
+    _, a = _nodal(fibers.fiber_field(geo.load("cylinder", comm)))
     assert np.allclose(a, [0, 0, 1])
 
-    ta = g.load("TA_VHF_Left", comm)
+    ta = geo.load("TA_VHF_Left", comm)
     _, a = _nodal(fibers.fiber_field(ta, "principal"))
-    _, axes = g.principal_axes(ta.mesh)
+    _, axes = geo.principal_axes(ta.mesh)
     assert np.allclose(np.abs(a @ axes[:, 0]), 1.0)
-    along = (g.facet_centroid(ta, 2) - g.facet_centroid(ta, 1)) @ a[0] if len(a) else 1.0
+    along = (geo.facet_centroid(ta, 2) - geo.facet_centroid(ta, 1)) @ a[0] if len(a) else 1.0
     assert along > 0  # from end 1 towards end 2
     with pytest.raises(InputError, match="unknown fibre kind"):
         fibers.fiber_field(ta, "helical")
@@ -131,7 +131,7 @@ def test_fibres():
 
 
 def test_principal_axis_of_cylinder_is_its_axis():
-    centre, axes = g.principal_axes(g.load("cylinder", MPI.COMM_WORLD).mesh)
+    centre, axes = geo.principal_axes(geo.load("cylinder", MPI.COMM_WORLD).mesh)
     assert abs(axes[2, 0]) > 0.9999
     assert centre[2] == pytest.approx(0.05, abs=1e-3)
 
@@ -141,26 +141,26 @@ def test_principal_axis_of_cylinder_is_its_axis():
 
 def test_unknown_name_lists_the_known_ones():
     with pytest.raises(InputError, match="unknown geometry 'BFLH'; known: idealized, cylinder, BFLH_VHF_Left"):
-        g.load("BFLH", MPI.COMM_SELF)
+        geo.load("BFLH", MPI.COMM_SELF)
 
 
 def test_missing_files(tmp_path):
     with pytest.raises(InputError, match="muscle-idealized.msh: no such mesh file"):
-        g.load("idealized", MPI.COMM_SELF, meshes_dir=tmp_path)
+        geo.load("idealized", MPI.COMM_SELF, meshes_dir=tmp_path)
     with pytest.raises(InputError, match="TibialisAnterior_smooth.xdmf: no such mesh file"):
-        g.load("TA_VHM_Left", MPI.COMM_SELF, meshes_dir=tmp_path)
+        geo.load("TA_VHM_Left", MPI.COMM_SELF, meshes_dir=tmp_path)
 
 
 def test_unreadable_files(tmp_path):
     bad = tmp_path / "bad.xdmf"
     bad.write_text("this is not XDMF")
     with pytest.raises(InputError, match="bad.xdmf: cannot read a mesh 'Grid' with facet tags 'ft_small'"):
-        g.load_file(bad, MPI.COMM_SELF)
+        geo.load_file(bad, MPI.COMM_SELF)
     msh = tmp_path / "muscle-cylinder" / "muscle-cylinder.msh"
     msh.parent.mkdir()
     msh.write_text("$MeshFormat\ngarbage\n")
     with pytest.raises(InputError, match="muscle-cylinder.msh: cannot read as a Gmsh mesh"):
-        g.load("cylinder", MPI.COMM_SELF, meshes_dir=tmp_path)
+        geo.load("cylinder", MPI.COMM_SELF, meshes_dir=tmp_path)
 
 
 def _write_box(path, tag_values):
@@ -181,7 +181,7 @@ def _write_box(path, tag_values):
 def test_user_mesh_and_missing_tags(tmp_path):
     good = tmp_path / "good.xdmf"
     _write_box(good, (1, 2, 3))
-    geometry = g.load_file(good, MPI.COMM_SELF, scale=1e-3)
+    geometry = geo.load_file(good, MPI.COMM_SELF, scale=1e-3)
     assert geometry.reference_volume() == pytest.approx(1e-9, rel=1e-12)  # 1 mm³
     assert geometry.name == "good"
 
@@ -189,15 +189,15 @@ def test_user_mesh_and_missing_tags(tmp_path):
     _write_box(missing_end, (1, 3, 3))
     with pytest.raises(InputError,
                        match=r"missing_end.xdmf: facet tag 2 \(end\) is missing; the file has tags \[1, 3\]"):
-        g.load_file(missing_end, MPI.COMM_SELF)
+        geo.load_file(missing_end, MPI.COMM_SELF)
     with pytest.raises(InputError, match=r"facet tag 7 \(midsection\) is missing"):
-        g.load_file(good, MPI.COMM_SELF, midsection=7)
+        geo.load_file(good, MPI.COMM_SELF, midsection=7)
     with pytest.raises(InputError, match="cannot read a mesh 'Grid' with facet tags 'ft'"):
-        g.load_file(good, MPI.COMM_SELF, tags="ft")
+        geo.load_file(good, MPI.COMM_SELF, tags="ft")
 
 
 def test_measures_carry_the_quadrature_degree():
-    geometry = g.load("cylinder", MPI.COMM_WORLD, quadrature_degree=2)
+    geometry = geo.load("cylinder", MPI.COMM_WORLD, quadrature_degree=2)
     for measure in (geometry.dx, geometry.ds, geometry.dS):
         assert measure.metadata() == {"quadrature_degree": 2}
     assert isinstance(geometry.dS(geometry.midsection), ufl.Measure)
@@ -206,8 +206,8 @@ def test_measures_carry_the_quadrature_degree():
 def test_idealized_xdmf_end_tags_add_the_lateral_band():
     """ends="tags": the XDMF's 64 facets per end (7 disk facets and 57 of the side) on the
     same mesh; the midsection stays, and the side loses the band (MODEL.md §9)."""
-    disks = g.load("idealized", MPI.COMM_WORLD)
-    tags = g.load("idealized", MPI.COMM_WORLD, ends="tags")
+    disks = geo.load("idealized", MPI.COMM_WORLD)
+    tags = geo.load("idealized", MPI.COMM_WORLD, ends="tags")
     assert tags.num_cells() == disks.num_cells() == 1997
     assert disks.area(1) == pytest.approx(1.3408e-4, rel=1e-4)
     assert tags.area(1) == pytest.approx(1.2026e-3, rel=1e-4)
@@ -219,4 +219,4 @@ def test_idealized_xdmf_end_tags_add_the_lateral_band():
         tags.facet_tags.indices < tags.mesh.topology.index_map(2).size_local] == t)), op=MPI.SUM) for t in (1, 2)]
     assert counts == [64, 64]
     with pytest.raises(InputError, match="idealized shape only"):
-        g.load("cylinder", MPI.COMM_WORLD, ends="tags")
+        geo.load("cylinder", MPI.COMM_WORLD, ends="tags")

@@ -9,13 +9,12 @@ from mpi4py import MPI
 from scipy import optimize
 
 from hyper.analysis import ensemble
-from hyper.commands import ensemble as ensemble_command
+from hyper.commands import ensemble as ensemble_job
 from hyper.core.params import InputError
 from hyper.fem import fibers
 from hyper.fem import geometry as geo
 from hyper.fem.coupled import GrowthSettings, build_model
-from hyper.model import heterogeneity as het
-from hyper.model import signaling
+from hyper.model import heterogeneity, signaling
 from hyper.model.protocols import Protocol, Session
 from hyper.runs import runspec
 
@@ -40,7 +39,8 @@ def test_uniform_parameters_as_cell_arrays_reproduce_the_homogeneous_run():
     """ε = 0 gives every cell the baseline values as arrays: one ODE per cell, ϑ per cell,
     and the homogeneous model's answer (one ODE for the body) to round-off."""
     homogeneous, m1 = coupled_run(GROWING)
-    per_cell, m2 = coupled_run(lambda mesh: het.cell_params(mesh, het.Heterogeneity(epsilon=0.0), 7, GROWING))
+    flat = heterogeneity.Heterogeneity(epsilon=0.0)
+    per_cell, m2 = coupled_run(lambda mesh: heterogeneity.cell_params(mesh, flat, 7, GROWING))
     assert m2.params.size == len(m2.growth.cells) and m2.y.shape == (5, len(m2.growth.cells))
     assert m1.step == m2.step == 6 and homogeneous[-1, 1] > 1.002  # it grew
     np.testing.assert_allclose(per_cell, homogeneous, rtol=1e-10, atol=0)
@@ -50,24 +50,24 @@ def test_uniform_parameters_as_cell_arrays_reproduce_the_homogeneous_run():
 def test_uniform_noise_is_keyed_by_global_cell_and_uniform():
     n = 20000
     cells = np.arange(n)
-    xi = het.uniform_noise(cells, n, seed=3)
+    xi = heterogeneity.uniform_noise(cells, n, seed=3)
     assert xi.shape == (12, n) and np.all(np.abs(xi) <= 1)
     # U(-1, 1): mean 0, variance 1/3 (standard errors 0.004 and 0.002 per row)
     np.testing.assert_allclose(xi.mean(axis=1), 0.0, atol=0.02)
     np.testing.assert_allclose(xi.var(axis=1), 1 / 3, atol=0.01)
     # parameters and seeds draw independent numbers
-    corr = np.corrcoef(np.vstack([xi, het.uniform_noise(cells, n, seed=4)]))
+    corr = np.corrcoef(np.vstack([xi, heterogeneity.uniform_noise(cells, n, seed=4)]))
     assert np.max(np.abs(corr - np.eye(24))) < 0.04
     # a cell's value depends on its global index only, not on which cells are asked for
     perm = np.random.default_rng(0).permutation(n)[:500]
-    np.testing.assert_array_equal(het.uniform_noise(perm, n, seed=3), xi[:, perm])
+    np.testing.assert_array_equal(heterogeneity.uniform_noise(perm, n, seed=3), xi[:, perm])
 
 
 def test_perturb_scales_only_the_twelve_rates():
     xi = np.linspace(-1, 1, 12 * 5).reshape(12, 5)
-    p = het.perturb(signaling.SignalingParams(), xi, 0.1)
+    p = heterogeneity.perturb(signaling.SignalingParams(), xi, 0.1)
     base = signaling.SignalingParams()
-    for k, name in enumerate(het.PERTURBED):
+    for k, name in enumerate(heterogeneity.PERTURBED):
         np.testing.assert_array_equal(getattr(p, name), getattr(base, name) * (1 + 0.1 * xi[k]))
     for name in ("kM", "kF", "thetaM", "thetaF", "beta", "Fmax", "tau_h"):
         assert getattr(p, name) == getattr(base, name)
@@ -78,7 +78,7 @@ def test_perturb_scales_only_the_twelve_rates():
                                  dict(nu=-1.0), dict(epsilon=True)])
 def test_bad_heterogeneity_is_an_input_error(bad):
     with pytest.raises(InputError):
-        het.Heterogeneity(**bad)
+        heterogeneity.Heterogeneity(**bad)
 
 
 def box(n: int, side: float):
@@ -102,14 +102,14 @@ def test_matern_field_has_the_requested_variance_and_range_on_two_meshes(nu):
     """Samples at the cell midpoints of two box meshes (h = 3ℓ/8 and 3ℓ/16): unit variance,
     the Matérn correlation at lags ℓ/4, ℓ/2, ℓ, and a fitted range within sampling error."""
     length, side = 1.0, 3.0
-    spec = het.Heterogeneity(model="matern", length=length, nu=nu)
+    spec = heterogeneity.Heterogeneity(model="matern", length=length, nu=nu)
     lags = np.array([0.25, 0.5, 1.0])
     samples = [(seed, k) for seed in range(4) for k in range(10)]
     for n in (8, 16):
         mesh = box(n, side)
-        grid = het.matern_grid(mesh, spec)
+        grid = heterogeneity.matern_grid(mesh, spec)
         assert grid.clipped < 1e-3
-        x = het.cell_midpoints(mesh)
+        x = heterogeneity.cell_midpoints(mesh)
         z = np.array([grid.sample(seed, k, x) for seed, k in samples])
         per_sample = (z**2).mean(axis=1)
         se = per_sample.std(ddof=1) / np.sqrt(len(per_sample))
@@ -117,26 +117,27 @@ def test_matern_field_has_the_requested_variance_and_range_on_two_meshes(nu):
 
         pick = np.random.default_rng(n).choice(len(x), min(len(x), 1000), replace=False)
         rho, distances = binned_correlation(x[pick], z[:, pick], lags, 0.06)
-        expected = np.array([het.matern_correlation(d, length, nu).mean() for d in distances])
+        expected = np.array([heterogeneity.matern_correlation(d, length, nu).mean() for d in distances])
         se = rho.std(axis=0, ddof=1) / np.sqrt(len(rho))
         assert np.all(np.abs(rho.mean(axis=0) - expected) < 3 * se + 0.01), (n, rho.mean(axis=0), expected, se)
 
         def misfit(ell):
-            return [het.matern_correlation(d, ell, nu).mean() for d in distances] - rho.mean(axis=0)
+            return [heterogeneity.matern_correlation(d, ell, nu).mean() for d in distances] - rho.mean(axis=0)
 
         fitted = optimize.least_squares(misfit, length).x[0]
         assert abs(fitted / length - 1) < 0.05, (n, fitted)
 
     # the same sample seen by both meshes: cells of the coarse mesh hold the field's
     # values at their midpoints whatever else the mesh has
-    coarse = het.cell_midpoints(box(8, side))
-    np.testing.assert_array_equal(het.matern_grid(box(16, side), spec).sample(0, 0, coarse), grid.sample(0, 0, coarse))
+    coarse = heterogeneity.cell_midpoints(box(8, side))
+    np.testing.assert_array_equal(heterogeneity.matern_grid(box(16, side), spec).sample(0, 0, coarse),
+                                  grid.sample(0, 0, coarse))
 
 
 def test_matern_xi_is_uniform_on_the_cells():
     """ξ = erf(z/√2): a U(-1, 1) marginal like the independent model's."""
     mesh = box(12, 0.3)
-    xi = het.cell_xi(mesh, het.Heterogeneity(model="matern", length=0.05), seed=2)
+    xi = heterogeneity.cell_xi(mesh, heterogeneity.Heterogeneity(model="matern", length=0.05), seed=2)
     assert xi.shape == (12, 6 * 12**3) and np.all(np.abs(xi) < 1)
     # 216 ranges³ of volume per parameter field, 12 fields: loose but real bounds
     assert abs(xi.mean()) < 0.05 and abs(xi.var() - 1 / 3) < 0.03
@@ -144,17 +145,17 @@ def test_matern_xi_is_uniform_on_the_cells():
 
 
 @pytest.mark.mpi
-@pytest.mark.parametrize("model", het.MODELS)
+@pytest.mark.parametrize("model", heterogeneity.MODELS)
 def test_cell_parameter_field_is_the_same_on_one_and_two_ranks(model):
     comm = MPI.COMM_WORLD
     assert comm.size == 2
-    spec = het.Heterogeneity(model=model, epsilon=0.1, length=0.03)
+    spec = heterogeneity.Heterogeneity(model=model, epsilon=0.1, length=0.03)
 
     def by_original_cell(comm):
         mesh = geo.load("idealized", comm).mesh
-        params = het.cell_params(mesh, spec, seed=5)
-        original, _ = het.cell_identity(mesh)
-        values = np.array([getattr(params, name) for name in het.PERTURBED])
+        params = heterogeneity.cell_params(mesh, spec, seed=5)
+        original, _ = heterogeneity.cell_identity(mesh)
+        values = np.array([getattr(params, name) for name in heterogeneity.PERTURBED])
         parts = comm.allgather((original, values))
         index = np.concatenate([p[0] for p in parts])
         out = np.empty((12, len(index)))
@@ -172,7 +173,7 @@ def test_ensemble_cli_rejects_bad_input_and_writes_nothing(tmp_path, capsys):
     out = tmp_path / "ens"
     for argv in (["--epsilon", "1.5"], ["--geometry", "nowhere"], ["--samples", "0"],
                  ["--model", "matern", "--length", "-1"]):
-        assert ensemble_command.main([*argv, "--output", str(out)]) == 2
+        assert ensemble_job.main([*argv, "--output", str(out)]) == 2
         assert "error:" in capsys.readouterr().err
     assert not out.exists()
 
@@ -221,18 +222,18 @@ def test_an_ensemble_sample_stopped_by_sigterm_resumes_to_the_uninterrupted_resu
     uninterrupted one, bit for bit."""
     from hyper.fem.coupled import GrowthSettings
     from hyper.model import protocols
-    from hyper.runs import driver as run
+    from hyper.runs import driver
 
     comm = MPI.COMM_SELF
     (tmp_path / "short.toml").write_text(SHORT)
     protocol = protocols.load(tmp_path / "short.toml")
     spec = runspec.RunSpec("cylinder", protocol, settings=GrowthSettings(growth_dt=12.0),
-                       heterogeneity=het.Heterogeneity(epsilon=0.05), seed=3)
+                       heterogeneity=heterogeneity.Heterogeneity(epsilon=0.05), seed=3)
     whole = ensemble.Sample(spec, tmp_path / "whole" / "seed3.h5")
     ensemble.run_sample(comm, whole, snapshot_every=2)
 
     cut = ensemble.Sample(spec, tmp_path / "cut" / "seed3.h5")
-    with pytest.raises(run.Interrupted):
+    with pytest.raises(driver.Interrupted):
         ensemble.run_sample(comm, cut, snapshot_every=2, stop=StopAfter(3))
     assert not cut.h5.exists() and cut.outputs.checkpoint.is_file()
     assert ckpt_status(cut.outputs.status) == "interrupted"

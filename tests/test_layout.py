@@ -279,3 +279,27 @@ def test_no_import_cycles():
 def test_the_layer_check_sees_an_upward_import():
     assert layer("hyper.fem.coupled") < layer("hyper.runs.driver") < layer("hyper.commands.grow") < layer("hyper.grow")
     assert layer("hyper.core.params") < layer("hyper.model.protocols")
+
+
+def module_aliases(roots=(SRC, SRC.parents[1] / "tests")) -> dict[str, set[str]]:
+    """The names each of hyper's modules is bound to where it is imported as a module."""
+    out: dict[str, set[str]] = {}
+    for root in roots:
+        for path in sorted(root.rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "hyper":
+                    for alias in node.names:
+                        if f"{node.module}.{alias.name}" in MODULES:
+                            out.setdefault(f"{node.module}.{alias.name}", set()).add(alias.asname or alias.name)
+                elif isinstance(node, ast.Import):
+                    for alias in node.names:
+                        if alias.name in MODULES and alias.asname:
+                            out.setdefault(alias.name, set()).add(alias.asname)
+    return out
+
+
+def test_one_name_per_module():
+    """A module reads the same wherever it is used (``geo`` for geometry, which the code's
+    many ``geometry`` objects would shadow; ``X_job`` for a command beside its library)."""
+    several = {module: sorted(names) for module, names in module_aliases().items() if len(names) > 1}
+    assert several == {}

@@ -22,7 +22,7 @@ from scipy.optimize import brentq
 
 from hyper.core.params import InputError
 from hyper.fem import fibers
-from hyper.fem import geometry as geo_mod
+from hyper.fem import geometry as geo
 from hyper.fem.mechanics import MechanicsProblem, SolverError, rigid_modes
 from hyper.model import growth
 from hyper.model import material as mat
@@ -32,7 +32,7 @@ PARAMS = mat.MaterialParams()
 TIGHT = {"snes_rtol": 1e-11, "snes_atol": 1e-11}
 
 
-def box_geometry(comm, a=0.01, L=0.1, n=(2, 2, 6)) -> geo_mod.Geometry:
+def box_geometry(comm, a=0.01, L=0.1, n=(2, 2, 6)) -> geo.Geometry:
     mesh = dmesh.create_box(comm, [[-a, -a, 0.0], [a, a, L]], list(n), dmesh.CellType.tetrahedron,
                             ghost_mode=dmesh.GhostMode.shared_facet)
     mesh.topology.create_connectivity(2, 3)
@@ -40,7 +40,7 @@ def box_geometry(comm, a=0.01, L=0.1, n=(2, 2, 6)) -> geo_mod.Geometry:
     mid = dmesh.compute_midpoints(mesh, 2, exterior)
     values = np.where(np.isclose(mid[:, 2], 0.0), 1, np.where(np.isclose(mid[:, 2], L), 2, 4)).astype(np.int32)
     tags = dmesh.meshtags(mesh, 2, exterior.astype(np.int32), values)
-    return geo_mod.Geometry("box", mesh, tags, ends=(1, 2), lateral=4)
+    return geo.Geometry("box", mesh, tags, ends=(1, 2), lateral=4)
 
 
 def _sum(comm, expr, measure):
@@ -88,7 +88,7 @@ def test_box_with_springs_contracts_as_analytic_in_parallel():
 
 def test_no_activation_no_load_gives_zero_displacement():
     comm = MPI.COMM_WORLD
-    geometry = geo_mod.load("idealized", comm)
+    geometry = geo.load("idealized", comm)
     problem = MechanicsProblem(geometry, fibers.fiber_field(geometry), petsc_options=TIGHT)
     assert problem.solve() == 0  # the reference state is the solution, no work to do
     rng = np.random.default_rng(comm.rank)
@@ -117,7 +117,7 @@ def test_uniform_transverse_growth_of_cylinder_in_parallel():
 
 
 def _check_growth(comm, consistent):
-    geometry = geo_mod.load("cylinder", comm)
+    geometry = geo.load("cylinder", comm)
     theta = 1.21
     s = np.sqrt(theta)
     Fg = fem.Constant(geometry.mesh, np.diag([s, s, 1.0]))
@@ -140,17 +140,17 @@ def _check_growth(comm, consistent):
 def test_rigid_modes_found_where_the_ends_leave_them_free():
     comm = MPI.COMM_WORLD
     for name in ("idealized", "cylinder"):
-        modes = rigid_modes(geo_mod.load(name, comm))
+        modes = rigid_modes(geo.load(name, comm))
         assert len(modes.modes) == 3
         assert modes.stiffness_ratio < 1e-14
-    curved = rigid_modes(geo_mod.load("TA_VHF_Left", comm))
+    curved = rigid_modes(geo.load("TA_VHF_Left", comm))
     assert curved.modes == ()
     assert curved.stiffness_ratio > 1e-4  # the curved ends resist every rigid motion
 
 
 def test_divergence_raises_and_restores_the_state():
     comm = MPI.COMM_WORLD
-    geometry = geo_mod.load("cylinder", comm)
+    geometry = geo.load("cylinder", comm)
     problem = MechanicsProblem(geometry, fibers.fiber_field(geometry),
                                petsc_options={"snes_max_it": 1}, options_prefix="test_diverge_")
     before = problem.w.x.array.copy()
@@ -195,7 +195,7 @@ def test_mumps_controls_of_the_options_reach_the_factorisation():
 
 
 def _idealized_reaction(comm):
-    geometry = geo_mod.load("idealized", comm)
+    geometry = geo.load("idealized", comm)
     problem = MechanicsProblem(geometry, fibers.fiber_field(geometry), petsc_options=TIGHT,
                                options_prefix=f"test_rank{comm.size}_")
     forces = []
@@ -219,7 +219,7 @@ def test_two_ranks_give_the_serial_reaction_force():
 def _lu_and_iterative(comm):
     """Both linear solvers on the idealized shape grown transversely by 10 % and then
     activated to α = 0.3 (free rigid modes, so multipliers in the system)."""
-    geometry = geo_mod.load("idealized", comm)
+    geometry = geo.load("idealized", comm)
     a0 = fibers.fiber_field(geometry)
     Fg = growth.transverse_growth_ufl(1.1**2, a0 / ufl.sqrt(ufl.dot(a0, a0)))
     out = {}
@@ -257,7 +257,7 @@ def test_iterative_solver_gives_the_lu_answer_in_parallel():
 
 
 def test_unknown_linear_solver_is_refused():
-    geometry = geo_mod.load("cylinder", MPI.COMM_SELF)
+    geometry = geo.load("cylinder", MPI.COMM_SELF)
     with pytest.raises(ValueError, match="linear_solver"):
         MechanicsProblem(geometry, fibers.fiber_field(geometry), linear_solver="cg")
     with pytest.raises(ValueError, match="blr_precision"):
@@ -267,7 +267,7 @@ def test_unknown_linear_solver_is_refused():
 def test_taylor_hood_unknowns_counts_the_space_without_building_it():
     from hyper.fem.mechanics import taylor_hood_unknowns
 
-    geometry = geo_mod.load("cylinder", MPI.COMM_WORLD)
+    geometry = geo.load("cylinder", MPI.COMM_WORLD)
     problem = MechanicsProblem(geometry, fibers.fiber_field(geometry))
     assert taylor_hood_unknowns(geometry.mesh) == problem.num_dofs - len(problem.rigid.modes)
 

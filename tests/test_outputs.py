@@ -17,12 +17,11 @@ from mpi4py import MPI
 
 from hyper.analysis import study
 from hyper.commands import cli, grow
-from hyper.commands import study as study_command
+from hyper.commands import study as study_job
 from hyper.core import io, log
 from hyper.core.params import InputError
 from hyper.model import protocols
-from hyper.runs import driver as run
-from hyper.runs import measured, runspec
+from hyper.runs import driver, measured, runspec
 from test_reliability import PROTOCOL  # the short two-session protocol
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -81,12 +80,12 @@ def test_one_grid_holds_every_function_at_every_time(tmp_path):
 
 
 def test_snapshot_due_by_simulated_time():
-    assert run.snapshot_due([], 0.0, 24.0)
-    assert not run.snapshot_due([0.0], 23.9, 24.0)
-    assert run.snapshot_due([0.0], 8.0 + 8.0 + 8.0 - 1e-12, 24.0)  # a sum of steps a hair short of 24 h
-    assert run.snapshot_due([0.0], 30.0, 24.0)
-    assert not run.snapshot_due([25.0], 47.0, 24.0) and run.snapshot_due([25.0], 48.0, 24.0)
-    assert not run.snapshot_due([24.0], 24.0 + 23.0, 24.0)
+    assert driver.snapshot_due([], 0.0, 24.0)
+    assert not driver.snapshot_due([0.0], 23.9, 24.0)
+    assert driver.snapshot_due([0.0], 8.0 + 8.0 + 8.0 - 1e-12, 24.0)  # a sum of steps a hair short of 24 h
+    assert driver.snapshot_due([0.0], 30.0, 24.0)
+    assert not driver.snapshot_due([25.0], 47.0, 24.0) and driver.snapshot_due([25.0], 48.0, 24.0)
+    assert not driver.snapshot_due([24.0], 24.0 + 23.0, 24.0)
 
 
 def test_grow_fields_are_read_whole_by_meshio(grown):
@@ -96,7 +95,7 @@ def test_grow_fields_are_read_whole_by_meshio(grown):
     # the first state, the first growth step on or after each 24 h, and the last state
     kept = []
     for t in series["t"]:
-        if run.snapshot_due(kept, t, 24.0) or t == series["t"][-1]:
+        if driver.snapshot_due(kept, t, 24.0) or t == series["t"][-1]:
             kept.append(float(t))
     assert times == pytest.approx(kept, rel=1e-14) and times[0] == 0.0 and times[-1] == 96.0
     assert len(times) == 5
@@ -216,7 +215,7 @@ def test_study_data_and_snapshots_are_checked(tmp_path, capsys, monkeypatch, tex
     (tmp_path / "s.toml").write_text(text)
     monkeypatch.chdir(tmp_path)
     before = sorted(tmp_path.rglob("*"))
-    assert study_command.main([str(tmp_path / "s.toml"), "--output", str(tmp_path / "out")]) == cli.EXIT_INPUT
+    assert study_job.main([str(tmp_path / "s.toml"), "--output", str(tmp_path / "out")]) == cli.EXIT_INPUT
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and re.search(message, err[0]), err
     assert sorted(tmp_path.rglob("*")) == before

@@ -11,8 +11,8 @@ import pytest
 from hyper.analysis import study
 from hyper.commands import cli
 from hyper.core import io
-from hyper.fem import geometry
-from hyper.model import material
+from hyper.fem import geometry as geo
+from hyper.model import material as mat
 from hyper.runs import runspec
 
 SHORT = 'name = "short"\nend = 48.0\n[[session]]\nstart = 0.0\nduration = 1.0\nintensity = 0.8\n'
@@ -40,7 +40,7 @@ def test_a_result_carries_its_command_versions_and_mesh_hash(grown):
                     "mpi_library"):
         assert attrs[f"version_{package}"], package
     assert len(attrs["version_git_commit"].split("-")[0]) == 40  # run from this checkout
-    mesh = geometry.MESHES_DIR / geometry.GEOMETRIES["cylinder"]
+    mesh = geo.MESHES_DIR / geo.GEOMETRIES["cylinder"]
     assert attrs["mesh_sha256"] == hashlib.sha256(mesh.read_bytes()).hexdigest()
     assert attrs["quadrature_degree"] == 4 and attrs["ranks"] == 1 and attrs["linear_solver"] == "lu"
     assert units["t"] == "h" and units["kM"] == "1/h" and units["wall_s"] == "s"
@@ -65,9 +65,9 @@ def test_inspect_refuses_what_is_not_a_result(tmp_path, capsys):
 def test_every_series_name_the_jobs_write_has_a_unit():
     from hyper.analysis import ensemble
     from hyper.model import signaling
-    from hyper.runs import driver as run
+    from hyper.runs import driver
 
-    names = [*run.SERIES, *ensemble.STD, "final_x", "final_u", "final_N", "final_detGbar", *signaling.STATES]
+    names = [*driver.SERIES, *ensemble.STD, "final_x", "final_u", "final_N", "final_detGbar", *signaling.STATES]
     assert all(io.unit(name) != "unspecified" for name in names)
 
 
@@ -78,11 +78,11 @@ def test_a_result_records_its_material_and_the_study_that_reruns_it(grown, tmp_p
         text, digest = f.attrs["study"], f.attrs["run_digest"]
     assert {"signaling", "material", "protocol", "settings"} <= set(groups)
     assert groups["material"]["sigma_act"] == 2.5e5 and groups["material"]["c1"] == 1.2e4
-    assert groups["material"]["c2"] == material.MaterialParams().c2
+    assert groups["material"]["c2"] == mat.MaterialParams().c2
     # the recorded study, loaded as a study file, is the same run: the same digest
     (tmp_path / "again.toml").write_text(text)
     loaded = study.load(tmp_path / "again.toml")
-    assert loaded.material == material.MaterialParams(sigma_act=2.5e5, c1=1.2e4)
+    assert loaded.material == mat.MaterialParams(sigma_act=2.5e5, c1=1.2e4)
     settings, choice = study.steps(loaded)
     assert study.first_spec(loaded, settings, choice).digest() == digest
     assert [p.name for p in loaded.protocols] == ["short"] and loaded.protocols[0].end == 48.0
@@ -140,7 +140,7 @@ def test_a_remade_mesh_or_fibre_file_is_another_run(tmp_path, monkeypatch):
     folder = spec.input_files()[0].parent
     copy = tmp_path / folder.name
     shutil.copytree(folder, copy)
-    monkeypatch.setattr(geometry, "MESHES_DIR", tmp_path)
+    monkeypatch.setattr(geo, "MESHES_DIR", tmp_path)
     assert [p.parent for p in spec.input_files()] == [copy] * 3  # the mesh, its data and its fibres
     assert spec.digest() == before  # the bytes count, not where they lie
     for changed in (copy / "fibers.h5", copy / f"{folder.name}.h5"):

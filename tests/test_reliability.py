@@ -24,8 +24,7 @@ from mpi4py import MPI
 from hyper.commands import cli, grow
 from hyper.core import io
 from hyper.runs import checkpoint as ckpt
-from hyper.runs import driver as run
-from hyper.runs import locks, runspec
+from hyper.runs import driver, locks, runspec
 from hyper.runs.status import read_status
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -411,7 +410,7 @@ def test_accuracy_takes_lu_while_it_fits_and_the_iterative_solver_when_memory_is
     runs = {}
     for name, available in (("roomy", None), ("short", 1.0)):
         if available is not None:
-            monkeypatch.setattr(run, "available_memory_mb", lambda comm: available)  # MB
+            monkeypatch.setattr(driver, "available_memory_mb", lambda comm: available)  # MB
         out = tmp_path / f"{name}.h5"
         assert grow.main(command(inputs, out, "--accuracy", "1e-3")) == 0
         with h5py.File(out) as f:

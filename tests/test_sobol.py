@@ -12,8 +12,8 @@ from mpi4py import MPI
 
 from hyper.analysis import chunks, sobol, sobolplot
 from hyper.analysis import sobolmodels as models
-from hyper.commands import sobol as job
-from hyper.model import signaling as S
+from hyper.commands import sobol as sobol_job
+from hyper.model import signaling
 from hyper.model.protocols import Protocol, Session, named
 
 ISHIGAMI = sobol.ishigami_problem()
@@ -30,7 +30,7 @@ def design():
 
 def test_design_shape_and_bounds(design):
     assert design.shape == (240, 14)
-    base = S.SignalingParams()
+    base = signaling.SignalingParams()
     for k, name in enumerate(models.PARAMETERS):
         ratio = design[:, k] / getattr(base, name)
         assert ratio.min() >= 0.5 and ratio.max() <= 2.0
@@ -42,14 +42,15 @@ def test_batch_equals_one_at_a_time(design):
     # stimulus, the AKT bump and its end, and threshold crossings of FOXO and mTOR.
     day = Protocol((Session(0.0, 1.0, 0.8),), 30.0, "day")
     batch = models.final_N(design, protocol=day)
-    single = np.array([S.integrate(models.sample_params(design[i : i + 1]).member(0), day, S.rest_state(),
+    single = np.array([signaling.integrate(models.sample_params(design[i : i + 1]).member(0), day,
+                                           signaling.rest_state(),
                                    0.0, 30.0)[1][-1, 4]
                        for i in range(len(design))])
     assert np.max(np.abs(batch - single)) <= 1e-12
     assert np.ptp(single) > 0.01  # the parameters matter over one day already
     for i in (0, 117):  # and two members run alone over the whole protocol
         p = models.sample_params(design[i : i + 1]).member(0)
-        alone = S.integrate(p, named("daily15"), S.rest_state(), 0.0, 480.0)[1][-1, 4]
+        alone = signaling.integrate(p, named("daily15"), signaling.rest_state(), 0.0, 480.0)[1][-1, 4]
         assert abs(alone - models.final_N(design[i : i + 1])[0]) <= 1e-12
 
 
@@ -70,9 +71,9 @@ def test_a_failing_member_is_masked_not_fatal():
     assert np.isnan(N[1])
     for i in (0, 2):
         p = models.sample_params(X[i : i + 1], ("beta", "kM")).member(0)
-        assert N[i] == S.integrate(p, named("daily15"), S.rest_state(), 0.0, 480.0)[1][-1, 4]
+        assert N[i] == signaling.integrate(p, named("daily15"), signaling.rest_state(), 0.0, 480.0)[1][-1, 4]
     # the numpy backend fails the whole batch
-    with pytest.raises(S.SignalingError, match="member 1"):
+    with pytest.raises(signaling.SignalingError, match="member 1"):
         models.final_N(X, names=("beta", "kM"), backend="numpy")
 
 
@@ -171,7 +172,7 @@ def test_failures_abort_or_drop_their_base_samples():
 def test_cli_ishigami_writes_results_and_resumes(tmp_path, capsys):
     out = tmp_path / "out"
     argv = ["--function", "ishigami", "--samples", "1024", "--chunk", "2000", "--output", str(out), "--seed", "7"]
-    assert job.main(argv, comm=MPI.COMM_SELF) == 0
+    assert sobol_job.main(argv, comm=MPI.COMM_SELF) == 0
     text = capsys.readouterr().out
     assert "failed members: 0" in text and "not a power of 2" not in text
     lines = (out / "indices.csv").read_text().splitlines()
@@ -184,12 +185,12 @@ def test_cli_ishigami_writes_results_and_resumes(tmp_path, capsys):
         S1 = f["S1"][()]
     assert (out / "spread.png").stat().st_size > 0 and (out / "indices.png").stat().st_size > 0
     # a rerun finds every chunk done and gives the same numbers
-    assert job.main(argv, comm=MPI.COMM_SELF) == 0
+    assert sobol_job.main(argv, comm=MPI.COMM_SELF) == 0
     assert "0 to run, 5 skipped" in capsys.readouterr().out
     with h5py.File(out / "sobol.h5") as f:
         assert np.array_equal(f["S1"][()], S1)
     # another seed is another design: the old chunks go, all are computed anew
-    assert job.main([*argv[:-1], "8"], comm=MPI.COMM_SELF) == 0
+    assert sobol_job.main([*argv[:-1], "8"], comm=MPI.COMM_SELF) == 0
     text = capsys.readouterr().out
     assert "removed chunks of other settings" in text and "5 to run, 0 skipped" in text
     assert len(list((out / "chunks").iterdir())) == 1
@@ -197,7 +198,7 @@ def test_cli_ishigami_writes_results_and_resumes(tmp_path, capsys):
 
 def test_cli_signaling_small(tmp_path, capsys):
     out = tmp_path / "s"
-    assert job.main(["--samples", "16", "--chunk", "200", "--output", str(out)], comm=MPI.COMM_SELF) == 0
+    assert sobol_job.main(["--samples", "16", "--chunk", "200", "--output", str(out)], comm=MPI.COMM_SELF) == 0
     with h5py.File(out / "sobol.h5") as f:
         assert f.attrs["evaluations"] == 480 and f.attrs["dt"] == 0.05 and f.attrs["protocol"] == "daily15"
         assert f.attrs["failures"] == 0 and f["failed_rows"].shape == (0,)
@@ -210,7 +211,7 @@ def test_cli_signaling_small(tmp_path, capsys):
     assert study.startswith("[sobol]") and 'protocol = "daily15"' in study and "samples = 16" in study
     (tmp_path / "again.toml").write_text(study)
     again = tmp_path / "again"
-    assert job.main(["--problem", str(tmp_path / "again.toml"), "--chunk", "200", "--output", str(again)],
+    assert sobol_job.main(["--problem", str(tmp_path / "again.toml"), "--chunk", "200", "--output", str(again)],
                       comm=MPI.COMM_SELF) == 0
     with h5py.File(again / "sobol.h5") as f:
         assert f.attrs["digest"] == digest and np.array_equal(f["Y"][()], Y)
@@ -219,7 +220,7 @@ def test_cli_signaling_small(tmp_path, capsys):
 def test_cli_failures_are_reported(tmp_path, capsys):
     # dt = 0.7 h is beyond RK4's stability limit during sessions: every member fails
     out = tmp_path / "f"
-    assert job.main(["--samples", "2", "--signaling-dt", "0.7", "--output", str(out)], comm=MPI.COMM_SELF) == 1
+    assert sobol_job.main(["--samples", "2", "--signaling-dt", "0.7", "--output", str(out)], comm=MPI.COMM_SELF) == 1
     captured = capsys.readouterr()
     assert "failed members: 60" in captured.out and "60 of 60 model evaluations failed" in captured.err
     assert not (out / "sobol.h5").exists()
@@ -233,7 +234,7 @@ def test_cli_failures_are_reported(tmp_path, capsys):
 ])
 def test_cli_bad_input(tmp_path, capsys, args, message):
     out = tmp_path / "bad"
-    assert job.main([*args, "--output", str(out)], comm=MPI.COMM_SELF) == 2
+    assert sobol_job.main([*args, "--output", str(out)], comm=MPI.COMM_SELF) == 2
     assert message in capsys.readouterr().err
     assert not out.exists()
 
@@ -285,17 +286,17 @@ def test_a_sigterm_lets_the_chunk_in_progress_finish_and_starts_no_other(tmp_pat
 
 
 def test_the_default_base_sample_count_is_a_power_of_two():
-    args = job.parser().parse_args([])
-    job._check(args)
+    args = sobol_job.parser().parse_args([])
+    sobol_job._check(args)
     assert args.samples == sobol.SAMPLES and args.samples & (args.samples - 1) == 0
 
 
 def test_the_problem_from_options_and_from_a_file(tmp_path):
     from hyper.model import protocols
 
-    args = job.parser().parse_args(["--parameters", "kM", "kF", "--range", "0.8", "1.25", "--protocol", "weekly",
+    args = sobol_job.parser().parse_args(["--parameters", "kM", "kF", "--range", "0.8", "1.25", "--protocol", "weekly",
                                       "--at", "200"])
-    protocol, prob = job._check(args)
+    protocol, prob = sobol_job._check(args)
     assert prob == {"num_vars": 2, "names": ["kM", "kF"], "bounds": [[0.008, 0.0125], [0.8 * 0.019, 1.25 * 0.019]]}
     assert protocol.name == "weekly" and args.at == 200.0
     # a study file's [sobol] table in SALib's form; options override it
@@ -303,12 +304,12 @@ def test_the_problem_from_options_and_from_a_file(tmp_path):
     path.write_text('geometries = ["cylinder"]\nprotocols = ["weekly"]\n[sobol]\nfunction = "csa-gain"\n'
                     'protocol = "every3days"\nnames = ["kM", "hill_n"]\nbounds = [[0.005, 0.02], [2, 8]]\n'
                     'num_vars = 2\nsamples = 64\nat = 336\n')
-    args = job.parser().parse_args(["--problem", str(path)])
-    protocol, prob = job._check(args)
+    args = sobol_job.parser().parse_args(["--problem", str(path)])
+    protocol, prob = sobol_job._check(args)
     assert (args.function, args.samples, args.at, protocol.name) == ("csa-gain", 64, 336.0, "every3days")
     assert prob["names"] == ["kM", "hill_n"] and prob["bounds"] == [[0.005, 0.02], [2.0, 8.0]]
-    args = job.parser().parse_args(["--problem", str(path), "--samples", "32", "--parameters", "kF"])
-    protocol, prob = job._check(args)
+    args = sobol_job.parser().parse_args(["--problem", str(path), "--samples", "32", "--parameters", "kF"])
+    protocol, prob = sobol_job._check(args)
     assert args.samples == 32 and prob["names"] == ["kF"] and prob["bounds"] == [[0.5 * 0.019, 2 * 0.019]]
     # N at a time is N of the run that ends there
     X = np.array([[0.01, 0.019]])
@@ -333,7 +334,7 @@ def test_the_problem_from_options_and_from_a_file(tmp_path):
 def test_bad_problems_are_refused_and_write_nothing(tmp_path, capsys, text, message):
     path = tmp_path / "p.toml"
     path.write_text(text)
-    assert job.main(["--problem", str(path), "--output", str(tmp_path / "out")], comm=MPI.COMM_SELF) == 2
+    assert sobol_job.main(["--problem", str(path), "--output", str(tmp_path / "out")], comm=MPI.COMM_SELF) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and message in err and err.count("\n") == 1, err
     assert not (tmp_path / "out").exists()
@@ -342,7 +343,7 @@ def test_bad_problems_are_refused_and_write_nothing(tmp_path, capsys, text, mess
 def test_an_analysis_of_two_parameters_at_a_time(tmp_path):
     out = tmp_path / "o"
     argv = ["--parameters", "kM", "a10", "--protocol", "mwf", "--at", "168", "--samples", "8", "--output", str(out)]
-    assert job.main(argv, comm=MPI.COMM_SELF) == 0
+    assert sobol_job.main(argv, comm=MPI.COMM_SELF) == 0
     with h5py.File(out / "sobol.h5") as f:
         assert [n.decode() for n in f["parameters"][()]] == ["kM", "a10"] and f["X"].shape == (48, 2)
         assert f.attrs["at_h"] == 168.0 and f["settings"].attrs["at_h"] == 168.0

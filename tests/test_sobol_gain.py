@@ -11,9 +11,8 @@ from mpi4py import MPI
 
 from hyper.analysis import chunks, sobol
 from hyper.analysis import sobolmodels as models
-from hyper.commands import sobol as job
-from hyper.model import signaling as S
-from hyper.model import surrogate
+from hyper.commands import sobol as sobol_job
+from hyper.model import signaling, surrogate
 from hyper.model.protocols import Protocol, named
 
 GAIN = sobol.gain_problem()
@@ -37,7 +36,7 @@ def one(X, i, protocol):
 def test_gain_design_names_and_bounds(design):
     assert GAIN["names"] == [*models.PARAMETERS, "thetaM", "thetaF", "hill_n"]
     assert design.shape == (144, 17)
-    base = S.SignalingParams()
+    base = signaling.SignalingParams()
     for k, name in enumerate(GAIN["names"]):
         value = models.HILL_N if name == "hill_n" else getattr(base, name)
         assert GAIN["bounds"][k] == [0.5 * value, 2.0 * value]
@@ -68,7 +67,7 @@ def test_gain_at_the_baseline_and_the_feedback_exponent():
     # a steeper Hill law (larger n) brakes harder once CSA/CSA0 > 1
     X = np.array([[2.0], [4.0], [8.0]])
     g = models.csa_gain(X, names=("hill_n",))
-    base = surrogate.grow(S.SignalingParams(), named("mwf"), [1512.0], factor=RHO)
+    base = surrogate.grow(signaling.SignalingParams(), named("mwf"), [1512.0], factor=RHO)
     assert g[1] == float(base.csa_ratio[-1]) - 1.0
     assert g[0] > g[1] > g[2] > 0.05
 
@@ -82,7 +81,7 @@ def test_gain_failing_member_is_masked():
         p = models.sample_params(X[i : i + 1, :2], ("beta", "kM")).member(0)
         assert g[i] == float(surrogate.grow(p, named("mwf"), [1512.0], factor=RHO,
                                             hill_n=X[i, 2]).csa_ratio[-1]) - 1.0
-    with pytest.raises(S.SignalingError):
+    with pytest.raises(signaling.SignalingError):
         models.csa_gain(X, names=("beta", "kM", "hill_n"), backend="numpy")
 
 
@@ -97,7 +96,7 @@ def test_cli_gain_indices_sum_sensibly_and_lead_stably(tmp_path, capsys):
         out = tmp_path / f"seed{seed}"
         argv = ["--function", "csa-gain", "--samples", "256", "--chunk", "2500", "--seed", str(seed),
                 "--output", str(out)]
-        assert job.main(argv, comm=MPI.COMM_SELF) == 0
+        assert sobol_job.main(argv, comm=MPI.COMM_SELF) == 0
         assert "failed members: 0" in capsys.readouterr().out
         runs[seed], attrs = read(out)
         assert attrs["function"] == "csa-gain" and attrs["protocol"] == "mwf" and attrs["D"] == 17
@@ -117,18 +116,18 @@ def test_cli_gain_indices_sum_sensibly_and_lead_stably(tmp_path, capsys):
     lead = [models.GAIN_PARAMETERS[int(np.argmax(r["ST"]))] for r in runs.values()]
     assert lead[0] == lead[1]
     # a rerun finds every chunk done
-    assert job.main(argv, comm=MPI.COMM_SELF) == 0
+    assert sobol_job.main(argv, comm=MPI.COMM_SELF) == 0
     assert "0 to run, 4 skipped" in capsys.readouterr().out
 
 
 def test_cli_gain_digest_differs_from_signaling_and_bad_geometry(tmp_path, capsys):
     out = tmp_path / "g"
-    assert job.main(["--function", "csa-gain", "--samples", "2", "--output", str(out)], comm=MPI.COMM_SELF) == 0
+    assert sobol_job.main(["--function", "csa-gain", "--samples", "2", "--output", str(out)], comm=MPI.COMM_SELF) == 0
     gain_key = [p.name for p in (out / "chunks").iterdir()]
-    assert job.main(["--samples", "2", "--output", str(out)], comm=MPI.COMM_SELF) == 0
+    assert sobol_job.main(["--samples", "2", "--output", str(out)], comm=MPI.COMM_SELF) == 0
     assert "removed chunks of other settings: " + gain_key[0] in capsys.readouterr().out
     bad = tmp_path / "bad"
-    assert job.main(["--function", "csa-gain", "--geometry", "sphere", "--output", str(bad)],
+    assert sobol_job.main(["--function", "csa-gain", "--geometry", "sphere", "--output", str(bad)],
                       comm=MPI.COMM_SELF) == 2
     assert "--geometry" in capsys.readouterr().err and not bad.exists()
 

@@ -12,8 +12,8 @@ import pytest
 
 from hyper.analysis import cohort, study
 from hyper.commands import cli
-from hyper.commands import cohort as cohort_command
-from hyper.commands import study as study_command
+from hyper.commands import cohort as cohort_job
+from hyper.commands import study as study_job
 from hyper.core import io
 from hyper.core.params import InputError
 from hyper.model import protocols
@@ -162,16 +162,16 @@ def test_output_section(tmp_path):
 def test_command_line_options_override_the_file(tmp_path):
     path = write(tmp_path, 'geometries = ["cylinder"]\nprotocols = ["weekly"]\n[numerics]\ngrowth_dt = 24\n'
                            'linear_solver = "iterative"\n[output]\nfolder = "a"\nfigures = true\n')
-    args = study_command.parser().parse_args([str(path), "--growth-dt", "12", "--output", str(tmp_path / "b"),
+    args = study_job.parser().parse_args([str(path), "--growth-dt", "12", "--output", str(tmp_path / "b"),
                                               "--no-figures", "--linear-solver", "lu"])
-    s = study_command.from_args(args)
+    s = study_job.from_args(args)
     assert (s.numerics.growth_dt, s.numerics.linear_solver) == (12.0, "lu")
     assert s.output == study.Output(tmp_path / "b", False)
     # what the command line leaves out stays the file's
-    assert study_command.from_args(study_command.parser().parse_args([str(path)])).numerics.growth_dt == 24.0
+    assert study_job.from_args(study_job.parser().parse_args([str(path)])).numerics.growth_dt == 24.0
     # a bad overriding value is named by its option
     with pytest.raises(InputError, match=r"^--growth-dt: expected a finite number of hours > 0"):
-        study_command.from_args(study_command.parser().parse_args([str(path), "--growth-dt", "-1"]))
+        study_job.from_args(study_job.parser().parse_args([str(path), "--growth-dt", "-1"]))
 
 
 def test_shipped_studies_load():
@@ -249,7 +249,7 @@ def test_malformed_study_files_are_refused_and_write_nothing(tmp_path, capsys, m
     path = write(tmp_path, text.replace("{d}", str(tmp_path)))
     monkeypatch.chdir(tmp_path)  # the default output folder would be results/study here
     before = sorted(tmp_path.rglob("*"))
-    assert study_command.main([str(path), "--output", str(tmp_path / "out")] if "output" not in case
+    assert study_job.main([str(path), "--output", str(tmp_path / "out")] if "output" not in case
                               else [str(path)]) == cli.EXIT_INPUT
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: "), err
@@ -278,14 +278,14 @@ def test_a_two_protocol_study_is_the_cohort_with_the_same_settings(tmp_path):
     """1 geometry × 2 protocols: the farm of hyper cohort, the same runs and ratios."""
     path = write(tmp_path, 'geometries = ["cylinder"]\n[numerics]\ngrowth_dt = 24\n'
                            f'[output]\nfolder = "{tmp_path}/study"\nfigures = false\n' + SHORT)
-    assert study_command.main([str(path)]) == 0
+    assert study_job.main([str(path)]) == 0
     made = study.load(path)
     for p in made.protocols:
         protocols_file = tmp_path / f"{p.name}.toml"
         protocols_file.write_text(f'name = "{p.name}"\nend = {p.end!r}\n' + "".join(
             f"[[session]]\nstart = {s.start!r}\nduration = {s.duration!r}\nintensity = {s.intensity!r}\n"
             for s in p.sessions))
-    assert cohort_command.main(["--geometries", "cylinder", "--protocols", str(tmp_path / "short.toml"),
+    assert cohort_job.main(["--geometries", "cylinder", "--protocols", str(tmp_path / "short.toml"),
                                 str(tmp_path / "twice.toml"), "--growth-dt", "24", "--output", str(tmp_path / "cohort"),
                                 "--plot-geometry", "cylinder"]) == 0
     for name in ("short", "twice"):
@@ -300,16 +300,16 @@ def test_a_two_protocol_study_is_the_cohort_with_the_same_settings(tmp_path):
 def test_one_run_study_writes_what_grow_writes(tmp_path):
     path = write(tmp_path, 'geometries = ["cylinder"]\n[numerics]\ngrowth_dt = 24\n'
                            f'[output]\nfolder = "{tmp_path}/one"\n' + SHORT.split("[[protocol]]\nname = \"twice\"")[0])
-    assert study_command.main([str(path)]) == 0
+    assert study_job.main([str(path)]) == 0
     assert io.is_complete(tmp_path / "one" / "cylinder_short.h5")
     assert (tmp_path / "one" / "cylinder_short_fields.xdmf").is_file()
     assert (tmp_path / "one" / "cylinder_growth.png").is_file()
 
 
 def test_a_study_carries_the_sobol_problem(tmp_path):
-    from hyper.commands import sobol
+    from hyper.commands import sobol as sobol_job
 
     path = write(tmp_path, GOOD + '[sobol]\nnames = ["kM"]\nbounds = [[0.005, 0.02]]\nprotocol = "weekly"\n')
     assert study.load(path).names == ["cylinder"]
-    protocol, prob = sobol._check(sobol.parser().parse_args(["--problem", str(path)]))
+    protocol, prob = sobol_job._check(sobol_job.parser().parse_args(["--problem", str(path)]))
     assert protocol.name == "weekly" and prob == {"num_vars": 1, "names": ["kM"], "bounds": [[0.005, 0.02]]}

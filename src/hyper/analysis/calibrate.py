@@ -31,8 +31,7 @@ import numpy as np
 from hyper.core.params import InputError
 from hyper.model import protocols, signaling, surrogate
 from hyper.model.protocols import Protocol
-from hyper.runs import driver as run
-from hyper.runs import fidelity, measured, plot, runspec
+from hyper.runs import driver, fidelity, measured, plot, runspec
 
 # Default bounds of the parameters one may fit without giving bounds: a decade either side
 # of the table value, wide enough for the published 0.01 and 0.025 1/h of kM.
@@ -98,7 +97,7 @@ def coupled_model(comm, datasets: list[Dataset], names: list[str], base: signali
             params = dataclasses.replace(base, **{name: float(v) for name, v in zip(names, x)})
             row = []
             for k, d in enumerate(datasets):
-                model, *_ = run.build(comm, runspec.RunSpec(geometry, d.protocol, params, settings))
+                model, *_ = driver.build(comm, runspec.RunSpec(geometry, d.protocol, params, settings))
                 reports = list(model.run())
                 t = np.array([r.t for r in reports])
                 csa = np.array([r.csa_ratio for r in reports])

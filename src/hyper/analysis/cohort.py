@@ -30,8 +30,7 @@ from hyper.model import protocols, signaling
 from hyper.model.growth import step_times
 from hyper.model.protocols import Protocol
 from hyper.runs import checkpoint as ckpt
-from hyper.runs import driver as run
-from hyper.runs import farm, measured, runspec
+from hyper.runs import driver, farm, measured, runspec
 
 PAPER_PROTOCOLS = protocols.PAPER  # in the paper's order of growth: mwf > every3days > weekly
 
@@ -135,7 +134,7 @@ class _RunLog:
 
 
 def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: GrowthSettings | None = None,
-               snapshot_every: float = run.SNAPSHOT_EVERY, ranks_per_job: int = 1, stop=None,
+               snapshot_every: float = driver.SNAPSHOT_EVERY, ranks_per_job: int = 1, stop=None,
                options: Mapping | None = None, data: measured.Measured | None = None,
                progress_every: float = PROGRESS_EVERY) -> list[farm.JobResult]:
     """Run every run not done before on the farm; collective over ``comm``.
@@ -171,9 +170,9 @@ def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: Gr
         on_rank0(subcomm, lambda: drop_stale_checkpoint(out.checkpoint, digests[entry.key]))
         try:
             with _RunLog(out.h5.with_suffix(".log")) if subcomm.rank == 0 else contextlib.nullcontext():
-                done = run.execute(subcomm, specs[entry.key], out, snapshot_every=snapshot_every, stop=stop,
+                done = driver.execute(subcomm, specs[entry.key], out, snapshot_every=snapshot_every, stop=stop,
                                    progress_every=progress_every)
-        except run.Interrupted:
+        except driver.Interrupted:
             return interrupted
         if subcomm.rank != 0:
             return None

@@ -23,8 +23,7 @@ import numpy as np
 
 from hyper.model import signaling, surrogate
 from hyper.model.protocols import WEEK, Protocol, Session
-from hyper.runs import driver as run
-from hyper.runs import plot, runspec
+from hyper.runs import driver, plot, runspec
 
 SESSIONS = np.arange(1, 8)  # per week
 INTENSITIES = np.round(np.arange(1, 11) * 0.1, 10)
@@ -83,7 +82,7 @@ def describe(index: tuple[int, int, int]) -> dict:
 def coupled_gain(comm, protocol: Protocol, settings) -> tuple[float, float]:
     """(9-week CSA gain, wall s) of a full coupled idealized run."""
     start = time.perf_counter()
-    model, *_ = run.build(comm, runspec.RunSpec("idealized", protocol, signaling.SignalingParams(), settings))
+    model, *_ = driver.build(comm, runspec.RunSpec("idealized", protocol, signaling.SignalingParams(), settings))
     *_, last = model.run()
     return last.csa_ratio - 1.0, time.perf_counter() - start
 

@@ -28,8 +28,7 @@ from hyper.analysis.ensembleplot import figures
 from hyper.core import io
 from hyper.core.log import PROGRESS_EVERY
 from hyper.model import heterogeneity, signaling
-from hyper.runs import driver as run
-from hyper.runs import farm, runspec
+from hyper.runs import driver, farm, runspec
 
 STD = tuple(f"{s}_std" for s in signaling.STATES)
 FIELDS = ("N", "detGbar", "u")
@@ -132,7 +131,7 @@ def run_sample(comm, sample: Sample, *, snapshot_every: float, stop=None,
     """One coupled run of an ensemble, with checkpoints; writes its series and fields.
     Collective over comm; raises run.Interrupted after a SIGTERM (checkpoint saved)."""
     spec = sample.spec
-    done = run.execute(comm, spec, sample.outputs, snapshot_every=snapshot_every, stop=stop,
+    done = driver.execute(comm, spec, sample.outputs, snapshot_every=snapshot_every, stop=stop,
                        extra_series=std_columns(comm), progress_every=progress_every)
     final = FinalFields(done.model)
     rough = final.roughness()

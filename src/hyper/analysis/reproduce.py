@@ -24,10 +24,10 @@ from hyper.analysis import cohort
 from hyper.core import io
 from hyper.fem import geometry as geo
 from hyper.fem.coupled import GrowthSettings
-from hyper.model import heterogeneity, material, protocols, signaling
+from hyper.model import heterogeneity, protocols, signaling
+from hyper.model import material as mat
 from hyper.model.protocols import Protocol, Session
-from hyper.runs import contraction, farm, presets, runspec
-from hyper.runs import driver as run
+from hyper.runs import contraction, driver, farm, presets, runspec
 
 CASES = ("signaling", "idealized", "contraction", "cohort", "heterogeneity")
 QUICK_CASES = CASES[:-1]
@@ -284,7 +284,7 @@ def work_on(output: Path, runs: dict[str, Case], stop, progress_every: float):
                 fibers=fibers,
                 steps=CONTRACTION_STEPS,
                 output=contraction_path(output, job.payload[1]),
-                material=material.MaterialParams(),
+                material=mat.MaterialParams(),
                 quadrature_degree=4,
                 max_halvings=6,
                 petsc=[],
@@ -295,8 +295,8 @@ def work_on(output: Path, runs: dict[str, Case], stop, progress_every: float):
         spec = case.run_spec()
         out = runspec.Outputs(series_path(output, case.key))
         try:
-            done = run.execute(comm, spec, out, stop=stop, progress_every=progress_every)
-        except run.Interrupted:
+            done = driver.execute(comm, spec, out, stop=stop, progress_every=progress_every)
+        except driver.Interrupted:
             return interrupted
         if case.picture:
             picture = done.model.section.box.picture()

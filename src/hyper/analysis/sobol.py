@@ -44,8 +44,7 @@ import numpy as np
 from hyper.analysis.sobolmodels import FUNCTIONS, GAIN_PARAMETERS, HILL_N, ISHIGAMI_AB, PARAMETERS
 from hyper.core import io
 from hyper.core.params import InputError, read_toml
-from hyper.model import protocols
-from hyper.model import signaling as S
+from hyper.model import protocols, signaling
 
 LOW, HIGH = 0.5, 2.0  # bounds as multiples of the baseline value
 # base samples: N (2D + 2) rows of D parameters are drawn at once; 1e7 is about 25 GB
@@ -58,9 +57,10 @@ SAMPLES = 2**13
 # The design
 
 
-def problem(base: S.SignalingParams | None = None, names=PARAMETERS, low: float = LOW, high: float = HIGH) -> dict:
+def problem(base: signaling.SignalingParams | None = None, names=PARAMETERS, low: float = LOW,
+            high: float = HIGH) -> dict:
     """SALib's problem: each parameter uniform on [low, high] x its baseline value."""
-    base = S.SignalingParams() if base is None else base
+    base = signaling.SignalingParams() if base is None else base
     return {
         "num_vars": len(names),
         "names": list(names),
@@ -68,10 +68,10 @@ def problem(base: S.SignalingParams | None = None, names=PARAMETERS, low: float 
     }
 
 
-def gain_problem(base: S.SignalingParams | None = None, low: float = LOW, high: float = HIGH) -> dict:
+def gain_problem(base: signaling.SignalingParams | None = None, low: float = LOW, high: float = HIGH) -> dict:
     """SALib's problem of the CSA gain: ``GAIN_PARAMETERS`` each uniform on [low, high] x its
     baseline (the Hill exponent's baseline is ``HILL_N``)."""
-    base = S.SignalingParams() if base is None else base
+    base = signaling.SignalingParams() if base is None else base
     value = {n: HILL_N if n == "hill_n" else float(getattr(base, n)) for n in GAIN_PARAMETERS}
     return {"num_vars": len(GAIN_PARAMETERS), "names": list(GAIN_PARAMETERS),
             "bounds": [[low * value[n], high * value[n]] for n in GAIN_PARAMETERS]}
@@ -89,13 +89,14 @@ def design(function: str, names=None, bounds=None, low: float = LOW, high: float
         raise InputError(f"expected 0 < LOW < HIGH, multiples of the baselines, got {low:g} {high:g}", field="range")
     default = GAIN_PARAMETERS if function == "csa-gain" else PARAMETERS
     names = list(default if names is None else names)
-    known = [f.name for f in dataclasses.fields(S.SignalingParams)] + (["hill_n"] if function == "csa-gain" else [])
+    known = [f.name for f in dataclasses.fields(signaling.SignalingParams)]
+    known += ["hill_n"] if function == "csa-gain" else []
     unknown = [n for n in names if n not in known]
     if unknown or not names or len(set(names)) != len(names):
         raise InputError(f"expected distinct parameters of {', '.join(known)}; got {', '.join(names) or 'none'}",
                          field="names")
     if bounds is None:
-        base = S.SignalingParams()
+        base = signaling.SignalingParams()
         value = {n: HILL_N if n == "hill_n" else float(getattr(base, n)) for n in names}
         bounds = [[low * value[n], high * value[n]] for n in names]
     bounds = [list(map(float, b)) for b in bounds]

@@ -34,8 +34,7 @@ from collections.abc import Callable
 import numpy as np
 
 from hyper.core.params import InputError
-from hyper.model import signaling as S
-from hyper.model import surrogate
+from hyper.model import signaling, surrogate
 from hyper.model.protocols import Protocol, named
 
 PARAMETERS = ("a10", "a20", "a3", "a4", "b1", "b2", "b3", "b4", "c21", "c32", "c42", "c43", "kM", "kF")
@@ -55,30 +54,31 @@ def ishigami(X: np.ndarray, a: float = ISHIGAMI_AB[0], b: float = ISHIGAMI_AB[1]
     return np.sin(X[:, 0]) + a * np.sin(X[:, 1]) ** 2 + b * X[:, 2] ** 4 * np.sin(X[:, 0])
 
 
-def sample_params(X: np.ndarray, names=PARAMETERS, base: S.SignalingParams | None = None) -> S.SignalingParams:
+def sample_params(X: np.ndarray, names=PARAMETERS,
+                  base: signaling.SignalingParams | None = None) -> signaling.SignalingParams:
     """The baseline parameters with the named fields replaced by the columns of X."""
-    base = S.SignalingParams() if base is None else base
+    base = signaling.SignalingParams() if base is None else base
     return dataclasses.replace(base, **{name: X[:, k] for k, name in enumerate(names)})
 
 
 def final_N(X: np.ndarray, *, names=PARAMETERS, protocol: Protocol | None = None, dt: float = 0.05,
-            base: S.SignalingParams | None = None, backend: str = "c", at: float | None = None) -> np.ndarray:
+            base: signaling.SignalingParams | None = None, backend: str = "c", at: float | None = None) -> np.ndarray:
     """N at ``at`` h (default: the end) of ``protocol`` (default daily15) for every row of X,
     from the baseline rest state, by RK4 with steps of at most dt. NaN marks a member whose
     trajectory failed (c backend); the numpy backend raises ``SignalingError`` instead."""
     protocol = named("daily15") if protocol is None else protocol
     end = protocol.end if at is None else at
     p = sample_params(np.atleast_2d(X), names, base)
-    y0 = S.rest_state(base)
+    y0 = signaling.rest_state(base)
     if backend == "numpy":
-        return S.integrate(p, protocol, y0, 0.0, end, dt, backend="numpy")[1][-1, 4]
+        return signaling.integrate(p, protocol, y0, 0.0, end, dt, backend="numpy")[1][-1, 4]
     if backend != "c":
         raise InputError(f"backend must be 'c' or 'numpy', got {backend!r}")
-    return S.integrate(p, protocol, y0, 0.0, end, dt, backend="c", failures="mask")[1][-1, 4]
+    return signaling.integrate(p, protocol, y0, 0.0, end, dt, backend="c", failures="mask")[1][-1, 4]
 
 
 def csa_gain(X: np.ndarray, *, names=GAIN_PARAMETERS, protocol: Protocol | None = None, dt: float = 0.05,
-             geometry: str = GAIN_GEOMETRY, base: S.SignalingParams | None = None,
+             geometry: str = GAIN_GEOMETRY, base: signaling.SignalingParams | None = None,
              backend: str = "c", at: float | None = None) -> np.ndarray:
     """CSA/CSA0 - 1 at ``at`` h (default: the end) of ``protocol`` (default mwf, 1512 h) for every row of X, on
     the fast growth model (`surrogate.grow`, Hill feedback). A column named ``hill_n`` is the
@@ -107,11 +107,11 @@ def settings(function: str, protocol: Protocol | None, *, dt: float, geometry: s
         return {"function": "ishigami", "a_b": ISHIGAMI_AB}
     if function == "csa-gain":
         return {"function": "csa-gain", "dt": dt, "protocol": protocol.to_attributes(),
-                "baseline": dataclasses.asdict(S.SignalingParams()), "start": "baseline rest state",
+                "baseline": dataclasses.asdict(signaling.SignalingParams()), "start": "baseline rest state",
                 "names": list(GAIN_PARAMETERS), "feedback": "hill", "K": 1.0, "geometry": geometry,
                 "section_factor": surrogate.section_factor(geometry), "model": "surrogate.grow"}
     return {"function": "signaling", "dt": dt, "protocol": protocol.to_attributes(),
-            "baseline": dataclasses.asdict(S.SignalingParams()), "start": "baseline rest state"}
+            "baseline": dataclasses.asdict(signaling.SignalingParams()), "start": "baseline rest state"}
 
 
 def evaluator(function: str, *, names, protocol: Protocol | None, dt: float, geometry: str = GAIN_GEOMETRY,

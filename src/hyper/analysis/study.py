@@ -21,8 +21,7 @@ from hyper.model import protocols, signaling
 from hyper.model.growth import FEEDBACK_LAWS
 from hyper.model.heterogeneity import Heterogeneity
 from hyper.model.protocols import Protocol
-from hyper.runs import driver as run
-from hyper.runs import fidelity, measured, runspec, sequence
+from hyper.runs import driver, fidelity, measured, runspec, sequence
 
 KEYS = ("geometries", "protocols", "mesh", "protocol", "signaling", "material", "heterogeneity", "numerics",
         "output", "sobol", "data")
@@ -83,7 +82,7 @@ class Numerics:
 class Output:
     folder: Path = DEFAULT_FOLDER  # where the results go
     figures: bool = True  # the growth figure (one run), or ratios.png and shape.png (a cohort)
-    snapshot_every: float = run.SNAPSHOT_EVERY  # h of simulated time between fields snapshots
+    snapshot_every: float = driver.SNAPSHOT_EVERY  # h of simulated time between fields snapshots
 
     def __post_init__(self):
         positive_hours(self.snapshot_every, "snapshot_every")
@@ -331,7 +330,7 @@ def one_plan(comm, study: Study, settings, choice, progress_every: float = PROGR
     outputs = [runspec.Outputs(folder / f"{name}_{protocol.name}.h5")]
     sequence.refuse_foreign_checkpoints(comm, [spec], outputs)
     return sequence.Plan([spec], outputs, folder / f"{name}_growth.png", study.output.snapshot_every,
-                         run.CHECKPOINT_EVERY, False, choice, data=study.data, progress_every=progress_every)
+                         driver.CHECKPOINT_EVERY, False, choice, data=study.data, progress_every=progress_every)
 
 
 def cohort_runs(study: Study) -> list[cohort.Run]:

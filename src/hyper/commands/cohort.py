@@ -11,7 +11,7 @@ communicator. Per run, under OUTPUT/runs/:
     GEOMETRY_PROTOCOL.h5            the time series (as hyper.grow writes it) with the
                                     attributes geometry, muscle, subject, side, protocol,
                                     csa0_m2, volume0_m3, wall_s, ranks, run_digest and
-                                    the groups signaling, material, protocol, settings
+                                    the groups signaling, material as mat, protocol, settings
                                     and the equivalent study file (hyper.runs.provenance)
     GEOMETRY_PROTOCOL_fields.xdmf   snapshots of u, det Ḡ and a0 every --snapshot-every
                                     simulated hours (ParaView, meshio's TimeSeriesReader)
@@ -63,9 +63,9 @@ from hyper.core.log import info
 from hyper.core.params import InputError
 from hyper.fem import geometry as geo
 from hyper.fem.coupled import GrowthSettings
-from hyper.model import material, protocols
-from hyper.runs import driver as run
-from hyper.runs import locks, measured, presets, runspec
+from hyper.model import material as mat
+from hyper.model import protocols
+from hyper.runs import driver, locks, measured, presets, runspec
 
 
 def parser() -> cli.Parser:
@@ -86,7 +86,7 @@ def parser() -> cli.Parser:
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run fails; a failed run "
                         "resumes from its checkpoint with a larger value")
-    p.add_argument("--snapshot-every", type=cli.positive("hours"), default=run.SNAPSHOT_EVERY, metavar="HOURS",
+    p.add_argument("--snapshot-every", type=cli.positive("hours"), default=driver.SNAPSHOT_EVERY, metavar="HOURS",
                    help="fields snapshot every HOURS of simulated time, besides the first and the last state")
     p.add_argument("--data", type=Path, metavar="CSV",
                    help="measured CSA to compare every run with (as hyper grow --data); by default each "
@@ -98,7 +98,7 @@ def parser() -> cli.Parser:
     return p
 
 
-def check(args, comm) -> tuple[list[Run], GrowthSettings, material.MaterialParams]:
+def check(args, comm) -> tuple[list[Run], GrowthSettings, mat.MaterialParams]:
     args.geometries = list(dict.fromkeys(n for g in args.geometries for n in geo.SETS.get(g, (g,))))
     unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
     if unknown:
@@ -122,7 +122,7 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings, material.MaterialParam
         data = measured.read(args.data)
         for r in runs:
             measured.check_span(data, r.protocol)
-    return runs, settings, material.load(args.material) if args.material else material.MaterialParams()
+    return runs, settings, mat.load(args.material) if args.material else mat.MaterialParams()
 
 
 def exit_code(outcome: cohortsummary.Outcome) -> int:
@@ -137,7 +137,7 @@ def cohort(comm, args) -> int:
         info(comm, f"cohort: {len(runs)} runs ({len(args.geometries)} geometries × {len(args.protocols)} "
                    f"protocols) on {comm.size} rank(s) in groups of {args.ranks_per_job}, growth step "
                    f"{settings.growth_dt:g} h, output {args.output}")
-        with run.StopOnTerm() as stop:
+        with driver.StopOnTerm() as stop:
             results = run_cohort(comm, runs, args.output, settings=settings, snapshot_every=args.snapshot_every,
                                  ranks_per_job=args.ranks_per_job, stop=stop, progress_every=args.progress_every,
                                  data=None if args.data is None else measured.read(args.data),

@@ -34,7 +34,7 @@ from hyper.core.params import InputError
 from hyper.fem import fibers
 from hyper.fem import geometry as geo
 from hyper.fem.mechanics import SolverError
-from hyper.model import material
+from hyper.model import material as mat
 from hyper.runs import locks
 from hyper.runs.contraction import contract
 
@@ -71,7 +71,7 @@ def parser() -> cli.Parser:
 
 
 def run(comm, args) -> int:
-    args.material = material.load(args.material) if args.material is not None else material.MaterialParams()
+    args.material = mat.load(args.material) if args.material is not None else mat.MaterialParams()
     if args.output is None:
         args.output = Path("results/contraction") / f"{Path(args.geometry).name}.h5"
         problem = io.unwritable(args.output, folder=False)

@@ -46,8 +46,7 @@ from hyper.core.log import hms, info
 from hyper.core.params import InputError, build
 from hyper.fem.coupled import GrowthSettings
 from hyper.model import heterogeneity, protocols
-from hyper.runs import driver as run
-from hyper.runs import farm, locks, runspec
+from hyper.runs import driver, farm, locks, runspec
 
 
 def parser() -> cli.Parser:
@@ -66,7 +65,7 @@ def parser() -> cli.Parser:
     p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step Δtg (h)")
     p.add_argument("--signaling-dt", type=float, default=GrowthSettings.signaling_dt, help="RK4 step (h)")
     p.add_argument("--ranks-per-job", type=cli.integer(1), default=1, help="MPI ranks per coupled run")
-    p.add_argument("--snapshot-every", type=cli.positive("hours"), default=run.SNAPSHOT_EVERY, metavar="HOURS",
+    p.add_argument("--snapshot-every", type=cli.positive("hours"), default=driver.SNAPSHOT_EVERY, metavar="HOURS",
                    help="fields snapshot every HOURS of simulated time, besides the first and the last state")
     p.add_argument("--output", type=cli.output(folder=True), default="results/ensemble", help="results folder")
     cli.progress_option(p)
@@ -112,10 +111,10 @@ def ensemble(comm, args) -> int:
         try:
             return run_sample(sub, job.payload, snapshot_every=args.snapshot_every, stop=stop,
                               progress_every=args.progress_every)
-        except run.Interrupted:
+        except driver.Interrupted:
             return {"interrupted": True}
 
-    with locks.hold(comm, [folder]), run.StopOnTerm() as stop:
+    with locks.hold(comm, [folder]), driver.StopOnTerm() as stop:
         results = farm.run(
             comm, jobs, lambda sub, job: work(sub, job, stop), ranks_per_job=args.ranks_per_job,
             is_done=lambda job: job.payload.outputs.is_current(digests[job.key]),

@@ -46,10 +46,10 @@ from hyper.core.log import info
 from hyper.core.params import InputError
 from hyper.fem import geometry as geo
 from hyper.fem.coupled import LAG_OPTION, GrowthSettings, jacobian_lag
-from hyper.model import material, protocols, signaling
+from hyper.model import material as mat
+from hyper.model import protocols, signaling
 from hyper.model.growth import FEEDBACK_LAWS
-from hyper.runs import driver as run
-from hyper.runs import fidelity, measured, presets, runspec, sequence
+from hyper.runs import driver, fidelity, measured, presets, runspec, sequence
 
 SIGNALING_SAMPLE_EVERY = 0.5  # h, the series of --ask signaling, as hyper signaling samples it
 # the options that set GrowthSettings' fields, for errors that name what the user typed
@@ -102,10 +102,10 @@ def parser(ask: str = "growth") -> cli.Parser:
                    "low-rank LU (less memory, same answer) or auto (LU while it fits); lu, or auto with --accuracy")
     p.add_argument("--petsc-option", action="append", default=[], metavar="KEY=VALUE",
                    help="a PETSc option of the mechanics solver, e.g. snes_max_it=50 (repeatable)")
-    p.add_argument("--snapshot-every", type=cli.positive("hours"), default=run.SNAPSHOT_EVERY, metavar="HOURS",
+    p.add_argument("--snapshot-every", type=cli.positive("hours"), default=driver.SNAPSHOT_EVERY, metavar="HOURS",
                    help="fields snapshot every HOURS of simulated time (at the first growth step on or after "
                         "each multiple), besides the first and the last state")
-    p.add_argument("--checkpoint-every", type=cli.integer(0), default=run.CHECKPOINT_EVERY,
+    p.add_argument("--checkpoint-every", type=cli.integer(0), default=driver.CHECKPOINT_EVERY,
                    help="checkpoint every K growth steps (0: only on SIGTERM and failures)")
     p.add_argument("--data", type=Path, metavar="CSV",
                    help="measured CSA to compare with (data/README.md: a time column named week, day or hour, "
@@ -170,7 +170,7 @@ def plan_from(comm, args) -> sequence.Plan:
         runspec.check_geometry(comm, name)
     runs = protocols.from_option(args.protocol)
     params = signaling.load_params(args.params) if args.params else signaling.SignalingParams()
-    muscle = material.load(args.material) if args.material else material.MaterialParams()
+    muscle = mat.load(args.material) if args.material else mat.MaterialParams()
     # hyper grow takes uniform parameters only (per-cell ones are hyper ensemble's)
     scene = fidelity.Scene(name, ",".join(p.name for p in runs), heterogeneous=False, ask="growth")
     choice = choose(scene, args, args.growth_dt)
@@ -250,7 +250,7 @@ def exit_status(comm, outcome: sequence.Outcome) -> int:
 
 
 def grow(comm, args) -> int:
-    with run.StopOnTerm() as stop:
+    with driver.StopOnTerm() as stop:
         return exit_status(comm, sequence.carry_out(comm, plan_from(comm, args), stop))
 
 

@@ -44,8 +44,7 @@ from hyper.core import io
 from hyper.core.log import info
 from hyper.core.params import InputError
 from hyper.fem import geometry as geo
-from hyper.runs import driver as run
-from hyper.runs import farm, locks, runspec
+from hyper.runs import driver, farm, locks, runspec
 
 
 def parser() -> cli.Parser:
@@ -87,7 +86,7 @@ def reproduce(comm, args) -> int:
             f"reproduce: {len(jobs)} jobs ({', '.join(args.cases)}), {'quick' if args.quick else 'full'} "
             f"mode, on {comm.size} rank(s), output {output}",
         )
-        with run.StopOnTerm() as stop:
+        with driver.StopOnTerm() as stop:
             results = farm.run(
                 comm,
                 jobs,

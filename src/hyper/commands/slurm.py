@@ -28,7 +28,7 @@ from hyper.analysis import sobol
 from hyper.commands import cli
 from hyper.core import log, resources
 from hyper.core.params import InputError
-from hyper.fem import geometry
+from hyper.fem import geometry as geo
 from hyper.model import protocols
 
 # the folder a job runs in by default: the checkout, or (installed) the current folder
@@ -73,11 +73,11 @@ def render_template(path: str | Path, **values) -> str:
 
 def cohort_runs(geometries: Sequence[str] | None, protocol_names: Sequence[str] | None) -> list[tuple[str, str]]:
     """(geometry, protocol) pairs, geometry-major; by default the paper's cohort."""
-    geometries = list(geometry.ANATOMICAL) if not geometries else list(geometries)
+    geometries = list(geo.ANATOMICAL) if not geometries else list(geometries)
     protocol_names = list(protocols.PAPER) if not protocol_names else list(protocol_names)
     for g in geometries:
-        if g not in geometry.GEOMETRIES:
-            raise InputError(f"--geometries: unknown geometry {g!r}; known: {', '.join(geometry.GEOMETRIES)}")
+        if g not in geo.GEOMETRIES:
+            raise InputError(f"--geometries: unknown geometry {g!r}; known: {', '.join(geo.GEOMETRIES)}")
     for p in protocol_names:
         if p not in protocols.NAMES:
             raise InputError(f"--protocols: unknown protocol {p!r}; known: {', '.join(protocols.NAMES)}")

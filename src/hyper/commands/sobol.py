@@ -31,8 +31,7 @@ from hyper.commands import cli
 from hyper.core import io, log
 from hyper.core.log import info
 from hyper.core.params import InputError, positive_hours
-from hyper.model import protocols, surrogate
-from hyper.model import signaling as S
+from hyper.model import protocols, signaling, surrogate
 from hyper.model.protocols import Protocol
 from hyper.runs import locks, provenance
 from hyper.runs.driver import StopOnTerm
@@ -90,7 +89,7 @@ def _settings(args, protocol: Protocol | None, prob: dict) -> dict:
 def _check(args) -> tuple[Protocol | None, dict]:
     """The protocol and SALib's problem of the options and the --problem file (options win);
     completes ``args`` with the file's function, samples and time."""
-    positive_hours(args.signaling_dt, "--signaling-dt", S.SMALLEST_DT)
+    positive_hours(args.signaling_dt, "--signaling-dt", signaling.SMALLEST_DT)
     config = read_config(args.problem) if args.problem is not None else {}
     source = f"--problem {args.problem}: " if args.problem is not None else ""
     args.function = args.function or config.get("function", "signaling")
@@ -143,11 +142,11 @@ def analyse(comm, args, protocol, prob) -> int:
     key = digest(X, settings)
     if args.function != "ishigami" and args.backend == "c":
         # rank 0 builds the kernel; the other ranks then load it from the cache
-        error = comm.bcast(S.c_backend_error() if comm.rank == 0 else None, root=0)
+        error = comm.bcast(signaling.c_backend_error() if comm.rank == 0 else None, root=0)
         if error is not None:
             log.error(comm, f"{error}; use --backend numpy")
             return cli.EXIT_SOME_FAILED
-        S.c_backend_error()
+        signaling.c_backend_error()
     evaluate = models.evaluator(args.function, names=prob["names"], protocol=protocol, dt=args.signaling_dt,
                                 geometry=args.geometry, backend=args.backend, at=args.at)
     chunks = args.output / "chunks"
@@ -232,7 +231,7 @@ def _finish(args, prob, X, Y, results, protocol, key, timing, start, ranks) -> i
                           "at_h": attrs["at_h"], "problem": args.problem.name if args.problem else ""}
     if protocol is not None:
         groups["protocol"] = protocol.to_attributes()
-        groups["signaling"] = dataclasses.asdict(S.SignalingParams())
+        groups["signaling"] = dataclasses.asdict(signaling.SignalingParams())
     # the [sobol] table of a study file that reruns this analysis (hyper sobol --problem FILE)
     config = {"function": args.function, "names": list(prob["names"]),
               "bounds": [[float(lo), float(hi)] for lo, hi in prob["bounds"]], "samples": args.samples}

@@ -85,8 +85,7 @@ from hyper.commands import cli, grow
 from hyper.commands.cohort import exit_code
 from hyper.core.log import PROGRESS_EVERY, info
 from hyper.core.params import InputError
-from hyper.runs import driver as run
-from hyper.runs import locks, runspec, sequence
+from hyper.runs import driver, locks, runspec, sequence
 
 
 def parser() -> cli.Parser:
@@ -156,7 +155,7 @@ def carry_out(comm, args) -> int:
     study = from_args(args)
     settings, choice = steps(study)
     check_inputs(comm, study)
-    with run.StopOnTerm() as stop:
+    with driver.StopOnTerm() as stop:
         if len(study.names) * len(study.protocols) == 1:
             return one_run(comm, study, settings, choice, stop, args.progress_every)
         return many_runs(comm, study, settings, choice, stop, args.ranks_per_job, args.progress_every)

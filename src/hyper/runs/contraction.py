@@ -27,8 +27,7 @@ from hyper.fem import fibers
 from hyper.fem import geometry as geo
 from hyper.fem.mechanics import MechanicsProblem, SolverError
 from hyper.runs import checkpoint as ckpt
-from hyper.runs import plot as figures
-from hyper.runs import runspec
+from hyper.runs import plot, runspec
 
 SERIES = ("alpha", "end_force", "spring_force", "reaction_force_original", "reaction_force_current",
           "newton_iterations", "volume_ratio", "stretch_min", "stretch_max", "wall_s")
@@ -81,8 +80,8 @@ def advance(problem, target: float, max_halvings: int) -> tuple[int, int]:
     return its1 + its2, 1 + max(h1, h2)
 
 
-def plot(path: Path, series: dict, title: str) -> None:
-    fig, (ax, ax2) = figures.pyplot().subplots(1, 2, figsize=(10, 4))
+def figure(path: Path, series: dict, title: str) -> None:
+    fig, (ax, ax2) = plot.pyplot().subplots(1, 2, figsize=(10, 4))
     ax.plot(series["alpha"], series["end_force"], "o-", label=r"$d\cdot\int_{\Gamma_1} P N\,dA$ (resultant)")
     ax.plot(series["alpha"], series["reaction_force_original"], "^--",
             label=r"$\int_{\Gamma_1} (\sigma N)\cdot N\,dA$ (original)")
@@ -99,7 +98,7 @@ def plot(path: Path, series: dict, title: str) -> None:
     ax2.grid(alpha=0.3)
     fig.suptitle(title)
     fig.tight_layout()
-    figures.save(fig, path, dpi=120)
+    plot.save(fig, path, dpi=120)
 
 
 def contract(comm, args) -> dict:
@@ -161,7 +160,7 @@ def contract(comm, args) -> dict:
     if comm.rank == 0:
         io.write_series(output, series, attrs=attrs, units=UNITS,
                         groups={"material": as_attributes(material), "settings": settings})
-        plot(output.with_suffix(".png"), series, f"{args.geometry}: {geometry.num_cells()} cells, "
+        figure(output.with_suffix(".png"), series, f"{args.geometry}: {geometry.num_cells()} cells, "
                                                   f"{problem.num_dofs} unknowns")
     comm.barrier()
     return series

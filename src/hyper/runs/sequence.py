@@ -13,8 +13,7 @@ from hyper.core import log
 from hyper.core.collective import on_rank0
 from hyper.core.log import PROGRESS_EVERY, hms, info
 from hyper.model.failure import GrowthFailure
-from hyper.runs import driver as run
-from hyper.runs import fidelity, locks, measured, runspec
+from hyper.runs import driver, fidelity, locks, measured, runspec
 from hyper.runs.checkpoint import inspect
 from hyper.runs.plot import box_section, growth_series
 
@@ -89,12 +88,12 @@ def carry_out(comm, work: Plan, stop, figure: bool = True) -> Outcome:
             if work.restart:
                 on_rank0(comm, lambda: out.checkpoint.unlink(missing_ok=True))
             try:
-                done = run.execute(comm, spec, out, snapshot_every=work.snapshot_every,
+                done = driver.execute(comm, spec, out, snapshot_every=work.snapshot_every,
                                    checkpoint_every=work.checkpoint_every, stop=stop,
                                    progress_every=work.progress_every)
-            except run.Interrupted as err:
+            except driver.Interrupted as err:
                 return Outcome(Ending.INTERRUPTED, f"{spec.protocol.name}: {err}")
-            except (run.Unsaved, GrowthFailure) as err:
+            except (driver.Unsaved, GrowthFailure) as err:
                 log.error(comm, f"{spec.label}: {err}")
                 return Outcome(Ending.FAILED)
             groups = runspec.result_groups(spec, done.choice)

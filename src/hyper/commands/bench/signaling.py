@@ -27,9 +27,9 @@ import numpy as np
 
 from hyper.commands import cli
 from hyper.commands.bench import common
-from hyper.model import signaling as S
+from hyper.model import signaling
 from hyper.model.protocols import named
-from hyper.model.signaling import compiled as signaling_c
+from hyper.model.signaling import compiled
 from hyper.runs import plot
 
 DTS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.55, 0.6, 0.65, 0.7, 0.8, 1.0)
@@ -51,8 +51,8 @@ def _plain_rk4(params, protocol, y, t0, t1, dt):
 
     def f(t, y):
         x1, x2, x3, x4, n = y
-        A1 = S.a1(t - p.tau_d, protocol, p)
-        A2 = S.a2(t, protocol, p)
+        A1 = signaling.a1(t - p.tau_d, protocol, p)
+        A2 = signaling.a2(t, protocol, p)
         growth = p.kM * np.maximum(x4 - p.thetaM, 0.0) - p.kF * np.maximum(x3 - p.thetaF, 0.0)
         return np.array([
             x1 * (A1 - p.b1 * x1),
@@ -76,13 +76,13 @@ def _plain_rk4(params, protocol, y, t0, t1, dt):
 
 def _backends(n: int, t0: float, t1: float, repeat: int, c: bool) -> dict:
     """Both backends on one batch of n members, one after the other: walls, rates, same bits."""
-    params, protocol, y0 = S.SignalingParams(), named("mwf"), S.rest_state()
+    params, protocol, y0 = signaling.SignalingParams(), named("mwf"), signaling.rest_state()
     y = np.repeat(y0[:, None], n, axis=1) if n > 1 else y0
-    steps = S.step_count(params, protocol, t0, t1)
-    wall, (_, numpy_states) = _best(lambda: S.integrate(params, protocol, y, t0, t1, backend="numpy"), repeat)
+    steps = signaling.step_count(params, protocol, t0, t1)
+    wall, (_, numpy_states) = _best(lambda: signaling.integrate(params, protocol, y, t0, t1, backend="numpy"), repeat)
     row = {"members": n, "t0": t0, "t1": t1, "steps": steps, "wall_s": wall, "member_steps_per_s": n * steps / wall}
     if c:
-        wall_c, (_, c_states) = _best(lambda: S.integrate(params, protocol, y, t0, t1, backend="c"), repeat)
+        wall_c, (_, c_states) = _best(lambda: signaling.integrate(params, protocol, y, t0, t1, backend="c"), repeat)
         row.update({"c_wall_s": wall_c, "c_member_steps_per_s": n * steps / wall_c,
                     "c_over_numpy": wall / wall_c, "c_identical": bool(np.array_equal(c_states, numpy_states))})
     return row
@@ -96,7 +96,7 @@ def _c_text(row: dict) -> str:
 
 
 def throughput(sizes, windows, repeat: int, c: bool) -> list[dict]:
-    params, protocol, y0 = S.SignalingParams(), named("mwf"), S.rest_state()
+    params, protocol, y0 = signaling.SignalingParams(), named("mwf"), signaling.rest_state()
     rows = []
     for n, (t0, t1) in zip(sizes, windows):
         y = np.repeat(y0[:, None], n, axis=1)
@@ -126,18 +126,19 @@ def small_batches(sizes, window, repeat: int, c: bool) -> list[dict]:
 def single_vs_rk45(reference_N: float, repeat: int) -> dict:
     from scipy.integrate import solve_ivp
 
-    params, protocol, y0 = S.SignalingParams(), named("mwf"), S.rest_state()
-    wall_rk4, (_, y) = _best(lambda: S.integrate(params, protocol, y0, 0.0, 1512.0, 0.05, backend="numpy"), repeat)
+    params, protocol, y0 = signaling.SignalingParams(), named("mwf"), signaling.rest_state()
+    wall_rk4, (_, y) = _best(lambda: signaling.integrate(params, protocol, y0, 0.0, 1512.0, 0.05, backend="numpy"),
+                             repeat)
 
     def fun(t, y):
-        return S.rhs(t, y, params, protocol)
+        return signaling.rhs(t, y, params, protocol)
 
     wall_rk45, sol = _best(lambda: solve_ivp(fun, (0.0, 1512.0), y0, method="RK45", max_step=0.05), 1)
     calls = 2000
     wall_rhs, _ = _best(lambda: [fun(200.0, y0) for _ in range(calls)], 3)
     out = {
         "rk4_dt": 0.05,
-        "rk4_steps": S.step_count(params, protocol, 0.0, 1512.0),
+        "rk4_steps": signaling.step_count(params, protocol, 0.0, 1512.0),
         "rk4_wall_s": wall_rk4,
         "rk4_rel_error_N": abs(y[-1, 4] / reference_N - 1),
         "rk45_wall_s": wall_rk45,
@@ -157,20 +158,20 @@ def single_vs_rk45(reference_N: float, repeat: int) -> dict:
 
 
 def speed_accuracy(dts, reference_N: float) -> list[dict]:
-    params, protocol, y0 = S.SignalingParams(), named("mwf"), S.rest_state()
+    params, protocol, y0 = signaling.SignalingParams(), named("mwf"), signaling.rest_state()
     rows = []
     for dt in dts:
         start = time.perf_counter()
         try:
-            _, y = S.integrate(params, protocol, y0, 0.0, 1512.0, dt, backend="numpy")
-        except S.SignalingError as err:
+            _, y = signaling.integrate(params, protocol, y0, 0.0, 1512.0, dt, backend="numpy")
+        except signaling.SignalingError as err:
             rows.append({"dt": dt, "failed": True, "error": str(err), "wall_s": time.perf_counter() - start})
             print(f"  dt = {dt:5.2f} h: FAILED ({err})", flush=True)
             continue
         wall = time.perf_counter() - start
         rel = abs(y[-1, 4] / reference_N - 1)
         rows.append({"dt": dt, "failed": False, "rel_error_N": rel, "wall_s": wall,
-                     "steps": S.step_count(params, protocol, 0.0, 1512.0, dt)})
+                     "steps": signaling.step_count(params, protocol, 0.0, 1512.0, dt)})
         print(f"  dt = {dt:5.2f} h: rel. error of N(1512 h) {rel:.2e}, {wall:.3f} s", flush=True)
     return rows
 
@@ -257,16 +258,16 @@ def parser() -> cli.Parser:
 def run(comm, args) -> int:
 
     print("reference (DOP853, rtol 1e-13) ...", flush=True)
-    params, protocol, y0 = S.SignalingParams(), named("mwf"), S.rest_state()
+    params, protocol, y0 = signaling.SignalingParams(), named("mwf"), signaling.rest_state()
     start = time.perf_counter()
-    reference_N = float(S.reference(params, protocol, y0, 0.0, 1512.0)[1][-1, 4])
+    reference_N = float(signaling.reference(params, protocol, y0, 0.0, 1512.0)[1][-1, 4])
     reference_s = time.perf_counter() - start
     sizes = (1_000, 10_000, 100_000)
     if args.quick:
         windows = ((168.0, 268.0), (168.0, 188.0), (168.0, 172.0))
     else:
         windows = ((0.0, 1512.0), (168.0, 468.0), (168.0, 198.0))
-    c_backend = S.c_backend_error()  # builds or loads the kernel before any timing
+    c_backend = signaling.c_backend_error()  # builds or loads the kernel before any timing
     if c_backend is not None:
         print(f"no C backend, numpy only: {c_backend}", flush=True)
     print("throughput ...", flush=True)
@@ -276,11 +277,11 @@ def run(comm, args) -> int:
         "machine": {**common.machine(), "python": platform.python_version(), "numpy": np.__version__,
                     "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS")},
         "quick": args.quick,
-        "chunk": S.CHUNK,
-        "c_block": signaling_c.BLOCK,
-        "c_flags": signaling_c.kernel_flags() if c_backend is None else None,
+        "chunk": signaling.CHUNK,
+        "c_block": compiled.BLOCK,
+        "c_flags": compiled.kernel_flags() if c_backend is None else None,
         "c_backend": c_backend,  # None: available; else why not
-        "auto_min_members": S.AUTO_MIN_MEMBERS,
+        "auto_min_members": signaling.AUTO_MIN_MEMBERS,
         "reference_N_1512": reference_N,
         "reference_wall_s": reference_s,
         "throughput": throughput(sizes, windows, repeat, c_backend is None),

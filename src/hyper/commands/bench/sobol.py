@@ -29,7 +29,7 @@ from hyper.analysis import sobolmodels as models
 from hyper.commands import cli
 from hyper.commands.bench import common
 from hyper.core import io
-from hyper.model import signaling as S
+from hyper.model import signaling
 from hyper.model.protocols import named
 from hyper.runs import plot
 
@@ -66,9 +66,9 @@ def _cli(ranks: int, samples: int, chunk: int, folder: Path) -> dict:
 def _backends(members: int) -> dict:
     X = sobol.sample(sobol.problem(), max(2, -(-members // 30)), seed=11)[:members]
     protocol = named("daily15")
-    steps = S.step_count(models.sample_params(X[:2]), protocol, 0.0, protocol.end)
-    if S.c_backend_error() is not None:  # builds or loads the kernel before timing
-        raise RuntimeError(f"the C backend is unavailable: {S.c_backend_error()}")
+    steps = signaling.step_count(models.sample_params(X[:2]), protocol, 0.0, protocol.end)
+    if signaling.c_backend_error() is not None:  # builds or loads the kernel before timing
+        raise RuntimeError(f"the C backend is unavailable: {signaling.c_backend_error()}")
     out = {"members": int(X.shape[0]), "steps": steps}
     values = {}
     for backend in ("c", "numpy"):
