@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import functools
 import importlib
-import inspect
 import re
 import shlex
 from pathlib import Path
@@ -141,17 +140,9 @@ def make_targets() -> frozenset[str]:
 
 @functools.cache
 def job_parser(job: str, name: str | None = None) -> argparse.ArgumentParser:
-    """The parser of ``hyper JOB`` (``hyper bench NAME``). A command module that only
-    re-exports another layer's ``main`` has no ``parser`` of its own: take the one that
-    main calls (a `cli.entry` closure's, or a global of main's own module)."""
+    """The parser of ``hyper JOB`` (``hyper bench NAME``): every command module has one."""
     module = importlib.import_module(f"hyper.commands.bench.{name}" if job == "bench" else f"hyper.commands.{job}")
-    make = getattr(module, "parser", None)
-    if make is None:
-        seen = inspect.getclosurevars(module.main)
-        make = seen.nonlocals.get("parser") or seen.globals.get("parser")
-    if make is None:
-        raise AssertionError(f"hyper.commands.{job}: no parser() and none behind its main")
-    return make()
+    return module.parser()
 
 
 def option_strings(parser: argparse.ArgumentParser) -> set[str]:
@@ -299,3 +290,38 @@ def test_the_extractor_reads_blocks_spans_and_continuations():
 def test_the_link_check_finds_a_broken_link():
     text = "[ok](README.md) [gone](docs/nothing.md) [web](https://example.org) [here](#jobs)"
     assert broken_links(ROOT / "README.md", text) == (2, ["README.md: [docs/nothing.md] points to no file"])
+
+
+MODULE_PATH = re.compile(r"`(hyper\.(?:core|model|fem|runs|analysis|commands)(?:\.[A-Za-z_][A-Za-z0-9_]*)+)")
+
+
+def unresolved(text: str) -> list[str]:
+    """The `hyper.LAYER.module[.name]` references of ``text`` that name no module or attribute."""
+    bad = []
+    for ref in sorted(set(MODULE_PATH.findall(text))):
+        parts = ref.split(".")
+        for i in range(len(parts), 1, -1):
+            try:
+                obj = importlib.import_module(".".join(parts[:i]))
+            except ImportError:
+                continue
+            try:
+                for name in parts[i:]:
+                    obj = getattr(obj, name)
+            except AttributeError:
+                bad.append(ref)
+            break
+        else:
+            bad.append(ref)
+    return bad
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
+def test_the_docs_module_paths_resolve(doc):
+    assert unresolved(doc.read_text()) == []
+
+
+def test_the_module_path_check_finds_a_moved_name():
+    assert unresolved("`hyper.fem.coupled.CoupledModel` and `hyper.runs.driver.execute`") == []
+    assert unresolved("`hyper.runs.driver.Specification` and `hyper.fem.nowhere`") == [
+        "hyper.fem.nowhere", "hyper.runs.driver.Specification"]
