@@ -42,7 +42,7 @@ def installed(tmp_path_factory):
 
 def test_the_installed_package_carries_its_inputs(installed):
     target, env = installed
-    code = ("import hyper, hyper.fem.geometry as g, hyper.core.resources as r, hyper.slurm as s; "
+    code = ("import hyper, hyper.fem.geometry as g, hyper.core.resources as r, hyper.commands.slurm as s; "
             "print(hyper.__file__); print(g.MESHES_DIR); print(r.checkout()); "
             "print(all(p.is_file() for p in s.TEMPLATES.values()))")
     lines = subprocess.run([sys.executable, "-c", code], env=env, cwd=target.parent, capture_output=True,

@@ -44,11 +44,8 @@ from hyper.core import io, log
 from hyper.core.collective import on_rank0
 from hyper.core.log import info
 from hyper.core.params import InputError
-from hyper.fem import geometry as geo
-from hyper.fem.coupled import LAG_OPTION, GrowthSettings, jacobian_lag
 from hyper.model import material as mat
 from hyper.model import protocols, signaling
-from hyper.model.growth import FEEDBACK_LAWS
 from hyper.runs import driver, fidelity, measured, presets, runspec, sequence
 
 SIGNALING_SAMPLE_EVERY = 0.5  # h, the series of --ask signaling, as hyper signaling samples it
@@ -82,6 +79,10 @@ def parser(ask: str = "growth") -> cli.Parser:
         scene_options(p)
         p.add_argument("--output", type=cli.output(), default="results/signaling", help="an .h5 file or a folder")
         return p
+
+    # here, not at the top: they load DOLFINx and UFL, which --ask signaling never needs
+    from hyper.fem.coupled import GrowthSettings
+    from hyper.model.growth import FEEDBACK_LAWS
 
     p = cli.Parser("grow", __doc__)
     p.add_argument("--geometry", help="geometry id (idealized, cylinder, BFLH_VHF_Left, …); idealized by default")
@@ -160,6 +161,9 @@ def plan(comm, argv) -> sequence.Plan:
 
 
 def plan_from(comm, args) -> sequence.Plan:
+    from hyper.fem import geometry as geo  # DOLFINx: here, as in parser()
+    from hyper.fem.coupled import LAG_OPTION, GrowthSettings, jacobian_lag
+
     if args.mesh is not None and args.geometry is not None:
         raise InputError("--geometry and --mesh exclude each other: give one of them")
     if args.mesh_unit is not None and args.mesh is None:
