@@ -39,7 +39,7 @@ from mpi4py import MPI
 from hyper.core import io
 from hyper.core.collective import on_rank0
 from hyper.core.log import PROGRESS_EVERY, Progress, info
-from hyper.core.params import as_attributes
+from hyper.core.params import InputError, as_attributes
 from hyper.model import signaling
 from hyper.model.failure import GrowthFailure
 from hyper.runs import checkpoint as ckpt
@@ -268,6 +268,39 @@ class Result:
     choice: fidelity.Choice | None = None  # the spec's, with the linear solver where it was chosen
 
 
+def load_geometry(comm, spec: RunSpec):
+    """The geometry of ``spec``: a user's mesh file, or a built-in one with its
+    refinements, quadrature degree and end tags."""
+    from hyper.fem import geometry as geo  # DOLFINx (see `build`)
+
+    if spec.mesh is not None:
+        if spec.refine or spec.quadrature_degree is not None or (spec.ends, spec.fibers) != ("disks", "auto"):
+            raise InputError("refinement, quadrature degree, ends and fibres apply to the built-in geometries only")
+        return spec.mesh.load(comm)
+    kwargs = {} if spec.quadrature_degree is None else {"quadrature_degree": spec.quadrature_degree}
+    geometry = geo.load(spec.geometry, comm, ends=spec.ends, estimated_surface_degree=not spec.unit_fibres,
+                        **kwargs)
+    for _ in range(spec.refine):
+        geometry = geo.refine(geometry)
+    return geometry
+
+
+def fiber_field(spec: RunSpec, geometry):
+    """The fibres of ``spec`` on ``geometry`` (a user's mesh: its principal axis)."""
+    from hyper.fem import fibers  # DOLFINx (see `build`)
+
+    return fibers.fiber_field(geometry, "principal" if spec.mesh is not None else spec.fibers)
+
+
+def cell_params(spec: RunSpec, geometry):
+    """The signaling parameters of ``spec`` on this rank's cells."""
+    if spec.heterogeneity is None:
+        return spec.params
+    from hyper.model import heterogeneity  # SciPy's FFT, for per-cell fields only
+
+    return heterogeneity.cell_params(geometry.mesh, spec.heterogeneity, spec.seed, spec.params)
+
+
 def build(comm, spec: RunSpec, *, monitor=None, integrator=None):
     """The coupled model of ``spec``, its fibre field, the linear solver's attributes and
     the fidelity choice completed with it (``auto``: by `fidelity.linear_solver` from the
@@ -277,8 +310,8 @@ def build(comm, spec: RunSpec, *, monitor=None, integrator=None):
     from hyper.fem.coupled import build_model
     from hyper.fem.mechanics import taylor_hood_unknowns
 
-    geometry = spec.load_geometry(comm)
-    a0 = spec.fiber_field(geometry)
+    geometry = load_geometry(comm, spec)
+    a0 = fiber_field(spec, geometry)
     choice = spec.choice
     solver, reason = spec.linear_solver, "asked for (--linear-solver)"
     if solver == "auto":
@@ -290,7 +323,7 @@ def build(comm, spec: RunSpec, *, monitor=None, integrator=None):
             solver, reason = choice.linear_solver, choice.linear_solver_reason
         info(comm, f"fidelity: {reason}")
     kwargs = {name: value for name, value in (("monitor", monitor), ("integrator", integrator)) if value is not None}
-    model = build_model(geometry, a0, spec.protocol, params=spec.cell_params(geometry), material=spec.material,
+    model = build_model(geometry, a0, spec.protocol, params=cell_params(spec, geometry), material=spec.material,
                         settings=spec.settings, petsc_options=dict(spec.petsc_options), linear_solver=solver,
                         normalize_fibres=spec.unit_fibres, **kwargs)
     return model, a0, {"linear_solver": solver, "linear_solver_reason": reason}, choice

@@ -187,25 +187,6 @@ class RunSpec:
         stored = files[0].parent / fibers.FILE_NAME
         return files + ([stored] if self.mesh is None and stored.is_file() else [])
 
-    def load_geometry(self, comm):
-        from hyper.fem import geometry as geo
-
-        if self.mesh is not None:
-            if self.refine or self.quadrature_degree is not None or (self.ends, self.fibers) != ("disks", "auto"):
-                raise InputError("refinement, quadrature degree, ends and fibres apply to the built-in geometries only")
-            return self.mesh.load(comm)
-        kwargs = {} if self.quadrature_degree is None else {"quadrature_degree": self.quadrature_degree}
-        geometry = geo.load(self.geometry, comm, ends=self.ends, estimated_surface_degree=not self.unit_fibres,
-                            **kwargs)
-        for _ in range(self.refine):
-            geometry = geo.refine(geometry)
-        return geometry
-
-    def fiber_field(self, geometry):
-        from hyper.fem import fibers
-
-        return fibers.fiber_field(geometry, "principal" if self.mesh is not None else self.fibers)
-
     @property
     def unit_fibres(self) -> bool:
         """Whether the mechanics normalises the fibres at its points (all but the original's)."""
@@ -213,13 +194,6 @@ class RunSpec:
 
         return self.fibers not in fibers.UNNORMALISED_KINDS
 
-    def cell_params(self, geometry):
-        """The signaling parameters of this run on this rank's cells."""
-        if self.heterogeneity is None:
-            return self.params
-        from hyper.model import heterogeneity
-
-        return heterogeneity.cell_params(geometry.mesh, self.heterogeneity, self.seed, self.params)
 
 
 @dataclasses.dataclass(frozen=True)
