@@ -28,7 +28,6 @@ KEYS = ("geometries", "protocols", "mesh", "protocol", "signaling", "material", 
 MESH_KEYS = ("file", "unit")
 DATA_KEYS = ("file",)
 HETEROGENEITY_KEYS = ("model", "epsilon", "length", "nu", "seed")
-OUTPUT_KEYS = ("folder", "figures", "snapshot_every")
 DEFAULT_FOLDER = Path("results/study")
 
 

@@ -402,9 +402,6 @@ class CoupledModel:
             self.period += 1
             self.period_times = self.period_states = None
 
-    def settings_attributes(self) -> dict:
-        return dataclasses.asdict(self.settings)
-
     # ------------------------------------------------------------------- checkpoints
 
     def state(self) -> State:
