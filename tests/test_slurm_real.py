@@ -31,7 +31,7 @@ import pytest
 from hyper.commands import slurm
 
 PYTHON = sys.executable
-SRC = Path(slurm.__file__).resolve().parents[1]
+SRC = Path(slurm.__file__).resolve().parents[2]  # src/, holding hyper/ (this module is hyper/commands/slurm.py)
 # the runs: short, but long enough (about 6 s of growth steps) for a TERM to land mid-run
 # a growth step of 2 h keeps a run going (about 15 s) until the test has warned it; the
 # tests wait for the progress lines, so they come every second
