@@ -35,13 +35,27 @@ PARTIAL = ".partial"
 SYSTEM_TREES = (Path("/proc"), Path("/sys"), Path("/dev"))
 
 
-def unwritable(path: Path, *, folder: bool | None) -> str | None:
+def unwritable(path: Path, *, folder: bool | None, inputs=(), replaces: bool = False) -> str | None:
     """Why ``path`` cannot be written as a file (``folder`` False), a folder (True) or
-    either (None); None where it can. Looks only, creates nothing."""
+    either (None); None where it can. Looks only, creates nothing.
+
+    An existing folder must itself be writable (the job writes into it), not only its
+    parent. ``inputs`` are the files the job reads: the output may not be one of them, nor,
+    where the job ``replaces`` the folder whole (mesh --force), hold one of them.
+    """
     absolute = Path(os.path.abspath(path))
     for tree in SYSTEM_TREES:
         if absolute == tree or tree in absolute.parents:
             return f"{path}: under {tree}, not a place for results"
+    real = Path(os.path.realpath(absolute))
+    for source in inputs:
+        if not os.path.exists(source):  # nothing to destroy; the job says it is missing
+            continue
+        read = Path(os.path.realpath(source))
+        if read == real:
+            return f"{path}: is an input of this job ({source}); writing it would destroy it"
+        if replaces and real in read.parents:
+            return f"{path}: holds an input of this job ({source}); replacing the folder would delete it"
     if absolute.exists():
         if folder is True and not absolute.is_dir():
             return f"{path}: exists and is not a folder"
@@ -49,6 +63,8 @@ def unwritable(path: Path, *, folder: bool | None) -> str | None:
             return f"{path}: is a folder, not a file"
         if folder is False and not absolute.is_file():
             return f"{path}: exists and is not a regular file"
+        if absolute.is_dir() and not os.access(absolute, os.W_OK | os.X_OK):
+            return f"{path}: the folder is not writable"
     ancestor = absolute.parent
     while not ancestor.exists():
         ancestor = ancestor.parent
