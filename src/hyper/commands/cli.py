@@ -3,7 +3,8 @@
 A job module defines ``parser()`` (a `Parser`) and ``run(comm, args) -> int`` and ends
 with ``main = cli.entry(parser, run)``; ``hyper JOB …`` and ``python -m hyper.JOB …``
 then run the same thing. Bad input anywhere (an `InputError`, on any rank) is one
-``error:`` line on rank 0 and exit status 2; an output another run holds is exit 4.
+``error:`` line on rank 0 and exit status 2; an output another run holds is exit 4; a full or
+failing disk (`io.WriteFailed`) is one ``error:`` line and exit 3.
 
     hyper grow --geometry idealized --protocol mwf
     hyper cohort --help
@@ -251,6 +252,13 @@ def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool 
         except Busy as err:
             error(comm, str(err))
             return EXIT_BUSY
+        except io.WriteFailed as err:
+            # rank 0 writes: the other ranks may wait in a collective for it, so end them too
+            error(comm, " ".join(str(err).split()))
+            if comm is not None and comm.size > 1:
+                sys.stderr.flush()
+                comm.Abort(EXIT_FAILED)
+            return EXIT_FAILED
         except Exception:
             # A failure on some ranks only would leave the others waiting in a collective
             # for ever: end the whole job instead, after saying why.

@@ -26,7 +26,7 @@ from typing import Any
 
 from hyper.analysis import sobol
 from hyper.commands import cli
-from hyper.core import log, resources
+from hyper.core import io, log, resources
 from hyper.core.params import InputError
 from hyper.fem import geometry as geo
 from hyper.model import protocols
@@ -244,8 +244,9 @@ def run(comm, args) -> int:
     if args.script is None:
         sys.stdout.write(script)
     else:
-        args.script.parent.mkdir(parents=True, exist_ok=True)
-        args.script.write_text(script)
+        # atomic: a full disk leaves no truncated script that looks whole
+        with io.atomic_path(args.script) as tmp:
+            tmp.write_text(script)
         log.info(comm, f"wrote {args.script}; submit with: sbatch {args.script}")
     return cli.EXIT_OK
 
