@@ -145,6 +145,27 @@ JOBS = {
         "unknown_option": (["--bogus"], r"unrecognized arguments: --bogus"),
     }),
     "demo": (["--output", "{out}"], "demo", {**FOLDER_OUTPUT, "unknown_option": (["--bogus"], r"--bogus")}),
+    "calibrate": (["--data", str(ROOT / "data" / "defreitas.csv"), "--protocol", "mwf", "--fit", "kM", "--no-check",
+                   "--output", "{out}"], "calibration", {
+        **FOLDER_OUTPUT,
+        "bounds_negative": (["--fit", "kF=-1:-0.5"], r"--fit kF=-1:-0.5: kF must be >= 0, got -1"),
+        "too_few_points": (["--exclude-until", "8"], r"1 data point\(s\) for 1 parameter\(s\)"),
+    }),
+    "dose": (["--output", "{out}"], "dose", {
+        **FOLDER_OUTPUT,
+        "budget": (["--budgets", "0"], r"--budgets: every budget must be > 0"),
+    }),
+    "box": (["{d}/R.h5", "--output", "{out}/box.h5"], "box.h5", {
+        "output_is_the_result": (["--output", "{d}/R.h5"], r"R.h5: is an input of this job \(.*R.h5\)"),
+        "output_is_the_snapshots": (["--output", "{d}/R_fields.h5"], r"R_fields.h5: is an input of this job"),
+    }),
+    "mesh": (["{d}/surface/s.stl", "--output", "{out}"], "mesh", {
+        **FOLDER_OUTPUT,
+        "force_over_its_surface": (["--output", "{d}/surface", "--force"],
+                                   r"surface: holds an input of this job .*replacing the folder would delete it"),
+        "force_over_a_file": (["--output", "{d}/a_file", "--force"], r"a_file: exists and is not a folder"),
+        "output_is_the_surface": (["--output", "{d}/surface/s.stl", "--force"], r"s.stl: exists and is not a folder"),
+    }),
 }
 
 
@@ -162,6 +183,10 @@ def inputs(tmp_path_factory):
     (d / "huge_params.toml").write_text("kM = " + "1" * 401 + "\n")
     (d / "a_file").write_text("not a folder\n")
     (d / "a_folder.toml").mkdir()
+    (d / "surface").mkdir()
+    (d / "surface" / "s.stl").write_text("solid s\nendsolid s\n")
+    (d / "R.h5").write_text("a result\n")
+    (d / "R_fields.h5").write_text("its snapshots\n")
     return d
 
 
@@ -194,6 +219,58 @@ def test_every_job_refuses_bad_input_in_one_line_and_writes_nothing(inputs, tmp_
 
 def test_the_table_is_long_enough():
     assert len(list(cases())) >= 150
+
+
+def mount_read_only(folder: Path) -> bool:
+    """A read-only tmpfs on ``folder`` (root ignores a folder's mode bits, not a read-only mount)."""
+    if os.geteuid() != 0:
+        folder.chmod(0o555)
+        return True
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m,ro", "tmpfs", str(folder)], capture_output=True)
+    return done.returncode == 0
+
+
+# job -> its command with {out} an existing output folder it may not write into
+READ_ONLY = {
+    "cohort": ["cohort", "--geometries", "cylinder", "--protocols", "mwf", "--output", "{out}"],
+    "study": ["study", str(ROOT / "studies" / "paper-cohort.toml"), "--output", "{out}"],
+    "calibrate": ["calibrate", "--data", str(ROOT / "data" / "defreitas.csv"), "--protocol", "mwf", "--fit", "kM",
+                  "--output", "{out}"],
+    "dose": ["dose", "--output", "{out}"],
+    "slurm": ["slurm", "cohort", "-o", "{out}/cohort.sbatch"],
+}
+
+
+@pytest.mark.parametrize("job", sorted(READ_ONLY))
+def test_an_output_folder_that_is_itself_read_only_is_refused_before_any_work(tmp_path, capsys, job):
+    out = tmp_path / "ro"
+    out.mkdir()
+    if not mount_read_only(out):
+        pytest.skip("cannot mount a read-only tmpfs (root ignores mode bits)")
+    try:
+        assert cli.main([a.format(out=out) for a in READ_ONLY[job]]) == cli.EXIT_INPUT
+    finally:
+        if os.geteuid() == 0:
+            subprocess.run(["umount", str(out)], check=True)
+        else:
+            out.chmod(0o755)
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert captured.out == "" and len(lines) == 1 and "not writable" in lines[0], captured.err
+    assert list(out.iterdir()) == []
+
+
+def test_slurm_refuses_a_script_under_a_file_and_a_prelude_with_nul_bytes(tmp_path, capsys):
+    (tmp_path / "a_file").write_text("x\n")
+    (tmp_path / "nul.sh").write_bytes(b"module load a\0b\n")
+    for argv, message in ((["-o", str(tmp_path / "a_file" / "x.sbatch")], "a_file is a file, not a folder"),
+                          (["--prelude", str(tmp_path / "nul.sh"), "-o", str(tmp_path / "x.sbatch")], "NUL bytes"),
+                          (["--prelude", str(tmp_path / "a_file"), "-o", str(tmp_path / "a_file")], "is an input")):
+        assert cli.main(["slurm", "cohort", *argv]) == cli.EXIT_INPUT
+        captured = capsys.readouterr()
+        lines = captured.err.strip().splitlines()
+        assert captured.out == "" and len(lines) == 1 and message in lines[0], captured.err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "nul.sh"]
 
 
 # ------------------------------------------------------------------------- 2 ranks

@@ -30,7 +30,7 @@ from hyper.model import protocols, signaling
 from hyper.model.growth import step_times
 from hyper.model.protocols import Protocol
 from hyper.runs import checkpoint as ckpt
-from hyper.runs import driver, farm, measured, runspec
+from hyper.runs import driver, farm, locks, measured, runspec
 
 PAPER_PROTOCOLS = protocols.PAPER  # in the paper's order of growth: mwf > every3days > weekly
 
@@ -167,22 +167,25 @@ def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: Gr
         if subcomm.allreduce(bool(stop is not None and stop()), op=MPI.LOR):
             return interrupted
         out = runspec.Outputs(series_path(output, entry))
-        on_rank0(subcomm, lambda: drop_stale_checkpoint(out.checkpoint, digests[entry.key]))
-        try:
-            with _RunLog(out.h5.with_suffix(".log")) if subcomm.rank == 0 else contextlib.nullcontext():
-                done = driver.execute(subcomm, specs[entry.key], out, snapshot_every=snapshot_every, stop=stop,
-                                   progress_every=progress_every)
-        except driver.Interrupted:
-            return interrupted
-        if subcomm.rank != 0:
-            return None
-        groups = runspec.result_groups(specs[entry.key], done.choice)
-        against = data if data is not None else measured.of_protocol(entry.protocol)
-        if against is not None:
-            groups["data"] = measured.compare(against, done.series["t"], done.series["csa_ratio"]).attributes()
-        out.store(done.series, {**done.meta, **member(entry.geometry), "protocol": entry.protocol.name}, groups)
-        return {"csa_ratio": float(done.series["csa_ratio"][-1]),
-                "volume_ratio": float(done.series["volume_ratio"][-1])}
+        # the run's own lock, as `hyper grow` takes it: the folder's lock alone let a grow on
+        # runs/KEY.h5 and this run share the checkpoint
+        with locks.hold(subcomm, [out.h5]):
+            on_rank0(subcomm, lambda: drop_stale_checkpoint(out.checkpoint, digests[entry.key]))
+            try:
+                with _RunLog(out.h5.with_suffix(".log")) if subcomm.rank == 0 else contextlib.nullcontext():
+                    done = driver.execute(subcomm, specs[entry.key], out, snapshot_every=snapshot_every, stop=stop,
+                                          progress_every=progress_every)
+            except driver.Interrupted:
+                return interrupted
+            if subcomm.rank != 0:
+                return None
+            groups = runspec.result_groups(specs[entry.key], done.choice)
+            against = data if data is not None else measured.of_protocol(entry.protocol)
+            if against is not None:
+                groups["data"] = measured.compare(against, done.series["t"], done.series["csa_ratio"]).attributes()
+            out.store(done.series, {**done.meta, **member(entry.geometry), "protocol": entry.protocol.name}, groups)
+            return {"csa_ratio": float(done.series["csa_ratio"][-1]),
+                    "volume_ratio": float(done.series["volume_ratio"][-1])}
 
     return farm.run(comm, jobs, work, ranks_per_job=ranks_per_job, is_done=is_done, label="cohort",
                     progress_every=progress_every)

@@ -27,7 +27,7 @@ from hyper.fem.coupled import GrowthSettings
 from hyper.model import heterogeneity, protocols, signaling
 from hyper.model import material as mat
 from hyper.model.protocols import Protocol, Session
-from hyper.runs import contraction, driver, farm, presets, runspec
+from hyper.runs import contraction, driver, farm, locks, presets, runspec
 
 CASES = ("signaling", "idealized", "contraction", "cohort", "heterogeneity")
 QUICK_CASES = CASES[:-1]
@@ -294,17 +294,19 @@ def work_on(output: Path, runs: dict[str, Case], stop, progress_every: float):
         case = runs[job.payload[1]]
         spec = case.run_spec()
         out = runspec.Outputs(series_path(output, case.key))
-        try:
-            done = driver.execute(comm, spec, out, stop=stop, progress_every=progress_every)
-        except driver.Interrupted:
-            return interrupted
-        if case.picture:
-            picture = done.model.section.box.picture()
+        with locks.hold(comm, [out.h5]):  # the run's own lock, as `hyper grow` takes it
+            try:
+                done = driver.execute(comm, spec, out, stop=stop, progress_every=progress_every)
+            except driver.Interrupted:
+                return interrupted
+            if case.picture:
+                picture = done.model.section.box.picture()
+                if comm.rank == 0:
+                    np.savez(out.h5.with_name(f"{case.key}_box.npz"),
+                             **{k: v for k, v in picture.items() if v is not None})
             if comm.rank == 0:
-                np.savez(out.h5.with_name(f"{case.key}_box.npz"), **{k: v for k, v in picture.items() if v is not None})
-        if comm.rank == 0:
-            out.store(done.series, {**done.meta, "protocol": spec.protocol.name},
-                      runspec.result_groups(spec, done.choice))
+                out.store(done.series, {**done.meta, "protocol": spec.protocol.name},
+                          runspec.result_groups(spec, done.choice))
         return None
 
     return work

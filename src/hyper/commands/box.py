@@ -37,9 +37,9 @@ csa_ratio_box_zero) to an HDF5 file.
 
 def parser() -> cli.Parser:
     p = cli.Parser("box", JOB)
-    p.add_argument("result", type=Path, metavar="RESULT.h5",
+    p.add_argument("result", type=Path, metavar="RESULT.h5", reads=lambda r: [r, *runspec.Outputs(r).snapshots],
                    help="a growth result file, with its RESULT_fields.xdmf beside it")
-    p.add_argument("--mesh", type=Path, help="the run's own XDMF mesh, where it ran on one (grow --mesh)")
+    p.add_argument("--mesh", type=Path, reads=True, help="the run's own XDMF mesh, where it ran on one (grow --mesh)")
     p.add_argument("--mesh-unit", default="m", choices=tuple(runspec.MESH_UNITS), help="length unit of --mesh")
     p.add_argument("--output", type=cli.output(folder=False, suffixes=(".h5",)),
                    help="an HDF5 file for the re-measured series (none: the table alone)")

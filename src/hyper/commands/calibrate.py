@@ -81,14 +81,19 @@ def fit_option(text: str) -> tuple[str, tuple[float, float]]:
         raise InputError(f"--fit {text}: expected finite bounds NAME=LOW:HIGH, e.g. {name}=0.001:0.1")
     if not lo < hi:
         raise InputError(f"--fit {text}: need LOW < HIGH")
+    for bound in (lo, hi):  # a bound the model refuses (kM < 0) would stop the fit after it started
+        try:
+            signaling.SignalingParams(**{name: bound})
+        except InputError as err:
+            raise InputError(f"--fit {text}: {err}") from None
     return name, (lo, hi)
 
 
 def parser() -> cli.Parser:
     p = cli.Parser("calibrate", __doc__)
-    p.add_argument("--data", action="append", required=True, type=Path, metavar="CSV",
+    p.add_argument("--data", action="append", required=True, type=Path, metavar="CSV", reads=True,
                    help="a CSA time course (repeat for a joint fit)")
-    p.add_argument("--protocol", action="append", required=True, metavar="NAME|FILE",
+    p.add_argument("--protocol", action="append", required=True, metavar="NAME|FILE", reads=True,
                    help="the protocol of each --data, in order (a name or a .toml file)")
     p.add_argument("--fit", action="append", required=True, metavar="NAME[=LOW:HIGH]",
                    help=f"a parameter to fit (default bounds for {', '.join(BOUNDS)})")
@@ -116,6 +121,9 @@ def run(comm, args) -> int:
     datasets = [dataset(path, protocols.resolve(p), args.exclude_until)
                 for path, p in zip(args.data, args.protocol)]
     names = list(fits)
+    points = sum(len(d.t) for d in datasets)
+    if points <= len(names):  # here, before any line on stdout: `fit` would find it only after the model choice
+        raise InputError(f"{points} data point(s) for {len(names)} parameter(s): need more points than parameters")
     bounds = np.array([fits[n] for n in names])
     base = signaling.SignalingParams()
     x0 = np.clip([float(getattr(base, n)) for n in names], bounds[:, 0], bounds[:, 1])

@@ -3,7 +3,8 @@
 A job module defines ``parser()`` (a `Parser`) and ``run(comm, args) -> int`` and ends
 with ``main = cli.entry(parser, run)``; ``hyper JOB …`` and ``python -m hyper.JOB …``
 then run the same thing. Bad input anywhere (an `InputError`, on any rank) is one
-``error:`` line on rank 0 and exit status 2; an output another run holds is exit 4.
+``error:`` line on rank 0 and exit status 2; an output another run holds is exit 4; a full or
+failing disk (`io.WriteFailed`) is one ``error:`` line and exit 3.
 
     hyper grow --geometry idealized --protocol mwf
     hyper cohort --help
@@ -70,6 +71,35 @@ class Parser(argparse.ArgumentParser):
     def error(self, message):
         raise InputError(message)
 
+    def add_argument(self, *names, reads=None, **kwargs):
+        """argparse's, and ``reads``: the option names files the job reads (True: its value,
+        or each of its values; a function: the paths a value stands for), which no output
+        of the job may be (`hyper.core.io.unwritable`)."""
+        action = super().add_argument(*names, **kwargs)
+        if reads is not None:
+            self._reads = [*getattr(self, "_reads", []), (action.dest, reads)]
+        return action
+
+    def parse_known_args(self, args=None, namespace=None):
+        # Every output checked against every input once all options are known: a type sees
+        # its own value only. Still before any work: parsing is the job's first step.
+        args, rest = super().parse_known_args(args, namespace)
+        inputs = [path for dest, reads in getattr(self, "_reads", []) for value in _values(getattr(args, dest, None))
+                  for path in ([value] if reads is True else reads(value))]
+        if inputs:
+            for action in self._actions:
+                check = getattr(action.type, "output", None)
+                for value in _values(getattr(args, action.dest, None)) if check else ():
+                    problem = io.unwritable(value, folder=check["folder"], inputs=inputs, replaces=check["replaces"])
+                    if problem is not None:
+                        self.error(f"argument {'/'.join(action.option_strings) or action.dest}: {problem}")
+        return args, rest
+
+
+def _values(value) -> list:
+    """An option's value as a list (none, one, or the list nargs or append made)."""
+    return [] if value is None else [v for v in value if v is not None] if isinstance(value, list) else [value]
+
 
 def integer(least: int, most: int | None = None) -> Callable[[str], int]:
     """An argparse type: an integer in [least, most], checked where the option is defined
@@ -112,10 +142,12 @@ def progress_option(p: Parser) -> None:
                    help="seconds of wall time between progress lines (the first and last always come)")
 
 
-def output(*, folder: bool | None = None, suffixes: tuple[str, ...] = ()) -> Callable[[str], Path]:
+def output(*, folder: bool | None = None, suffixes: tuple[str, ...] = (), replaces: bool = False
+           ) -> Callable[[str], Path]:
     """An argparse type for a path the job will write: a file (``folder`` False, with one
-    of ``suffixes`` if given), a folder (True) or either (None). Every rank checks the same
-    path alike, so a bad one stops every rank before any work."""
+    of ``suffixes`` if given), a folder (True) or either (None); ``replaces``: a folder the
+    job replaces whole, which may not hold an input. Every rank checks the same path alike,
+    so a bad one stops every rank before any work; `Parser` checks it against the inputs."""
 
     def parse(text: str) -> Path:
         if not text or "\0" in text:
@@ -129,6 +161,7 @@ def output(*, folder: bool | None = None, suffixes: tuple[str, ...] = ()) -> Cal
         return path
 
     parse.__name__ = "path"
+    parse.output = {"folder": folder, "replaces": replaces}  # what Parser checks against the inputs
     return parse
 
 
@@ -219,6 +252,13 @@ def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool 
         except Busy as err:
             error(comm, str(err))
             return EXIT_BUSY
+        except io.WriteFailed as err:
+            # rank 0 writes: the other ranks may wait in a collective for it, so end them too
+            error(comm, " ".join(str(err).split()))
+            if comm is not None and comm.size > 1:
+                sys.stderr.flush()
+                comm.Abort(EXIT_FAILED)
+            return EXIT_FAILED
         except Exception:
             # A failure on some ranks only would leave the others waiting in a collective
             # for ever: end the whole job instead, after saying why.

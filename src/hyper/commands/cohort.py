@@ -73,14 +73,14 @@ def parser() -> cli.Parser:
     p.add_argument("--geometries", nargs="+", metavar="ID", default=list(geo.ANATOMICAL),
                    help="geometry ids (the 12 anatomical meshes by default; idealized and cylinder work too), "
                         f"or a set: {', '.join(f'{k} ({len(v)})' for k, v in geo.SETS.items())}")
-    p.add_argument("--protocols", nargs="+", metavar="NAME|FILE", default=list(PAPER_PROTOCOLS),
+    p.add_argument("--protocols", nargs="+", metavar="NAME|FILE", reads=True, default=list(PAPER_PROTOCOLS),
                    help=f"named protocols ({', '.join(protocols.NAMES)}) or TOML protocol files")
     p.add_argument("--output", type=cli.output(folder=True), default="results/cohort", help="output folder")
     p.add_argument("--ranks-per-job", type=cli.integer(1), default=1,
                    help="MPI ranks per run; must divide the number of ranks")
     p.add_argument("--growth-dt", type=float,
                    help=f"growth step Δtg (h); {GrowthSettings.growth_dt:g} unless --settings sets it")
-    p.add_argument("--material", type=Path, metavar="F.toml",
+    p.add_argument("--material", type=Path, metavar="F.toml", reads=True,
                    help="TOML file overriding the muscle law's parameters (hyper.model.material.MaterialParams)")
     presets.add_options(p)
     p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
@@ -88,7 +88,7 @@ def parser() -> cli.Parser:
                         "resumes from its checkpoint with a larger value")
     p.add_argument("--snapshot-every", type=cli.positive("hours"), default=driver.SNAPSHOT_EVERY, metavar="HOURS",
                    help="fields snapshot every HOURS of simulated time, besides the first and the last state")
-    p.add_argument("--data", type=Path, metavar="CSV",
+    p.add_argument("--data", type=Path, metavar="CSV", reads=True,
                    help="measured CSA to compare every run with (as hyper grow --data); by default each "
                         "protocol's own data set, if it has one (mwf: DeFreitas)")
     cli.progress_option(p)

@@ -109,8 +109,9 @@ def ensemble(comm, args) -> int:
         if sub.allreduce(bool(stop()), op=MPI.LOR):
             return {"interrupted": True}
         try:
-            return run_sample(sub, job.payload, snapshot_every=args.snapshot_every, stop=stop,
-                              progress_every=args.progress_every)
+            with locks.hold(sub, [job.payload.outputs.h5]):  # the run's own lock, as `hyper grow` takes it
+                return run_sample(sub, job.payload, snapshot_every=args.snapshot_every, stop=stop,
+                                  progress_every=args.progress_every)
         except driver.Interrupted:
             return {"interrupted": True}
 

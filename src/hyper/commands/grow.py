@@ -64,10 +64,10 @@ def scene_options(p: cli.Parser) -> None:
                    help="the cheapest model and longest steps whose tabulated error stays within A, a fraction "
                         f"of the growth (or of N); A in (0, 0.5), {fidelity.DEFAULT_ACCURACY:g} when left out. "
                         "An explicit --growth-dt or --signaling-dt wins over it")
-    p.add_argument("--protocol", default="mwf", metavar="NAME|FILE",
+    p.add_argument("--protocol", default="mwf", metavar="NAME|FILE", reads=True,
                    help=f"a named protocol ({', '.join(protocols.NAMES)}), 'all' for "
                         f"{', '.join(protocols.PAPER)}, or a TOML protocol file")
-    p.add_argument("--params", type=Path, help="TOML file overriding signaling parameters")
+    p.add_argument("--params", type=Path, reads=True, help="TOML file overriding signaling parameters")
     p.add_argument("--signaling-dt", type=float,
                    help=f"RK4 step (h); {fidelity.SIGNALING_DT0:g} unless --accuracy chooses one")
     method_option(p, default=None)
@@ -86,12 +86,13 @@ def parser(ask: str = "growth") -> cli.Parser:
 
     p = cli.Parser("grow", __doc__)
     p.add_argument("--geometry", help="geometry id (idealized, cylinder, BFLH_VHF_Left, …); idealized by default")
-    p.add_argument("--mesh", type=Path, help="your own tetrahedral XDMF mesh instead of --geometry (facet tags "
+    p.add_argument("--mesh", type=Path, reads=True,
+                   help="your own tetrahedral XDMF mesh instead of --geometry (facet tags "
                    "'ft_small': 1, 2 the ends, 3 the side; fibres along its principal axis)")
     p.add_argument("--mesh-unit", help=f"length unit of --mesh ({' or '.join(runspec.MESH_UNITS)}); m by default")
     scene_options(p)
     p.add_argument("--output", type=cli.output(), default="results/grow", help="an .h5 file (one protocol) or a folder")
-    p.add_argument("--material", type=Path, metavar="F.toml",
+    p.add_argument("--material", type=Path, metavar="F.toml", reads=True,
                    help="TOML file overriding the muscle law's parameters (hyper.model.material.MaterialParams)")
     p.add_argument("--growth-dt", type=float,
                    help=f"growth step Δtg (h); {GrowthSettings.growth_dt:g} unless --accuracy chooses one")
@@ -108,7 +109,7 @@ def parser(ask: str = "growth") -> cli.Parser:
                         "each multiple), besides the first and the last state")
     p.add_argument("--checkpoint-every", type=cli.integer(0), default=driver.CHECKPOINT_EVERY,
                    help="checkpoint every K growth steps (0: only on SIGTERM and failures)")
-    p.add_argument("--data", type=Path, metavar="CSV",
+    p.add_argument("--data", type=Path, metavar="CSV", reads=True,
                    help="measured CSA to compare with (data/README.md: a time column named week, day or hour, "
                         "and csa or csa_change_percent); by default the project's data set of the protocol, "
                         "if it has one (mwf: DeFreitas)")

@@ -30,8 +30,9 @@ ARRAYS = ("x", "tets", "facets", "tags")  # what `build` returns besides numbers
 
 def parser() -> cli.Parser:
     p = cli.Parser("mesh", hm.__doc__)
-    p.add_argument("surface", type=Path, help="the muscle's closed surface (STL, binary or ASCII)")
-    p.add_argument("--output", type=Path, required=True, help="the folder to write, meshes/NAME/; NAME is the "
+    p.add_argument("surface", type=Path, reads=True, help="the muscle's closed surface (STL, binary or ASCII)")
+    p.add_argument("--output", type=cli.output(folder=True, replaces=True), required=True,
+                   help="the folder to write, meshes/NAME/; NAME is the "
                    "geometry's identifier")
     p.add_argument("--unit", choices=tuple(hm.UNITS_MM), default="mm", help="length unit of the STL")
     p.add_argument("--cells", type=cli.integer(200, 2_000_000), default=hm.DEFAULT_CELLS, help="target cell count")

@@ -27,10 +27,11 @@ from hyper.runs.signalingplot import figure_protocols
 
 def parser() -> cli.Parser:
     p = cli.Parser("signaling", description=__doc__)
-    p.add_argument("--protocol", default="mwf", metavar="NAME|FILE",
+    p.add_argument("--protocol", default="mwf", metavar="NAME|FILE", reads=True,
                    help=f"a named protocol ({', '.join(protocols.NAMES)}), 'all' for {' '.join(protocols.PAPER)}, "
                    "or a TOML protocol file")
-    p.add_argument("--params", type=Path, metavar="F.toml", help="parameter overrides, keys as in MODEL.md's table")
+    p.add_argument("--params", type=Path, metavar="F.toml", reads=True,
+                   help="parameter overrides, keys as in MODEL.md's table")
     p.add_argument("--signaling-dt", type=float, default=0.05, metavar="H",
                    help="largest step (h), of either method")
     method_option(p)

@@ -26,7 +26,7 @@ from typing import Any
 
 from hyper.analysis import sobol
 from hyper.commands import cli
-from hyper.core import log, resources
+from hyper.core import io, log, resources
 from hyper.core.params import InputError
 from hyper.fem import geometry as geo
 from hyper.model import protocols
@@ -131,6 +131,8 @@ def prelude_lines(path: Path | None) -> str:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as err:
         raise InputError(f"--prelude {path}: cannot read: {err}") from None
+    if "\0" in text:  # bash drops NUL bytes: the script would run other lines than the file holds
+        raise InputError(f"--prelude {path}: holds NUL bytes, not a shell script")
     return f"# from --prelude {path}:\n{text.rstrip()}"
 
 
@@ -196,7 +198,8 @@ def parser() -> cli.Parser:
                              parser_class=_KindParser, help="the template to render")
     for kind, (ntasks, time, output) in DEFAULTS.items():
         k = kinds.add_parser(kind, help=f"render jobs/{TEMPLATES[kind].name}")
-        k.add_argument("-o", "--script", type=Path, help="where to write the script (stdout if not given)")
+        k.add_argument("-o", "--script", type=cli.output(folder=False),
+                       help="where to write the script (stdout if not given)")
         k.add_argument("--ntasks", type=cli.integer(1), default=ntasks, help="MPI ranks")
         k.add_argument("--time", default=time, help="time limit")
         k.add_argument("--job-name", default=f"hyper-{kind}", help="the Slurm job name")
@@ -209,7 +212,7 @@ def parser() -> cli.Parser:
         k.add_argument("--max-requeue", type=cli.integer(0), default=3, help="requeue at most this many times")
         k.add_argument("--srun-mpi", default="pmi2", help="srun --mpi plugin")
         k.add_argument("--args", default="", help="extra options for the python command, as one string")
-        k.add_argument("--prelude", type=Path, metavar="FILE",
+        k.add_argument("--prelude", type=Path, metavar="FILE", reads=True,
                        help="shell lines put into the script after the venv's activation (module loads, exports)")
         k.add_argument("--partition", help="#SBATCH --partition (the site's default if not given)")
         k.add_argument("--account", help="#SBATCH --account, the allocation charged")
@@ -241,8 +244,9 @@ def run(comm, args) -> int:
     if args.script is None:
         sys.stdout.write(script)
     else:
-        args.script.parent.mkdir(parents=True, exist_ok=True)
-        args.script.write_text(script)
+        # atomic: a full disk leaves no truncated script that looks whole
+        with io.atomic_path(args.script) as tmp:
+            tmp.write_text(script)
         log.info(comm, f"wrote {args.script}; submit with: sbatch {args.script}")
     return cli.EXIT_OK
 

@@ -90,7 +90,7 @@ from hyper.runs import driver, locks, runspec, sequence
 
 def parser() -> cli.Parser:
     p = cli.Parser("study", __doc__)
-    p.add_argument("study", type=Path, metavar="STUDY.toml", help="the study file")
+    p.add_argument("study", type=Path, metavar="STUDY.toml", reads=True, help="the study file")
     p.add_argument("--output", type=cli.output(folder=True), help="output folder; overrides [output] folder")
     p.add_argument("--figures", action=argparse.BooleanOptionalAction,
                    help="write the figures (--no-figures: none); overrides [output] figures")
@@ -102,7 +102,8 @@ def parser() -> cli.Parser:
     p.add_argument("--max-halvings", type=cli.integer(0), help="overrides [numerics] max_halvings")
     p.add_argument("--snapshot-every", type=cli.positive("hours"), metavar="HOURS",
                    help="fields snapshot every HOURS of simulated time; overrides [output] snapshot_every")
-    p.add_argument("--data", type=Path, metavar="CSV", help="measured CSA to compare with; overrides [data] file")
+    p.add_argument("--data", type=Path, metavar="CSV", reads=True,
+                   help="measured CSA to compare with; overrides [data] file")
     p.add_argument("--ranks-per-job", type=cli.integer(1), default=1,
                    help="MPI ranks per run of a cohort; must divide the number of ranks")
     cli.progress_option(p)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import errno
 import functools
 import os
 import platform
@@ -35,13 +36,27 @@ PARTIAL = ".partial"
 SYSTEM_TREES = (Path("/proc"), Path("/sys"), Path("/dev"))
 
 
-def unwritable(path: Path, *, folder: bool | None) -> str | None:
+def unwritable(path: Path, *, folder: bool | None, inputs=(), replaces: bool = False) -> str | None:
     """Why ``path`` cannot be written as a file (``folder`` False), a folder (True) or
-    either (None); None where it can. Looks only, creates nothing."""
+    either (None); None where it can. Looks only, creates nothing.
+
+    An existing folder must itself be writable (the job writes into it), not only its
+    parent. ``inputs`` are the files the job reads: the output may not be one of them, nor,
+    where the job ``replaces`` the folder whole (mesh --force), hold one of them.
+    """
     absolute = Path(os.path.abspath(path))
     for tree in SYSTEM_TREES:
         if absolute == tree or tree in absolute.parents:
             return f"{path}: under {tree}, not a place for results"
+    real = Path(os.path.realpath(absolute))
+    for source in inputs:
+        if not os.path.exists(source):  # nothing to destroy; the job says it is missing
+            continue
+        read = Path(os.path.realpath(source))
+        if read == real:
+            return f"{path}: is an input of this job ({source}); writing it would destroy it"
+        if replaces and real in read.parents:
+            return f"{path}: holds an input of this job ({source}); replacing the folder would delete it"
     if absolute.exists():
         if folder is True and not absolute.is_dir():
             return f"{path}: exists and is not a folder"
@@ -49,6 +64,8 @@ def unwritable(path: Path, *, folder: bool | None) -> str | None:
             return f"{path}: is a folder, not a file"
         if folder is False and not absolute.is_file():
             return f"{path}: exists and is not a regular file"
+        if absolute.is_dir() and not os.access(absolute, os.W_OK | os.X_OK):
+            return f"{path}: the folder is not writable"
     ancestor = absolute.parent
     while not ancestor.exists():
         ancestor = ancestor.parent
@@ -157,22 +174,51 @@ def set_attrs(obj, attrs: Mapping[str, Any]) -> None:
         obj.attrs[key] = _attr(value)
 
 
+# What a write meets when the disk, not the job, is at fault: full, over quota, failing.
+DISK_FAULTS = (errno.ENOSPC, errno.EDQUOT, errno.EIO)
+
+
+class WriteFailed(OSError):
+    """A file could not be written for want of room or a failing disk: one line that names
+    the file (`hyper.commands.cli.entry` reports it as one ``error:`` line, exit status 3).
+    An OSError, so that what handles a failed write (the checkpoint's status) still does."""
+
+    def __str__(self) -> str:  # the message alone, without OSError's "[Errno 28]"
+        return str(self.strerror if self.strerror is not None else super().__str__())
+
+
+def write_failed(path: str | Path, err: BaseException) -> WriteFailed | None:
+    """``err`` as a `WriteFailed` on ``path`` where it is a disk fault (h5py's OSError for
+    one carries the errno too), None where it is anything else. HDF5's own text, which
+    spans lines, is left out: the errno says what happened."""
+    if isinstance(err, WriteFailed):
+        return err
+    if not isinstance(err, OSError) or err.errno not in DISK_FAULTS:
+        return None
+    return WriteFailed(err.errno, f"{path}: cannot write: {os.strerror(err.errno)}; nothing was written there, "
+                                  "make room and run the same command again")
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; on success move it into place.
 
-    On failure the temporary file is removed and the old ``path`` (if any) is untouched.
+    On failure the temporary file is removed and the old ``path`` (if any) is untouched;
+    a full or failing disk raises `WriteFailed`. Every file a job writes passes here.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + PARTIAL)
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
         yield tmp
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as err:
         tmp.unlink(missing_ok=True)
+        fault = write_failed(path, err)
+        if fault is not None:
+            raise fault from None
         raise
 
 

@@ -100,8 +100,10 @@ def write(comm, path: Path, original: np.ndarray, per_cell: Mapping[str, np.ndar
     if comm.rank == 0:
         try:
             _write(path, parts, names, glob, series, {**attrs, "ranks": comm.size})
+        except io.WriteFailed as err:  # a full disk: its one line, which names the file
+            error = str(err)
         except Exception as err:  # noqa: BLE001 - every rank raises below
-            error = f"{path}: cannot write the checkpoint: {err}"
+            error = f"{path}: cannot write the checkpoint: {' '.join(str(err).split())}"  # HDF5's text spans lines
     error = comm.bcast(error, root=0)
     if error is not None:
         raise OSError(error)

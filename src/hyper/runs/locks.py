@@ -11,7 +11,7 @@ import socket
 from collections.abc import Iterator
 from pathlib import Path
 
-from hyper.core import log
+from hyper.core import io, log
 from hyper.core.params import InputError
 
 
@@ -63,9 +63,14 @@ class OutputLock:
             if same:
                 break
             os.close(fd)
-        os.ftruncate(fd, 0)
         started = datetime.datetime.now().isoformat(timespec="seconds")
-        os.write(fd, f"host {socket.gethostname()}, pid {os.getpid()}, since {started}\n".encode())
+        try:
+            os.ftruncate(fd, 0)
+            os.write(fd, f"host {socket.gethostname()}, pid {os.getpid()}, since {started}\n".encode())
+        except OSError:  # a full disk: no lock file left behind, no descriptor held open
+            self._fd = fd
+            self.release()
+            raise
         self._fd = fd
         return True
 
@@ -111,8 +116,11 @@ def hold(comm, outputs: list[Path]) -> Iterator[None]:
             except Busy as err:
                 busy = str(err)
             except OSError as err:  # e.g. the lock's name is a folder, or its folder unwritable
-                broken = f"cannot take the output lock: {err}"
+                full = io.write_failed(Path(str(outputs[0]) + ".lock") if len(outputs) == 1 else "an output lock", err)
+                broken = full if full is not None else f"cannot take the output lock: {err}"
         busy, broken = comm.bcast((busy, broken), root=0)
+        if isinstance(broken, io.WriteFailed):  # a full disk is no bad input: exit 3, as for any write
+            raise broken
         if broken is not None:
             raise InputError(broken)
         if busy is not None:

@@ -214,6 +214,11 @@ class Outputs:
     def fields(self) -> Path:
         return self.h5.with_name(self.h5.stem + "_fields.xdmf")
 
+    @property
+    def snapshots(self) -> list[Path]:
+        """The snapshot files: the fields' XDMF and the HDF5 file of its data."""
+        return [self.fields, self.fields.with_suffix(".h5")]
+
     def is_current(self, digest: str) -> bool:
         """A complete result of the run with this digest exists."""
         import h5py
