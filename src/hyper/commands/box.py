@@ -65,11 +65,9 @@ def remeasure(comm, result: Path, mesh_file: Path | None = None, unit: str = "m"
     rule of `OUTSIDE`: ``t`` (h), ``csa_ratio_box_<rule>``, ``recorded`` (the run's
     csa_ratio_box at those times, NaN where it has none), and ``area0`` (m², by rule),
     ``outside_nodes`` (outside, extrapolated), ``geometry``. Collective over ``comm``."""
-    import h5py
-
     if not result.is_file() or not io.is_complete(result):
         raise InputError(f"{result}: not a complete result file")
-    with h5py.File(result, "r") as f:
+    with io.reading_h5(result) as f:
         geometry = str(f.attrs.get("geometry", ""))
     series = io.read_series(result)
     fields = runspec.Outputs(result).fields
