@@ -81,7 +81,7 @@ def read_text(path: str | Path, what: str = "text file") -> str:
     start = len(data) - len(body)  # the offsets reported count the file's bytes, the mark's too
     nul = body.find(b"\0")
     if nul >= 0:
-        raise InputError(f"{path}: not a {what}: a NUL byte at byte offset {start + nul} "
+        raise InputError(f"{path}: not text: a NUL byte at byte offset {start + nul} "
                          "(a binary file, or UTF-16 text without a byte order mark?)")
     try:
         return body.decode("utf-8")
