@@ -264,13 +264,116 @@ def test_slurm_refuses_a_script_under_a_file_and_a_prelude_with_nul_bytes(tmp_pa
     (tmp_path / "a_file").write_text("x\n")
     (tmp_path / "nul.sh").write_bytes(b"module load a\0b\n")
     for argv, message in ((["-o", str(tmp_path / "a_file" / "x.sbatch")], "a_file is a file, not a folder"),
-                          (["--prelude", str(tmp_path / "nul.sh"), "-o", str(tmp_path / "x.sbatch")], "NUL bytes"),
+                          (["--prelude", str(tmp_path / "nul.sh"), "-o", str(tmp_path / "x.sbatch")], "a NUL byte"),
                           (["--prelude", str(tmp_path / "a_file"), "-o", str(tmp_path / "a_file")], "is an input")):
         assert cli.main(["slurm", "cohort", *argv]) == cli.EXIT_INPUT
         captured = capsys.readouterr()
         lines = captured.err.strip().splitlines()
         assert captured.out == "" and len(lines) == 1 and message in lines[0], captured.err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "nul.sh"]
+
+
+# ------------------------------------------------------- files that are not what they say
+
+# Text inputs that are not UTF-8 (`hyper.core.params.read_text`) and result or field files
+# that HDF5 or XML cannot read (`hyper.core.io.reading_h5`, `read_xml`), for every job that
+# reads them: the same one line and nothing written. {d}: the folder of `damaged_inputs`.
+CALIBRATE = ["calibrate", "--protocol", "mwf", "--fit", "kM", "--output", "{out}", "--data"]
+GROW = ["grow", "--geometry", "cylinder", "--protocol", "mwf", "--output", "{out}/run.h5", "--data"]
+BINARY = r"binary.csv: not text: a NUL byte at byte offset 8"
+UTF16 = r"utf16.csv: UTF-16 text \(a byte order mark at byte 0\); save it as UTF-8"
+LATIN1 = r"latin1.csv: not UTF-8 text: byte 0xe9 at byte offset 13"
+FILE_CASES = {
+    "calibrate-data_binary": ([*CALIBRATE, "{d}/binary.csv"], BINARY),
+    "calibrate-data_utf16": ([*CALIBRATE, "{d}/utf16.csv"], UTF16),
+    "calibrate-data_latin1": ([*CALIBRATE, "{d}/latin1.csv"], LATIN1),
+    "grow-data_binary": ([*GROW, "{d}/binary.csv"], BINARY),
+    "grow-data_utf16": ([*GROW, "{d}/utf16.csv"], UTF16),
+    "study-data_binary": (["study", "{d}/data_binary.toml", "--output", "{out}"], r"data.file: .*" + BINARY),
+    "study-data_utf16": (["study", "{d}/data_utf16.toml", "--output", "{out}"], r"data.file: .*" + UTF16),
+    "study-data_option_latin1": (["study", "{d}/study.toml", "--data", "{d}/latin1.csv", "--output", "{out}"],
+                                 LATIN1),
+    "study-file_utf16": (["study", "{d}/utf16.toml", "--output", "{out}"], r"utf16.toml: UTF-16 text"),
+    "signaling-protocol_utf16": (["signaling", "--protocol", "{d}/utf16.toml", "--output", "{out}"],
+                                 r"utf16.toml: UTF-16 text"),
+    "signaling-params_binary": (["signaling", "--params", "{d}/binary.toml", "--output", "{out}"],
+                                r"binary.toml: not text: a NUL byte"),
+    "slurm-prelude_binary": (["slurm", "cohort", "--prelude", "{d}/binary.csv", "-o", "{out}/s.sbatch",
+                              "--workdir", "{d}"], r"--prelude .*" + BINARY),
+    "inspect-damaged": (["inspect", "{d}/damaged.h5"], r"damaged.h5: not a readable HDF5 result file \("),
+    "inspect-truncated": (["inspect", "{d}/truncated.h5"], r"truncated.h5: not a readable HDF5 result file"),
+    "inspect-text": (["inspect", "{d}/binary.csv"], r"binary.csv: not a readable HDF5 result file"),
+    "inspect-folder": (["inspect", "{d}"], r"is a folder, not an HDF5 result file"),
+    "box-damaged": (["box", "{d}/damaged.h5"], r"damaged.h5: not a readable HDF5 result file \("),
+    "box-fields_binary": (["box", "{d}/binary_fields/run.h5"], r"run_fields.xdmf: not text: a NUL byte"),
+    "box-fields_utf16": (["box", "{d}/utf16_fields/run.h5"], r"run_fields.xdmf: UTF-16 text"),
+    "box-fields_without_time": (["box", "{d}/timeless_fields/run.h5"], r"run_fields.xdmf: a <Grid> without <Time>"),
+    "box-fields_not_xml": (["box", "{d}/garbled_fields/run.h5"], r"run_fields.xdmf: not a well-formed XDMF file"),
+    "contraction-petsc_refused": (["contraction", "--geometry", "cylinder", "--output", "{out}/c.h5",
+                                   "-mechanics_snes_type", "bogus"],
+                                  r"^error: PETSc refused -mechanics_snes_type bogus: Unable to find requested SNES"),
+}
+STUDY = 'geometries = ["cylinder"]\nprotocols = ["mwf"]\n'
+FIELDS = """<?xml version="1.0"?>
+<Xdmf Version="3.0"><Domain><Grid Name="fields" GridType="Collection" CollectionType="Temporal">
+<Grid Name="fields" GridType="Uniform">
+  <Geometry GeometryType="XYZ"><DataItem Dimensions="2 3" Format="HDF">run_fields.h5:/x</DataItem></Geometry>
+  {time}<Attribute Name="u" AttributeType="Vector" Center="Node">
+    <DataItem Dimensions="2 3" Format="HDF">run_fields.h5:/u</DataItem></Attribute>
+</Grid></Grid></Domain></Xdmf>
+"""
+
+
+@pytest.fixture(scope="module")
+def damaged_inputs(tmp_path_factory):
+    import h5py
+    import numpy as np
+
+    from hyper.core import io
+
+    d = tmp_path_factory.mktemp("damaged")
+    csv = "week,csa\n0,10.0\n3,10.5\n"
+    (d / "binary.csv").write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR")
+    (d / "utf16.csv").write_bytes(csv.encode("utf-16"))
+    (d / "latin1.csv").write_bytes("week,csa\n0,10\u00e9\n".encode("latin-1"))
+    (d / "binary.toml").write_bytes(b"kM = 0.01\n\x00\x01")
+    (d / "utf16.toml").write_bytes(STUDY.encode("utf-16"))
+    (d / "study.toml").write_text(STUDY)
+    (d / "data_binary.toml").write_text(STUDY + '[data]\nfile = "binary.csv"\n')
+    (d / "data_utf16.toml").write_text(STUDY + '[data]\nfile = "utf16.csv"\n')
+    good = io.write_series(d / "good.h5", {"t": np.arange(2000.0), "csa_ratio": np.ones(2000)},
+                           attrs={"geometry": "cylinder"})
+    data = bytearray(good.read_bytes())
+    data[800:len(data) - 100] = bytes(len(data) - 900)  # the middle zeroed, the size kept
+    (d / "damaged.h5").write_bytes(bytes(data))
+    (d / "truncated.h5").write_bytes(good.read_bytes()[: len(data) // 2])
+    for name, xdmf in {"binary": b"\x89HDF\r\n\x1a\n\x00\x00", "utf16": FIELDS.format(time="").encode("utf-16"),
+                       "timeless": FIELDS.format(time="").encode(),
+                       "garbled": FIELDS.format(time='<Time Value="0"/>').encode()[:-30]}.items():
+        folder = d / f"{name}_fields"
+        folder.mkdir()
+        io.write_series(folder / "run.h5", {"t": np.array([0.0]), "csa_ratio_box": np.ones(1)},
+                        attrs={"geometry": "cylinder"})
+        with h5py.File(folder / "run_fields.h5", "w") as f:
+            f["x"], f["u"] = np.eye(2, 3), np.zeros((2, 3))
+        (folder / "run_fields.xdmf").write_bytes(xdmf)
+    return d
+
+
+@pytest.mark.parametrize("argv, message", list(FILE_CASES.values()), ids=list(FILE_CASES))
+def test_every_job_refuses_a_file_that_is_not_what_it_says_in_one_line(damaged_inputs, tmp_path, capsys, argv,
+                                                                         message):
+    import re
+
+    out = tmp_path / "out"
+    before = listing(damaged_inputs)
+    assert cli.main([a.format(d=damaged_inputs, out=out) for a in argv]) == cli.EXIT_INPUT
+    captured = capsys.readouterr()
+    lines = [line for line in captured.err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), captured.err
+    assert re.search(message, lines[0]), lines[0]
+    assert "--petsc-option" not in lines[0] and captured.out == ""
+    assert not out.exists() and listing(damaged_inputs) == before
 
 
 # ------------------------------------------------------------------------- 2 ranks

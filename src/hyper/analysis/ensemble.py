@@ -170,10 +170,8 @@ def summary(uniform: dict, samples: dict[str, dict]) -> dict:
 
 
 def read(path: str) -> dict:
-    import h5py
-
     data = io.read_series(path)
-    with h5py.File(path, "r") as f:
+    with io.reading_h5(path) as f:
         data.update({k: f.attrs[k] for k in f.attrs if k.startswith("roughness_")})
     return data
 

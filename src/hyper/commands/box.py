@@ -65,16 +65,16 @@ def remeasure(comm, result: Path, mesh_file: Path | None = None, unit: str = "m"
     rule of `OUTSIDE`: ``t`` (h), ``csa_ratio_box_<rule>``, ``recorded`` (the run's
     csa_ratio_box at those times, NaN where it has none), and ``area0`` (m², by rule),
     ``outside_nodes`` (outside, extrapolated), ``geometry``. Collective over ``comm``."""
-    import h5py
-
-    if not result.is_file() or not io.is_complete(result):
+    with io.reading_h5(result) as f:  # a damaged file: an InputError naming it and what HDF5 found
+        complete, geometry = bool(f.attrs.get("complete", False)), str(f.attrs.get("geometry", ""))
+    if not complete:
         raise InputError(f"{result}: not a complete result file")
-    with h5py.File(result, "r") as f:
-        geometry = str(f.attrs.get("geometry", ""))
     series = io.read_series(result)
     fields = runspec.Outputs(result).fields
     if not fields.is_file():
         raise InputError(f"{result}: its snapshots {fields} are not there")
+    # the snapshots before the mesh: a malformed field file is refused before that work
+    nodes, snapshots = io.read_point_field(fields, "u")
     if mesh_file is not None:
         mesh = runspec.MeshFile(mesh_file, unit).load(comm).mesh
     else:
@@ -82,7 +82,6 @@ def remeasure(comm, result: Path, mesh_file: Path | None = None, unit: str = "m"
             raise InputError(f"{result}: ran on {geometry!r}, not a built-in geometry; give its mesh with --mesh")
         runspec.check_geometry(comm, geometry, option=f"{result}'s geometry")
         mesh = geo.load(geometry, comm).mesh
-    nodes, snapshots = io.read_point_field(fields, "u")
     u = fem.Function(fem.functionspace(mesh, ("Lagrange", 1, (3,))))  # the snapshots' space
     rows = matched_rows(u.function_space, nodes)
     measures = {rule: BoxSection(mesh, u, outside=rule) for rule in OUTSIDE}

@@ -4,7 +4,8 @@ A job module defines ``parser()`` (a `Parser`) and ``run(comm, args) -> int`` an
 with ``main = cli.entry(parser, run)``; ``hyper JOB …`` and ``python -m hyper.JOB …``
 then run the same thing. Bad input anywhere (an `InputError`, on any rank) is one
 ``error:`` line on rank 0 and exit status 2; an output another run holds is exit 4; a full or
-failing disk (`io.WriteFailed`) is one ``error:`` line and exit 3.
+failing disk (`io.WriteFailed`) is one ``error:`` line and exit 3; a closed pipe on stdout
+ends the job silently with 141, as SIGPIPE ends a Unix tool.
 
     hyper grow --geometry idealized --protocol mwf
     hyper cohort --help
@@ -17,7 +18,9 @@ import contextlib
 import importlib
 import logging
 import math
+import os
 import re
+import select
 import signal
 import sys
 import traceback
@@ -36,6 +39,9 @@ EXIT_INPUT = 2
 EXIT_FAILED = 3
 EXIT_BUSY = 4
 EXIT_TERMINATED = 128 + signal.SIGTERM  # 143, what a shell reports for a TERM-killed job
+# 141, what a shell reports for `yes | head -1`'s yes, which SIGPIPE ends: a job whose stdout's
+# reader has gone stops as Unix tools do, silently, and a pipeline with pipefail sees the cut
+EXIT_PIPE = 128 + signal.SIGPIPE
 
 # `hyper JOB` runs hyper.commands.JOB.main (`python -m hyper.JOB`: the shim hyper/JOB.py); the
 # benches keep their own dispatcher (hyper bench NAME).
@@ -187,6 +193,8 @@ class _Stdout(logging.Handler):
             stream = sys.stdout
             stream.write(self.format(record) + "\n")
             stream.flush()
+        except BrokenPipeError:
+            raise  # the reader of stdout has gone: `entry` ends the job, as a closed pipe ends a Unix tool
         except Exception:  # noqa: BLE001 - logging's own policy: report, never raise
             self.handleError(record)
 
@@ -216,6 +224,26 @@ def petsc_option(text: str) -> tuple[str, str]:
 # ---------------------------------------------------------------------------- the entry
 
 
+def stdout_reader_gone() -> bool:
+    """Whether stdout is a pipe whose reader has gone (``| head -0``): poll reports POLLERR on
+    the write end of such a pipe, never on a file, a terminal or an open pipe. A BrokenPipeError
+    from elsewhere (a subprocess's pipe) is then a failure like any other."""
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(events & select.POLLERR for _, events in poller.poll(0))
+    except (AttributeError, OSError, ValueError):  # no file descriptor: a test's capture, a closed stream
+        return False
+
+
+def quiet_stdout() -> None:
+    """Point stdout's file descriptor at /dev/null: what Python still holds for it is flushed
+    at exit, and would print "Exception ignored … BrokenPipeError" into a closed pipe."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+
+
 def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool = True,
           locks: Callable[[argparse.Namespace], list[Path]] | None = None) -> Callable[..., int]:
     """The ``main(argv=None)`` of a job: parse, set up logging, run, map errors to exit codes.
@@ -223,16 +251,36 @@ def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool 
     ``run(comm, args)`` gets MPI.COMM_WORLD (``world=False``: ``run(None, args)``, for
     jobs that never start MPI) and returns the exit status. ``locks(args)`` names the
     outputs whose locks the job holds while it runs (`hold`): a second job on the same
-    output stops at once (exit 4) instead of writing over the first.
+    output stops at once (exit 4) instead of writing over the first. A job whose stdout's
+    reader has gone (``hyper inspect R.h5 | head -0``) stops quietly with `EXIT_PIPE`, as
+    SIGPIPE stops a Unix tool: nothing on stderr (on several ranks: MPI's abort, which
+    stops the ranks waiting for rank 0).
     """
 
     def main(argv=None, comm=None) -> int:
-
         argv = sys.argv[1:] if argv is None else list(argv)
         if comm is None and world:
             from mpi4py import MPI
 
             comm = MPI.COMM_WORLD
+        # Python ignores SIGPIPE, so that a write into a closed pipe is a BrokenPipeError; PETSc,
+        # which a job's imports start, catches it instead and aborts with a page of errors.
+        with contextlib.suppress(ValueError):  # not the main thread, whose signals these are
+            signal.signal(signal.SIGPIPE, signal.SIG_IGN)
+        try:
+            try:
+                return job(argv, comm)
+            finally:
+                sys.stdout.flush()  # a reader that has gone shows here, --help's too, not at exit
+        except BrokenPipeError:
+            if not stdout_reader_gone():
+                raise
+            quiet_stdout()
+            if comm is not None and comm.size > 1:
+                comm.Abort(EXIT_PIPE)  # the other ranks may wait in a collective for rank 0
+            return EXIT_PIPE
+
+    def job(argv: list[str], comm) -> int:
         rank = comm.rank if comm is not None else 0
         try:
             made = parser()
@@ -259,6 +307,8 @@ def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool 
                 sys.stderr.flush()
                 comm.Abort(EXIT_FAILED)
             return EXIT_FAILED
+        except BrokenPipeError:
+            raise  # `main`'s: stdout's reader has gone, no failure to abort with a traceback
         except Exception:
             # A failure on some ranks only would leave the others waiting in a collective
             # for ever: end the whole job instead, after saying why.

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from hyper.commands import cli
-from hyper.core.params import InputError
+from hyper.core import io
 
 # the groups every job names alike, shown first
 GROUPS = ("signaling", "material", "protocol", "settings", "heterogeneity", "fidelity")
@@ -40,14 +40,10 @@ def shown(value) -> str:
 def describe(path: Path) -> list[str]:
     import h5py
 
-    if not path.is_file():
-        raise InputError(f"{path}: no such file")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as err:
-        raise InputError(f"{path}: not a readable HDF5 file ({err})") from None
-    lines = [f"{path}: {'complete' if f.attrs.get('complete') else 'INCOMPLETE (its writer did not finish)'}"]
-    with f:
+    # the whole reading in `reading_h5`: a file damaged inside (its header whole) fails at
+    # the first group or dataset that lies in the damage, and that is bad input too
+    with io.reading_h5(path) as f:
+        lines = [f"{path}: {'complete' if f.attrs.get('complete') else 'INCOMPLETE (its writer did not finish)'}"]
         provenance = {k: v for k, v in f.attrs.items() if k not in ("complete", "study")}
         lines.append("provenance:")
         lines += [f"  {k} = {shown(v)}" for k, v in sorted(provenance.items())]

@@ -27,7 +27,7 @@ from typing import Any
 from hyper.analysis import sobol
 from hyper.commands import cli
 from hyper.core import io, log, resources
-from hyper.core.params import InputError
+from hyper.core.params import InputError, read_text
 from hyper.fem import geometry as geo
 from hyper.model import protocols
 
@@ -68,7 +68,7 @@ def render_template(path: str | Path, **values) -> str:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: no such template")
-    return render(path.read_text(), values, str(path))
+    return render(read_text(path, "template"), values, str(path))
 
 
 def cohort_runs(geometries: Sequence[str] | None, protocol_names: Sequence[str] | None) -> list[tuple[str, str]]:
@@ -128,11 +128,9 @@ def prelude_lines(path: Path | None) -> str:
     if not path.is_file():
         raise InputError(f"--prelude {path}: no such file")
     try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"--prelude {path}: cannot read: {err}") from None
-    if "\0" in text:  # bash drops NUL bytes: the script would run other lines than the file holds
-        raise InputError(f"--prelude {path}: holds NUL bytes, not a shell script")
+        text = read_text(path, "shell file")
+    except InputError as err:
+        raise InputError(f"--prelude {err}") from None
     return f"# from --prelude {path}:\n{text.rstrip()}"
 
 

@@ -27,7 +27,7 @@ import numpy as np
 
 import hyper
 from hyper.core import resources
-from hyper.core.params import InputError
+from hyper.core.params import InputError, read_text
 
 PARTIAL = ".partial"
 
@@ -253,25 +253,84 @@ def write_series(
     return path
 
 
+# What h5py raises on a file that is not whole: OSError (no HDF5 signature, a bad object
+# header), RuntimeError (a damaged B-tree or heap), KeyError (an object its links name is
+# not there) and ValueError (a datatype or dataspace it cannot make sense of).
+HDF5_ERRORS = (OSError, RuntimeError, KeyError, ValueError)
+
+
+def _reason(err: Exception) -> str:
+    """An h5py error in words (a KeyError's str() is its message in quotes)."""
+    return str(err.args[0]) if isinstance(err, KeyError) and err.args else str(err) or type(err).__name__
+
+
+@contextlib.contextmanager
+def reading_h5(path: str | Path, what: str = "HDF5 result file") -> Iterator[Any]:
+    """The open h5py.File of a file a job reads back (a result, a checkpoint, the data of
+    an XDMF file). Any HDF5 error in opening it or in the block, which should only read
+    it, is one InputError naming the file and what HDF5 found: a damaged or truncated
+    file is bad input, not a traceback."""
+    import h5py
+
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not an {what}")
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    try:
+        with h5py.File(path, "r") as f:
+            yield f
+    except InputError:
+        raise
+    except HDF5_ERRORS as err:
+        raise InputError(f"{path}: not a readable {what} ({_reason(err)})") from None
+
+
 def is_complete(path: str | Path) -> bool:
-    """True if ``path`` is an HDF5 file whose writer finished."""
+    """True if ``path`` is an HDF5 file whose writer finished (a damaged one: False)."""
     import h5py
 
     try:
         with h5py.File(path, "r") as f:
             return bool(f.attrs.get("complete", False))
-    except (OSError, KeyError):
+    except HDF5_ERRORS:
         return False
 
 
 def read_series(path: str | Path) -> dict[str, np.ndarray]:
-    """All root datasets of a complete series file; a partial file is an error."""
+    """All root datasets of a complete series file; a partial file is an error (OSError),
+    a damaged one an InputError (`reading_h5`)."""
     import h5py
 
     if not is_complete(path):
         raise OSError(f"{path}: missing or incomplete (no 'complete' mark)")
-    with h5py.File(path, "r") as f:
+    with reading_h5(path) as f:
         return {k: f[k][()] for k in f if isinstance(f[k], h5py.Dataset)}
+
+
+def read_xml(path: str | Path, what: str = "XDMF file") -> ET.Element:
+    """The root element of an XML input (`read_text`: UTF-8 only); InputError naming the
+    file and the line where it is not well-formed."""
+    try:
+        return ET.fromstring(read_text(path, what))
+    except ET.ParseError as err:
+        raise InputError(f"{path}: not a well-formed {what} ({err})") from None
+
+
+def xml_child(element: ET.Element, tag: str, path: str | Path) -> ET.Element:
+    """``element.find(tag)``, an InputError naming the file where it is not there."""
+    found = element.find(tag)
+    if found is None:
+        raise InputError(f"{path}: a <{element.tag}> without <{tag}>")
+    return found
+
+
+def xml_attribute(element: ET.Element, name: str, path: str | Path) -> str:
+    """``element.get(name)``, an InputError naming the file where it is not there."""
+    value = element.get(name)
+    if value is None:
+        raise InputError(f"{path}: a <{element.tag}> without its {name} attribute")
+    return value
 
 
 def one_grid(xml: str) -> str:
@@ -353,31 +412,36 @@ def read_point_field(path: str | Path, name: str) -> tuple[np.ndarray, list[tupl
     ``name`` in an XDMF file `atomic_xdmf` wrote (one grid per time), in time order.
     InputError where the file or the field is not there."""
 
-    import h5py
-
     path = Path(path)
-    try:
-        domain = ET.fromstring(path.read_text()).find("Domain")
-    except (OSError, ET.ParseError) as err:
-        raise InputError(f"{path}: not a readable XDMF file ({err})") from None
+    domain = read_xml(path, "XDMF file").find("Domain")
     grids = [] if domain is None else domain.findall("Grid/Grid")
 
     def data(item) -> np.ndarray:
-        file, _, dataset = item.text.strip().partition(":")
+        text = (item.text or "").strip()
+        file, sep, dataset = text.partition(":")
+        if not sep:
+            raise InputError(f"{path}: a <DataItem> that names no FILE.h5:DATASET ({text!r})")
         try:
-            with h5py.File(path.parent / file, "r") as f:
+            with reading_h5(path.parent / file, "HDF5 data file") as f:
                 return f[dataset][()]
-        except (OSError, KeyError) as err:
-            raise InputError(f"{path}: cannot read {item.text.strip()} ({err})") from None
+        except InputError as err:
+            raise InputError(f"{path}: cannot read {text}: {err}") from None
+
+    def time(grid) -> float:
+        value = xml_attribute(xml_child(grid, "Time", path), "Value", path)
+        try:
+            return float(value)
+        except ValueError:
+            raise InputError(f"{path}: a <Time> whose Value is not a number ({value!r})") from None
 
     snapshots = []
     for grid in grids:
         for attribute in grid.findall("Attribute"):
             if attribute.get("Name") == name and attribute.get("Center") == "Node":
-                snapshots.append((float(grid.find("Time").get("Value")), data(attribute.find("DataItem"))))
+                snapshots.append((time(grid), data(xml_child(attribute, "DataItem", path))))
     if not snapshots:
         raise InputError(f"{path}: no snapshot of a nodal field {name!r}")
-    return data(grids[0].find("Geometry/DataItem")), sorted(snapshots, key=lambda s: s[0])
+    return data(xml_child(grids[0], "Geometry/DataItem", path)), sorted(snapshots, key=lambda s: s[0])
 
 
 # what --output may not end in: the name of another kind of file, taken for a folder by mistake

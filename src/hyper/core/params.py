@@ -51,19 +51,52 @@ def positive_hours(value: Any, field: str, least: float = 0.0) -> float:
     return float(value)
 
 
-def read_toml(path: str | Path) -> dict[str, Any]:
+# What a text input may not begin with: the byte order marks of UTF-16 and UTF-32 (a
+# spreadsheet's "Unicode text"), which strict UTF-8 would report as a stray byte.
+OTHER_ENCODINGS = ((b"\xff\xfe\x00\x00", "UTF-32"), (b"\x00\x00\xfe\xff", "UTF-32"),
+                   (b"\xff\xfe", "UTF-16"), (b"\xfe\xff", "UTF-16"))
+
+
+def read_text(path: str | Path, what: str = "text file") -> str:
+    """The text of a user's input file (CSV, TOML, XDMF, template), decoded as UTF-8.
+
+    Every reader of a text input goes through here, so that a binary file, a UTF-16 export
+    or a stray byte is one InputError naming the file and the byte offset, never a
+    UnicodeDecodeError deep in a parser. A UTF-8 byte order mark is dropped (spreadsheets
+    write one); a NUL byte means a binary file, which no text format here allows.
+    """
     path = Path(path)
     if path.is_dir():
-        raise InputError(f"{path}: is a folder, not a TOML file")
+        raise InputError(f"{path}: is a folder, not a {what}")
     if not path.is_file():
         raise InputError(f"{path}: no such file")
     try:
-        with path.open("rb") as f:
-            return tomllib.load(f)
+        data = path.read_bytes()
+    except OSError as err:
+        raise InputError(f"{path}: cannot read: {err.strerror or err}") from None
+    for mark, encoding in OTHER_ENCODINGS:
+        if data.startswith(mark):
+            raise InputError(f"{path}: {encoding} text (a byte order mark at byte 0); save it as UTF-8")
+    body = data.removeprefix(b"\xef\xbb\xbf")
+    start = len(data) - len(body)  # the offsets reported count the file's bytes, the mark's too
+    nul = body.find(b"\0")
+    if nul >= 0:
+        raise InputError(f"{path}: not text: a NUL byte at byte offset {start + nul} "
+                         "(a binary file, or UTF-16 text without a byte order mark?)")
+    try:
+        return body.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise InputError(f"{path}: not UTF-8 text: byte 0x{body[err.start]:02x} at byte offset "
+                         f"{start + err.start} ({err.reason})") from None
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    text = read_text(path, "TOML file")
+    try:
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise InputError(f"{path}: malformed TOML: {err}") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"{path}: cannot read: {err}") from None
 
 
 def as_float(value: Any, where: str) -> float:

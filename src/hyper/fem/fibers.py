@@ -75,7 +75,7 @@ from dolfinx import fem, la
 from dolfinx.fem.petsc import LinearProblem
 from mpi4py import MPI
 
-from hyper.core.io import is_complete
+from hyper.core.io import is_complete, reading_h5
 from hyper.core.params import InputError, check_positive
 from hyper.fem import geometry as geo
 
@@ -326,8 +326,6 @@ def load(geometry: geo.Geometry, path: str | Path | None = None) -> fem.Function
     be complete and belong to this very mesh (same nodes, same coordinates), else
     InputError. Collective over the geometry's communicator.
     """
-    import h5py
-
     path = Path(path) if path is not None else fiber_path(geometry.name)
     comm = geometry.comm
     data: dict | str | None = None
@@ -336,8 +334,11 @@ def load(geometry: geo.Geometry, path: str | Path | None = None) -> fem.Function
             data = (f"{path}: no complete fibre file; compute it with "
                     f"`python -m hyper.fibers --geometries {geometry.name}`")
         else:
-            with h5py.File(path, "r") as f:
-                data = {k: f[k][()] for k in ("node", "a0", "x")}
+            try:  # rank 0 alone reads: a damaged file is a message for every rank, not a raise here
+                with reading_h5(path, "fibre file") as f:
+                    data = {k: f[k][()] for k in ("node", "a0", "x")}
+            except InputError as err:
+                data = str(err)
     data = comm.bcast(data, root=0)
     if isinstance(data, str):
         raise InputError(data)

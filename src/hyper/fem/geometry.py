@@ -45,7 +45,8 @@ from dolfinx.io.utils import distribute_entity_data
 from mpi4py import MPI
 
 from hyper.core import resources
-from hyper.core.params import InputError
+from hyper.core.io import HDF5_ERRORS
+from hyper.core.params import InputError, read_text
 
 MESHES_DIR = resources.folder("meshes")
 LATERAL_TAG = 4
@@ -278,14 +279,18 @@ def _check_cells(geometry: Geometry, path) -> None:
 
 
 def _unreadable(xdmf: Path) -> str | None:
-    """Why the HDF5 data an XDMF mesh file points to cannot be read (None where it can, or
-    where the file is no XDMF: XDMFFile says so), found by h5py, which reports it in one
-    line where the HDF5 library under XDMFFile prints pages."""
+    """Why the XDMF mesh file is not UTF-8 text (`read_text`) or the HDF5 data it points to
+    cannot be read (None where it can, or where the file is no XML: XDMFFile says so),
+    found by h5py, which reports it in one line where the HDF5 library under XDMFFile
+    prints pages."""
 
     import h5py
 
     try:
-        items = [item.text.strip() for item in ET.parse(xdmf).iter("DataItem") if item.text and ":" in item.text]
+        items = [item.text.strip() for item in ET.fromstring(read_text(xdmf, "XDMF file")).iter("DataItem")
+                 if item.text and ":" in item.text]
+    except InputError as err:  # binary, UTF-16: rank 0 alone reads here, so a reason, not a raise
+        return err.reason.removeprefix(f"{xdmf}: ")
     except ET.ParseError:
         return None
     for text in items:
@@ -296,7 +301,7 @@ def _unreadable(xdmf: Path) -> str | None:
         try:
             with h5py.File(data, "r") as f:
                 f[dataset][()]
-        except (OSError, KeyError, RuntimeError) as err:
+        except HDF5_ERRORS as err:
             return f"cannot read its data file {name} (truncated or damaged?): {err}"
     return None
 

@@ -526,13 +526,29 @@ def _set_options(snes, prefix: str, options: dict, checked: tuple[str, ...] = ()
     except PETSc.Error as err:
         # PETSc's message is its call stack; the last line says what was wrong
         lines = [line.removeprefix("[0]").strip() for line in str(err).splitlines() if line.strip()]
-        raise InputError(f"--petsc-option: PETSc refused {', '.join(checked)}: {lines[-1]}") from None
+        what = refused(db, prefix, options, checked, added)
+        for name in list(db.getAll()):
+            if name.startswith(prefix):  # the job stops: PETSc would list them as unused at exit, on stdout
+                db.delValue(name)
+        raise InputError(f"PETSc refused {what}: {lines[-1]}") from None
     finally:
         for name in added:
             db.delValue(name)
     if unused:
         raise InputError(f"--petsc-option: PETSc does not read {', '.join(unused)} for the mechanics solver "
                          "(misspelt, or an option of another object)")
+
+
+def refused(db, prefix: str, options: dict, checked: tuple[str, ...], added: list[str]) -> str:
+    """The options PETSc may have refused, each as the user gave it: ``--petsc-option KEY=VALUE``
+    for the ``checked`` keys (the option of the jobs that have one), ``-PREFIXKEY VALUE`` for
+    those the options database held already (a job's command line, PETSC_OPTIONS). Never
+    blank: where the user gave none, PETSc refused this module's own defaults (a bug)."""
+    given = [f"--petsc-option {key}={options[key]}" for key in checked]
+    held = {name: value for name, value in db.getAll().items()
+            if name.startswith(prefix) and name not in added and name.removeprefix(prefix) not in checked}
+    given += [f"-{name} {value or ''}".rstrip() for name, value in sorted(held.items())]  # a flag: no value
+    return ", ".join(given) if given else f"the mechanics solver's default options ({prefix}…)"
 
 
 # ------------------------------------------------------------------- rigid motions

@@ -135,14 +135,12 @@ def _write(path, parts, names, glob, series, attrs) -> None:
 def inspect(path: Path, run_digest: str) -> dict:
     """The attributes of a complete checkpoint that belongs to the run ``run_digest``;
     InputError (naming the file and what to do) otherwise. Cheap: reads attributes only."""
-    import h5py
-
     what = "remove it or pass --restart to start the run again"
     try:
-        with h5py.File(path, "r") as f:
+        with io.reading_h5(path, "checkpoint") as f:
             attrs = dict(f.attrs)
-    except OSError as err:
-        raise InputError(f"{path}: cannot read the checkpoint ({err}); {what}") from None
+    except InputError as err:
+        raise InputError(f"{err}; {what}") from None
     if attrs.get("kind") != KIND or not attrs.get("complete", False):
         raise InputError(f"{path}: not a complete hyper.grow checkpoint; {what}")
     if attrs.get("format") != FORMAT:
@@ -173,18 +171,19 @@ class Checkpoint:
 def read(comm, path: Path, run_digest: str, local_original: np.ndarray) -> Checkpoint:
     """Read a checkpoint of run ``run_digest``; collective. ``local_original``: the
     original index of each local cell (owned then ghost) of this rank."""
-    import h5py
-
     wanted = comm.gather(np.asarray(local_original, dtype=np.int64), root=0)
     payload = None
     if comm.rank == 0:
         try:
             attrs = inspect(path, run_digest)
-            with h5py.File(path, "r") as f:
-                index = f["cells/original"][()]
-                cells = {k: f["cells"][k][()] for k in f["cells"] if k != "original"}
-                glob = {k: f["global"][k][()] for k in f["global"]}
-                series = {k: f["series"][k][()] for k in f["series"]}
+            try:
+                with io.reading_h5(path, "checkpoint") as f:
+                    index = f["cells/original"][()]
+                    cells = {k: f["cells"][k][()] for k in f["cells"] if k != "original"}
+                    glob = {k: f["global"][k][()] for k in f["global"]}
+                    series = {k: f["series"][k][()] for k in f["series"]}
+            except InputError as err:  # whatever HDF5 raised, damage inside the file too
+                raise InputError(f"{err}; remove it or pass --restart") from None
             parts = []
             for want in wanted:
                 pos = np.searchsorted(index, want)
@@ -193,9 +192,8 @@ def read(comm, path: Path, run_digest: str, local_original: np.ndarray) -> Check
                                      "remove it or pass --restart")
                 parts.append({k: v[pos] for k, v in cells.items()})
             payload = [(glob, series, attrs, part) for part in parts]
-        except (InputError, OSError, KeyError) as err:
-            payload = [str(err) if isinstance(err, InputError) else
-                       f"{path}: cannot read the checkpoint ({err}); remove it or pass --restart"] * comm.size
+        except InputError as err:
+            payload = [str(err)] * comm.size
     mine = comm.scatter(payload, root=0)
     if isinstance(mine, str):
         raise InputError(mine)

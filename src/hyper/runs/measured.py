@@ -17,13 +17,14 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import math
 from pathlib import Path
 
 import numpy as np
 
 from hyper.core import resources
-from hyper.core.params import InputError
+from hyper.core.params import InputError, read_text
 from hyper.model import protocols
 from hyper.model.protocols import Protocol
 from hyper.runs.checkpoint import file_digest
@@ -51,11 +52,8 @@ class Measured:
 
 def _table(path: Path) -> tuple[str, str, np.ndarray]:
     """(time unit, CSA column, rows of [time, csa]) of a data file; InputError naming what is wrong."""
-    try:
-        with open(path, newline="") as f:
-            rows = list(csv.reader(f))
-    except OSError as err:
-        raise InputError(f"{path}: cannot read: {err.strerror}") from None
+    # newline="": the csv module's own reading of line ends, as with open(path, newline="")
+    rows = list(csv.reader(io.StringIO(read_text(path, "CSV file"), newline="")))
     if not rows:
         raise InputError(f"{path}: empty file")
     header = [h.strip().lower() for h in rows[0]]

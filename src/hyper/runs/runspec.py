@@ -221,11 +221,9 @@ class Outputs:
 
     def is_current(self, digest: str) -> bool:
         """A complete result of the run with this digest exists."""
-        import h5py
-
         if not io.is_complete(self.h5):
             return False
-        with h5py.File(self.h5, "r") as f:
+        with io.reading_h5(self.h5) as f:
             return f.attrs.get("run_digest") == digest
 
     def store(self, series: dict, attrs: Mapping, groups: Mapping) -> None:
