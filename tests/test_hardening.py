@@ -54,7 +54,7 @@ STEP_CASES = {
     "zero": (["--signaling-dt", "0"], r"--signaling-dt: expected a finite number of hours > 0, got 0"),
     "nan": (["--signaling-dt", "nan"], r"--signaling-dt: expected a finite number of hours > 0, got nan"),
     "tiny": (["--signaling-dt", "1e-300"], r"--signaling-dt: expected at least 0.0001 h, got 1e-300"),
-    "text": (["--signaling-dt", "fast"], r"argument --signaling-dt: invalid float value: 'fast'"),
+    "text": (["--signaling-dt", "fast"], r"argument --signaling-dt: expected a number of hours, got 'fast'"),
 }
 
 
@@ -104,7 +104,7 @@ JOBS = {
                            r"--snapshot-every: expected a finite number of hours > 0, got -3"),
         "snapshot_every_inf": (["--snapshot-every", "inf"], r"--snapshot-every: expected a finite number of hours > 0"),
         "growth_dt": (["--growth-dt", "-1"], r"--growth-dt: expected a finite number of hours > 0, got -1"),
-        "max_halvings": (["--max-halvings", "40"], r"--max-halvings: must be an integer in \[0, 12\], got 40"),
+        "max_halvings": (["--max-halvings", "40"], r"--max-halvings: expected an integer in \[0, 12\], got 40"),
         "geometry": (["--geometries", "biceps"], r"--geometries: unknown biceps"),
         "geometry_empty": (["--geometries", ""], r"--geometries: unknown"),
         "plot_geometry": (["--plot-geometry", "nowhere"], r"--plot-geometry nowhere: not one of --geometries"),
@@ -113,7 +113,7 @@ JOBS = {
     "ensemble": (["--geometry", "cylinder", "--protocol", "mwf", "--output", "{out}"], "ensemble", {
         **{f"protocol_{k}": v for k, v in PROTOCOL_CASES.items()},
         **FOLDER_OUTPUT,
-        **integer_cases("--samples", 1),
+        **integer_cases("--samples", 1, 100_000),
         **integer_cases("--first-seed", 0, 2**32 - 1),
         **integer_cases("--ranks-per-job", 1),
         "epsilon": (["--epsilon", "1.5"], r"epsilon"),

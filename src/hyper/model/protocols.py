@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper.core.params import InputError, as_float, read_toml
+from hyper.core.params import InputError, as_float, finite, read_toml, shown
 
 NAMES = ("mwf", "weekly", "every3days", "daily15", "rest")
 
@@ -61,8 +61,8 @@ class Protocol:
             where = f"session {i}"
             for field in ("start", "duration", "intensity"):
                 value = getattr(s, field)
-                if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-                    raise InputError(f"{where}: {field} must be a finite number, got {value!r}")
+                if isinstance(value, bool) or not isinstance(value, numbers.Real) or not finite(value):
+                    raise InputError(f"{where}: {field} must be a finite number, got {shown(value)}")
             if s.start < 0:
                 raise InputError(f"{where}: start must be >= 0 h, got {s.start:g}")
             if s.duration <= 0:
@@ -87,8 +87,8 @@ class Protocol:
             tuple(Session(float(s.start), float(s.duration), float(s.intensity)) for s in self.sessions)
         )
         end = self.end
-        if isinstance(end, bool) or not isinstance(end, numbers.Real) or not math.isfinite(end) or end <= 0:
-            raise InputError(f"end must be a finite number > 0 h, got {end!r}")
+        if isinstance(end, bool) or not isinstance(end, numbers.Real) or not finite(end) or end <= 0:
+            raise InputError(f"end must be a finite number > 0 h, got {shown(end)}")
         if end > MAX_END:
             raise InputError(f"end must be at most {MAX_END:g} h (ten years), got {end:g}")
         if self.sessions and end < self.sessions[-1].end:
