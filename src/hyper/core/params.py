@@ -155,6 +155,8 @@ def float_text(text: str, where: str, least: float | None = None, most: float | 
         value = float(text)
     except ValueError:
         raise InputError(f"expected a number, got {shown(text)}", field=where) from None
+    if not finite(value):  # "1e400" parses as inf: show what was typed
+        raise InputError(f"expected a finite number, got {shown(text)}", field=where)
     return as_float(value, where, least, most, above=above, below=below)
 
 
