@@ -146,6 +146,13 @@ def read_config(path) -> dict:
         raise InputError(f"{where}: num_vars: {data['num_vars']} does not count names ({len(data.get('names', ()))})")
     if "bounds" in data and "names" not in data:
         raise InputError(f"{where}: bounds: give the names they belong to")
+    if "names" in data or "bounds" in data:
+        # checked here, against the file's function (the widest set, csa-gain's, where the
+        # file names none: --function may choose it), not only when the analysis starts
+        try:
+            design(data.get("function", "csa-gain"), data.get("names"), data.get("bounds"))
+        except InputError as err:
+            raise InputError(f"{where}: {err}") from None
     text = data.get("protocol")
     if text is not None and text not in (*protocols.NAMES, "all") and not Path(text).is_absolute():
         data["protocol"] = str(Path(path).parent / data["protocol"])  # a file beside the config
