@@ -30,6 +30,48 @@ PROTOCOL_FILES = {
     "long_end.toml": "end = 1e15\n",
     "huge_duration.toml": "end = 48.0\n[[session]]\nstart = 0.0\nduration = " + "9" * 401 + "\nintensity = 0.5\n",
 }
+HUGE = "1" + "0" * 400  # a TOML integer too large for a float
+STUDY = 'geometries = ["cylinder"]\nprotocols = ["mwf"]\n'
+REPEAT = STUDY.replace('protocols = ["mwf"]\n', "") + '[[protocol]]\nname = "r"\n[protocol.repeat]\n'
+STUDY_FILES = {  # name -> (text, the message); the study job's rows below
+    "growth_dt": (STUDY + f"[numerics]\ngrowth_dt = {HUGE}\n", r"numerics.growth_dt: expected a finite number of "
+                  r"hours > 0, got an integer of 401 digits"),
+    "signaling_dt": (STUDY + "[numerics]\nsignaling_dt = nan\n", r"numerics.signaling_dt: expected a finite number"),
+    "accuracy": (STUDY + f"[numerics]\naccuracy = {HUGE}\n", r"numerics.accuracy: .* got an integer of 401 digits"),
+    "max_halvings": (STUDY + f"[numerics]\nmax_halvings = {HUGE}\n", r"numerics.max_halvings: .*401 digits"),
+    "quadrature_degree": (STUDY + f"[numerics]\nquadrature_degree = -{HUGE}\n", r"quadrature_degree: .*401 digits"),
+    "snapshot_every": (STUDY + f"[output]\nsnapshot_every = {HUGE}\n", r"output.snapshot_every: .*401 digits"),
+    "signaling": (STUDY + f"[signaling]\nkM = {HUGE}\n", r"signaling: kM: expected a finite number, got an integer"),
+    "material": (STUDY + f"[material]\nsigma_act = -{HUGE}\n", r"material: sigma_act: expected a finite number"),
+    "epsilon": (STUDY + f"[heterogeneity]\nepsilon = {HUGE}\nseed = 1\n", r"epsilon must be a number in .*401 digits"),
+    "length": (STUDY + '[heterogeneity]\nmodel = "matern"\nlength = inf\nseed = 1\n', r"length must be a number"),
+    "seed_huge": (STUDY + f"[heterogeneity]\nseed = {HUGE}\n",
+                  r"heterogeneity: seed: expected an integer in \[0, 4294967295\], got an integer of 401 digits"),
+    "seed_past_32_bits": (STUDY + f"[heterogeneity]\nseed = {2**32}\n",
+                          r"seed: expected an integer in \[0, 4294967295\]"),
+    "seed_negative": (STUDY + "[heterogeneity]\nseed = -1\n",
+                      r"seed: expected an integer in \[0, 4294967295\], got -1"),
+    "seed_float": (STUDY + "[heterogeneity]\nseed = 1.5\n", r"seed: expected an integer, got 1.5"),
+    "too_long": (STUDY + "[numerics]\ngrowth_dt = " + "1" * 5000 + "\n", r"a number too long to read"),
+    "repeat_tiny_period": (REPEAT + "every_days = 1e-9\nduration = 1e-12\nintensity = 0.5\nweeks = 1\n",
+                           r"every_days: 7e\+09 sessions, more than 100000"),
+    "repeat_denormal_period": (REPEAT + "every_days = 5e-324\nduration = 1\nintensity = 0.5\nweeks = 1\n",
+                               r"every_days: inf sessions, more than 100000"),
+    "repeat_weeks": (REPEAT + f"every_days = 2\nduration = 1\nintensity = 0.5\nweeks = {HUGE}\n",
+                     r"weeks: expected an integer in \[1, 520\], got an integer of 401 digits"),
+    "repeat_lead_in": (REPEAT + 'weekdays = ["mon"]\nduration = 1\nintensity = 0.5\nweeks = 1\nlead_in_days = 1e308\n',
+                       r"lead_in_days: expected a number of days in \[0, 3633\]"),
+    "repeat_duration": (REPEAT + f"every_days = 2\nduration = {HUGE}\nintensity = 0.5\nweeks = 1\n",
+                        r"duration: expected a finite number, got an integer of 401 digits"),
+    "sobol_names": (STUDY + '[sobol]\nnames = ["bogus"]\n',
+                    r"sobol: names: expected distinct parameters of .* got bogus"),
+    "sobol_names_of_ishigami": (STUDY + '[sobol]\nfunction = "ishigami"\nnames = ["kM"]\n',
+                                r"sobol: names: the Ishigami function has its own three parameters"),
+    "sobol_bounds": (STUDY + f'[sobol]\nnames = ["kM"]\nbounds = [[0, {HUGE}]]\n', r"sobol: bounds: expected a finite"),
+    "sobol_at": (STUDY + f"[sobol]\nat = {HUGE}\n", r"sobol: at: expected a finite number of hours > 0"),
+    "sobol_num_vars": (STUDY + f'[sobol]\nnames = ["kM"]\nnum_vars = {HUGE}\n',
+                       r"sobol: num_vars: expected an integer"),
+}
 PROTOCOL_CASES = {
     "unknown": (["{p}", "daily"], r"unknown protocol 'daily'"),
     "absent_file": (["{p}", "{d}/absent.toml"], r"absent.toml: no such file"),
@@ -145,12 +187,50 @@ JOBS = {
         "unknown_option": (["--bogus"], r"unrecognized arguments: --bogus"),
     }),
     "demo": (["--output", "{out}"], "demo", {**FOLDER_OUTPUT, "unknown_option": (["--bogus"], r"--bogus")}),
+    # the study file is a row's first option, so the shared --output rows run without one
+    "study": (["--output", "{out}"], "study", {
+        **{f"file_{k}": ([f"{{d}}/study_{k}.toml"], message) for k, (_, message) in STUDY_FILES.items()},
+        **FOLDER_OUTPUT,
+        "growth_dt_overflow": (["{d}/study_good.toml", "--growth-dt", "1e400"],
+                               r"argument --growth-dt: expected a finite number of hours > 0, got inf"),
+        "accuracy_nan": (["{d}/study_good.toml", "--accuracy", "nan"], r"argument --accuracy: expected a finite"),
+        **{k: (["{d}/study_good.toml", *v[0]], v[1]) for k, v in integer_cases("--max-halvings", 0, 12).items()},
+        **{k: (["{d}/study_good.toml", *v[0]], v[1]) for k, v in integer_cases("--quadrature-degree", 1, 12).items()},
+    }),
+    "dose": (["--output", "{out}"], "dose", {
+        **FOLDER_OUTPUT,
+        **integer_cases("--seed", 0, 2**32 - 1),
+        **integer_cases("--checks", 0, 1000),
+        "seed_past_32_bits": (["--seed", str(2**32)], r"argument --seed: expected an integer in \[0, 4294967295\]"),
+        "budget_zero": (["--budgets", "1", "0"], r"argument --budgets: expected a finite number of hours > 0, got 0"),
+        "budget_inf": (["--budgets", "inf"], r"argument --budgets: expected a finite number of hours > 0"),
+        "accuracy_text": (["--accuracy", "tight"], r"argument --accuracy: expected a number, got 'tight'"),
+    }),
+}
+# jobs whose --output is not checked where it is parsed: only their own rows
+OWN_ROWS_ONLY = {
+    "mesh": (["{d}/absent.stl", "--output", "{out}"], {
+        "origin_toward_zero": (["--origin-toward", "0", "0", "0"],
+                               r"argument --origin-toward: expected a nonzero direction, got 0 0 0"),
+        "origin_toward_nan": (["--origin-toward", "nan", "nan", "nan"],
+                              r"argument --origin-toward: expected a finite number, got 'nan'"),
+        "axis_inf": (["--axis", "inf", "0", "0"], r"argument --axis: expected a finite number, got 'inf'"),
+        "axis_overflow": (["--axis", "1e400", "0", "0"], r"argument --axis: expected a finite number, got '1e400'"),
+        "axis_text": (["--axis", "x", "0", "0"], r"argument --axis: expected a number, got 'x'"),
+        "axis_two": (["--axis", "1", "0"], r"argument --axis: expected 3 arguments"),
+        "end_band_half": (["--end-band", "0.5"], r"argument --end-band: expected a number in \(0, 0.5\), got 0.5"),
+        "end_band_nan": (["--end-band", "nan"], r"argument --end-band: expected a finite number, got 'nan'"),
+        **integer_cases("--cells", 200, 2_000_000),
+    }),
 }
 
 
 def cases():
     for job, (_, _, own) in JOBS.items():
         for key, (options, message) in {**OUTPUT_CASES, **own}.items():
+            yield pytest.param(job, options, message, id=f"{job}-{key}")
+    for job, (_, own) in OWN_ROWS_ONLY.items():
+        for key, (options, message) in own.items():
             yield pytest.param(job, options, message, id=f"{job}-{key}")
 
 
@@ -160,13 +240,16 @@ def inputs(tmp_path_factory):
     for name, text in PROTOCOL_FILES.items():
         (d / name).write_text(text)
     (d / "huge_params.toml").write_text("kM = " + "1" * 401 + "\n")
+    for name, (text, _) in STUDY_FILES.items():
+        (d / f"study_{name}.toml").write_text(text)
+    (d / "study_good.toml").write_text(STUDY)
     (d / "a_file").write_text("not a folder\n")
     (d / "a_folder.toml").mkdir()
     return d
 
 
 def command(job, options, inputs, out):
-    base, name, _ = JOBS[job]
+    base, name, _ = JOBS[job] if job in JOBS else (*OWN_ROWS_ONLY[job][:1], None, None)
     fill = {"d": inputs, "out": out, "o": name, "p": "--protocol"}
     return [job, *(o.format(**fill) for o in base), *(o.format(**fill) for o in options)]
 
