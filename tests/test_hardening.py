@@ -8,7 +8,9 @@ leaves a rank waiting fails the test instead of hanging it.
 
 from __future__ import annotations
 
+import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -261,8 +263,6 @@ def listing(folder: Path):
 @pytest.mark.parametrize("job, options, message", list(cases()))
 def test_every_job_refuses_bad_input_in_one_line_and_writes_nothing(inputs, tmp_path, capsys, job, options,
                                                                      message):
-    import re
-
     out = tmp_path / "out"
     before = listing(inputs)
     assert cli.main(command(job, options, inputs, out)) == cli.EXIT_INPUT
@@ -381,3 +381,202 @@ def test_a_term_stops_a_sobol_job_with_its_chunks_kept(tmp_path):
         job.kill()
     assert rc == cli.EXIT_TERMINATED, stderr
     assert 1 <= len(list(chunks.glob("*/*.npz"))) < 60
+
+
+# ------------------------------------------------------------------ the mechanisms
+# One reader per class of input (hyper.core.params), tested as such; the table above shows
+# that the jobs use them, the properties below that they hold for any malformed value.
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from hyper.core.params import InputError, as_float, as_int, as_seed, as_vector, float_text, int_text  # noqa: E402
+
+
+def test_the_numeric_reader_refuses_what_a_float64_or_int64_cannot_hold_and_names_the_key():
+    assert as_float(3, "k") == 3.0 and type(as_float(3, "k")) is float
+    assert as_float(0.5, "k", least=0, most=1) == 0.5
+    for value, message in [(10**400, "k: expected a finite number, got an integer of 401 digits"),
+                           (math.nan, "k: expected a finite number, got nan"), (-math.inf, "got -inf"),
+                           ("1", "k: expected a number, got '1'"), (True, "k: expected a number, got True"),
+                           (None, "expected a number, got None")]:
+        with pytest.raises(InputError, match=re.escape(message)):
+            as_float(value, "k")
+    for kw, message in [({"least": 0}, ">= 0"), ({"above": 0}, "> 0"), ({"least": 0, "below": 1}, "in [0, 1)"),
+                        ({"most": -2}, "<= -2")]:
+        with pytest.raises(InputError, match=re.escape(f"k: expected a number {message}, got -1")):
+            as_float(-1, "k", **kw)
+    assert as_int(2**63 - 1, "n") == 2**63 - 1
+    for value, message in [(2**63, "fits in 64 bits"), (-(2**63) - 1, "fits in 64 bits"), (2.0, "integer, got 2.0"),
+                           (False, "integer, got False"), ("3", "integer, got '3'")]:
+        with pytest.raises(InputError, match=re.escape(message)):
+            as_int(value, "n")
+    with pytest.raises(InputError, match=re.escape("n: expected an integer in [1, 12], got 13")):
+        as_int(13, "n", 1, 12)
+    # the field a message names is where the number was given, so build() can name the option
+    with pytest.raises(InputError) as err:
+        as_float(math.inf, "growth_dt")
+    assert err.value.field == "growth_dt"
+
+
+def test_a_seed_is_an_integer_that_numpy_salib_and_hdf5_all_take():
+    assert as_seed(0, "seed") == 0 and as_seed(2**32 - 1, "seed") == 2**32 - 1
+    for bad in (-1, 2**32, 10**400, 1.0, "1"):
+        with pytest.raises(InputError, match="seed: expected an integer"):
+            as_seed(bad, "seed")
+
+
+def test_option_text_is_read_by_the_same_reader():
+    assert float_text("1e-3", "--x") == 1e-3 and int_text("-7", "--n") == -7
+    for text, message in [("1e400", "expected a finite number, got '1e400'"), ("nan", "finite"),
+                          ("fast", "expected a number, got 'fast'"), ("9" * 5000, "(5002 characters)")]:
+        with pytest.raises(InputError, match=re.escape(message)):
+            float_text(text, "--x")
+    for text in ("2.5", "1e3", "1" * 5000, "", "0x10"):
+        with pytest.raises(InputError, match="expected an integer"):
+            int_text(text, "--n")
+    with pytest.raises(InputError, match="expected an integer that fits in 64 bits"):
+        int_text(str(2**64), "--n")
+
+
+def test_the_vector_reader_gives_a_unit_direction_or_refuses():
+    assert as_vector([0, 0, 2], "--axis") == (0.0, 0.0, 1.0)
+    assert as_vector([3, 4, 0], "--axis") == pytest.approx((0.6, 0.8, 0.0), abs=1e-16)
+    assert as_vector([1e300, 1e300, 0], "--axis") == pytest.approx((2**-0.5, 2**-0.5, 0.0))  # no overflow
+    assert as_vector([5e-324, 0, 0], "--axis") == (1.0, 0.0, 0.0)  # no underflow
+    for bad, message in [([0, 0, 0], "nonzero direction"), ([math.nan, 0, 0], "finite"), ([math.inf, 0, 0], "finite"),
+                         ([1, 0], "3 components"), ([1, 0, 0, 0], "3 components"), (["x", 0, 0], "a number")]:
+        with pytest.raises(InputError, match=message):
+            as_vector(bad, "--axis")
+
+
+def test_a_repeat_rule_counts_its_sessions_before_it_builds_them(monkeypatch):
+    from hyper.model import protocols
+
+    for rule in (protocols.Repeat(1.0, 0.5, 3, every_days=2.5, lead_in_days=1.5),
+                 protocols.Repeat(1.0, 0.5, 2, weekdays=("mon", "thu")), protocols.Repeat(1.0, 0.5, 1, every_days=7)):
+        assert rule.count() == len(rule.protocol("r").sessions)
+    built = []
+    monkeypatch.setattr(protocols, "Session", lambda *a: built.append(a))  # nothing may be built
+    with pytest.raises(InputError, match="sessions, more than 100000"):
+        protocols.Repeat(1e-12, 0.5, 520, every_days=1e-9)
+    assert built == []
+
+
+def test_a_sobol_file_s_names_are_checked_where_it_is_read(tmp_path):
+    from hyper.analysis import sobol
+
+    path = tmp_path / "p.toml"
+    for text, message in [('names = ["bogus"]\n', "names: expected distinct parameters"),
+                          ('function = "signaling"\nnames = ["hill_n"]\n', "got hill_n"),
+                          ('names = ["kM", "kM"]\n', "expected distinct"),
+                          ('names = ["kM"]\nbounds = [[2, 1]]\n', "bounds: kM: expected 0 < lower < upper")]:
+        path.write_text(text)
+        with pytest.raises(InputError, match=message):
+            sobol.read_config(path)
+    path.write_text('names = ["kM", "hill_n"]\n')  # no function: --function csa-gain may still choose it
+    assert sobol.read_config(path)["names"] == ["kM", "hill_n"]
+
+
+# Property-based: any malformed value of any numeric key or option is refused as bad input.
+# Parse-level only (no job gets as far as its work); derandomized, so every run draws alike.
+PROPERTY = settings(max_examples=30, derandomize=True, deadline=None,
+                    suppress_health_check=[HealthCheck.function_scoped_fixture])
+HUGE_INTS = st.one_of(st.integers(min_value=2**1100, max_value=2**1300), st.integers(max_value=-(2**1100)))
+NOT_NUMBERS = st.one_of(st.text(max_size=8).filter(lambda t: not _parses(t)), st.booleans(), st.just([1.0]))
+NON_FINITE = st.sampled_from([math.nan, math.inf, -math.inf])
+NEGATIVE = st.one_of(st.integers(max_value=-1), st.floats(max_value=-1e-9, allow_nan=False, allow_infinity=False))
+
+
+def _parses(text):
+    try:
+        float(text)
+        return True
+    except ValueError:
+        return False
+
+
+def toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float) and not math.isfinite(value):
+        return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
+    if isinstance(value, str):
+        return '"' + "".join(c if c.isalnum() or c in " .-_" else "" for c in value) + '"'
+    return repr(value) if isinstance(value, float) else str(value) if isinstance(value, int) else "[1.0]"
+
+
+# (the section's text before the key, the key, whether a negative value is bad too)
+STUDY_KEYS = [
+    ("[numerics]", "growth_dt", True), ("[numerics]", "signaling_dt", True), ("[numerics]", "accuracy", True),
+    ("[numerics]", "max_halvings", True), ("[numerics]", "quadrature_degree", True),
+    ("[output]", "snapshot_every", True), ("[signaling]", "a10", True), ("[material]", "c1", True),
+    ("[heterogeneity]\nseed = 1", "epsilon", True), ("[heterogeneity]", "seed", True),
+    ('[heterogeneity]\nmodel = "matern"\nseed = 1', "length", True),
+    ("[sobol]", "at", True), ("[sobol]", "samples", True), ('[sobol]\nnames = ["kM"]', "num_vars", True),
+    ('[[protocol]]\nname = "r"\n[protocol.repeat]\nduration = 1\nintensity = 0.5\nweeks = 1', "every_days", True),
+    ('[[protocol]]\nname = "r"\n[protocol.repeat]\nevery_days = 2\nintensity = 0.5\nweeks = 1', "duration", True),
+    ('[[protocol]]\nname = "r"\n[protocol.repeat]\nevery_days = 2\nduration = 1\nintensity = 0.5', "weeks", True),
+    ('[[protocol]]\nname = "r"\n[protocol.repeat]\nweekdays = ["mon"]\nduration = 1\nintensity = 0.5\nweeks = 1',
+     "lead_in_days", True),
+]
+
+
+def refused(capsys, argv, out):
+    """The job's answer to ``argv`` is bad input: exit 2, one error line, nothing else, nothing written."""
+    code = cli.main(argv)
+    captured = capsys.readouterr()
+    lines = [line for line in captured.err.splitlines() if line.strip()]
+    assert code == cli.EXIT_INPUT and len(lines) == 1 and lines[0].startswith("error: "), (argv, captured.err)
+    assert captured.out == "" and not out.exists(), argv
+
+
+@PROPERTY
+@given(where=st.sampled_from(STUDY_KEYS), data=st.data())
+def test_any_malformed_number_in_a_study_file_is_refused(tmp_path, capsys, where, data):
+    section, key, positive = where
+    bad = data.draw(st.one_of(HUGE_INTS, NOT_NUMBERS, NON_FINITE, *([NEGATIVE] if positive else [])))
+    base = 'geometries = ["cylinder"]\n' + ("" if section.startswith("[[protocol]]") else 'protocols = ["mwf"]\n')
+    path = tmp_path / "s.toml"
+    path.write_text(f"{base}{section}\n{key} = {toml_value(bad)}\n")
+    refused(capsys, ["study", str(path), "--output", str(tmp_path / "out")], tmp_path / "out")
+
+
+# (job, its command, the option, whether a negative value is bad too); {out} its output
+OPTIONS = [
+    *[("study", ["{study}"], o, True) for o in ("--growth-dt", "--signaling-dt", "--accuracy", "--max-halvings",
+                                                "--snapshot-every", "--quadrature-degree")],
+    *[("signaling", ["--protocol", "mwf"], o, True) for o in ("--signaling-dt", "--sample-every")],
+    *[("sobol", [], o, True) for o in ("--samples", "--at", "--seed", "--chunk", "--resamples", "--signaling-dt")],
+    *[("ensemble", ["--geometry", "cylinder"], o, True) for o in ("--epsilon", "--samples", "--first-seed", "--nu",
+                                                                  "--growth-dt")],
+    *[("cohort", ["--geometries", "cylinder"], o, True) for o in ("--growth-dt", "--max-halvings")],
+    ("dose", [], "--seed", True), ("dose", [], "--accuracy", False), ("dose", [], "--budgets", True),
+    ("contraction", ["--geometry", "cylinder"], "--steps", True),
+    ("mesh", ["{surface}"], "--end-band", True), ("mesh", ["{surface}"], "--cells", True),
+]
+
+
+@PROPERTY
+@given(where=st.sampled_from(OPTIONS), data=st.data())
+def test_any_malformed_number_in_an_option_is_refused(tmp_path, capsys, where, data):
+    job, base, option, positive = where
+    bad = data.draw(st.one_of(HUGE_INTS.map(str), st.sampled_from(["nan", "inf", "-inf", "1e400", "-1e400"]),
+                              st.text(max_size=8).filter(lambda t: not _parses(t) and not t.startswith("-")),
+                              *([NEGATIVE.map(str)] if positive else [])))
+    study = tmp_path / "s.toml"
+    study.write_text('geometries = ["cylinder"]\nprotocols = ["mwf"]\n')
+    out = tmp_path / "out"
+    fill = {"study": str(study), "surface": str(tmp_path / "absent.stl")}
+    argv = [job, *(a.format(**fill) for a in base), "--output", str(out if job != "contraction" else out / "c.h5")]
+    refused(capsys, [*argv, f"{option}={bad}"], out)
+
+
+@PROPERTY
+@given(components=st.lists(st.one_of(st.sampled_from(["nan", "inf", "-inf", "1e400", "x", ""]),
+                                     st.just("0")), min_size=3, max_size=3))
+def test_any_malformed_direction_is_refused(tmp_path, capsys, components):
+    """Each component is not a finite number, or all three are zero."""
+    out = tmp_path / "out"
+    for option in ("--axis", "--origin-toward"):
+        refused(capsys, ["mesh", str(tmp_path / "absent.stl"), "--output", str(out), option, *components], out)
