@@ -8,7 +8,9 @@ leaves a rank waiting fails the test instead of hanging it.
 
 from __future__ import annotations
 
+import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -29,6 +31,48 @@ PROTOCOL_FILES = {
     "huge_end.toml": "end = " + "9" * 401 + "\n",
     "long_end.toml": "end = 1e15\n",
     "huge_duration.toml": "end = 48.0\n[[session]]\nstart = 0.0\nduration = " + "9" * 401 + "\nintensity = 0.5\n",
+}
+HUGE = "1" + "0" * 400  # a TOML integer too large for a float
+STUDY = 'geometries = ["cylinder"]\nprotocols = ["mwf"]\n'
+REPEAT = STUDY.replace('protocols = ["mwf"]\n', "") + '[[protocol]]\nname = "r"\n[protocol.repeat]\n'
+STUDY_FILES = {  # name -> (text, the message); the study job's rows below
+    "growth_dt": (STUDY + f"[numerics]\ngrowth_dt = {HUGE}\n", r"numerics.growth_dt: expected a finite number of "
+                  r"hours > 0, got an integer of 401 digits"),
+    "signaling_dt": (STUDY + "[numerics]\nsignaling_dt = nan\n", r"numerics.signaling_dt: expected a finite number"),
+    "accuracy": (STUDY + f"[numerics]\naccuracy = {HUGE}\n", r"numerics.accuracy: .* got an integer of 401 digits"),
+    "max_halvings": (STUDY + f"[numerics]\nmax_halvings = {HUGE}\n", r"numerics.max_halvings: .*401 digits"),
+    "quadrature_degree": (STUDY + f"[numerics]\nquadrature_degree = -{HUGE}\n", r"quadrature_degree: .*401 digits"),
+    "snapshot_every": (STUDY + f"[output]\nsnapshot_every = {HUGE}\n", r"output.snapshot_every: .*401 digits"),
+    "signaling": (STUDY + f"[signaling]\nkM = {HUGE}\n", r"signaling: kM: expected a finite number, got an integer"),
+    "material": (STUDY + f"[material]\nsigma_act = -{HUGE}\n", r"material: sigma_act: expected a finite number"),
+    "epsilon": (STUDY + f"[heterogeneity]\nepsilon = {HUGE}\nseed = 1\n", r"epsilon must be a number in .*401 digits"),
+    "length": (STUDY + '[heterogeneity]\nmodel = "matern"\nlength = inf\nseed = 1\n', r"length must be a number"),
+    "seed_huge": (STUDY + f"[heterogeneity]\nseed = {HUGE}\n",
+                  r"heterogeneity: seed: expected an integer in \[0, 4294967295\], got an integer of 401 digits"),
+    "seed_past_32_bits": (STUDY + f"[heterogeneity]\nseed = {2**32}\n",
+                          r"seed: expected an integer in \[0, 4294967295\]"),
+    "seed_negative": (STUDY + "[heterogeneity]\nseed = -1\n",
+                      r"seed: expected an integer in \[0, 4294967295\], got -1"),
+    "seed_float": (STUDY + "[heterogeneity]\nseed = 1.5\n", r"seed: expected an integer, got 1.5"),
+    "too_long": (STUDY + "[numerics]\ngrowth_dt = " + "1" * 5000 + "\n", r"a number too long to read"),
+    "repeat_tiny_period": (REPEAT + "every_days = 1e-9\nduration = 1e-12\nintensity = 0.5\nweeks = 1\n",
+                           r"every_days: 7e\+09 sessions, more than 100000"),
+    "repeat_denormal_period": (REPEAT + "every_days = 5e-324\nduration = 1\nintensity = 0.5\nweeks = 1\n",
+                               r"every_days: inf sessions, more than 100000"),
+    "repeat_weeks": (REPEAT + f"every_days = 2\nduration = 1\nintensity = 0.5\nweeks = {HUGE}\n",
+                     r"weeks: expected an integer in \[1, 520\], got an integer of 401 digits"),
+    "repeat_lead_in": (REPEAT + 'weekdays = ["mon"]\nduration = 1\nintensity = 0.5\nweeks = 1\nlead_in_days = 1e308\n',
+                       r"lead_in_days: expected a number of days in \[0, 3633\]"),
+    "repeat_duration": (REPEAT + f"every_days = 2\nduration = {HUGE}\nintensity = 0.5\nweeks = 1\n",
+                        r"duration: expected a finite number, got an integer of 401 digits"),
+    "sobol_names": (STUDY + '[sobol]\nnames = ["bogus"]\n',
+                    r"sobol: names: expected distinct parameters of .* got bogus"),
+    "sobol_names_of_ishigami": (STUDY + '[sobol]\nfunction = "ishigami"\nnames = ["kM"]\n',
+                                r"sobol: names: the Ishigami function has its own three parameters"),
+    "sobol_bounds": (STUDY + f'[sobol]\nnames = ["kM"]\nbounds = [[0, {HUGE}]]\n', r"sobol: bounds: expected a finite"),
+    "sobol_at": (STUDY + f"[sobol]\nat = {HUGE}\n", r"sobol: at: expected a finite number of hours > 0"),
+    "sobol_num_vars": (STUDY + f'[sobol]\nnames = ["kM"]\nnum_vars = {HUGE}\n',
+                       r"sobol: num_vars: expected an integer"),
 }
 PROTOCOL_CASES = {
     "unknown": (["{p}", "daily"], r"unknown protocol 'daily'"),
@@ -54,7 +98,7 @@ STEP_CASES = {
     "zero": (["--signaling-dt", "0"], r"--signaling-dt: expected a finite number of hours > 0, got 0"),
     "nan": (["--signaling-dt", "nan"], r"--signaling-dt: expected a finite number of hours > 0, got nan"),
     "tiny": (["--signaling-dt", "1e-300"], r"--signaling-dt: expected at least 0.0001 h, got 1e-300"),
-    "text": (["--signaling-dt", "fast"], r"argument --signaling-dt: invalid float value: 'fast'"),
+    "text": (["--signaling-dt", "fast"], r"argument --signaling-dt: expected a number of hours, got 'fast'"),
 }
 
 
@@ -104,7 +148,7 @@ JOBS = {
                            r"--snapshot-every: expected a finite number of hours > 0, got -3"),
         "snapshot_every_inf": (["--snapshot-every", "inf"], r"--snapshot-every: expected a finite number of hours > 0"),
         "growth_dt": (["--growth-dt", "-1"], r"--growth-dt: expected a finite number of hours > 0, got -1"),
-        "max_halvings": (["--max-halvings", "40"], r"--max-halvings: must be an integer in \[0, 12\], got 40"),
+        "max_halvings": (["--max-halvings", "40"], r"--max-halvings: expected an integer in \[0, 12\], got 40"),
         "geometry": (["--geometries", "biceps"], r"--geometries: unknown biceps"),
         "geometry_empty": (["--geometries", ""], r"--geometries: unknown"),
         "plot_geometry": (["--plot-geometry", "nowhere"], r"--plot-geometry nowhere: not one of --geometries"),
@@ -113,7 +157,7 @@ JOBS = {
     "ensemble": (["--geometry", "cylinder", "--protocol", "mwf", "--output", "{out}"], "ensemble", {
         **{f"protocol_{k}": v for k, v in PROTOCOL_CASES.items()},
         **FOLDER_OUTPUT,
-        **integer_cases("--samples", 1),
+        **integer_cases("--samples", 1, 100_000),
         **integer_cases("--first-seed", 0, 2**32 - 1),
         **integer_cases("--ranks-per-job", 1),
         "epsilon": (["--epsilon", "1.5"], r"epsilon"),
@@ -145,6 +189,16 @@ JOBS = {
         "unknown_option": (["--bogus"], r"unrecognized arguments: --bogus"),
     }),
     "demo": (["--output", "{out}"], "demo", {**FOLDER_OUTPUT, "unknown_option": (["--bogus"], r"--bogus")}),
+    # the study file is a row's first option, so the shared --output rows run without one
+    "study": (["--output", "{out}"], "study", {
+        **{f"file_{k}": ([f"{{d}}/study_{k}.toml"], message) for k, (_, message) in STUDY_FILES.items()},
+        **FOLDER_OUTPUT,
+        "growth_dt_overflow": (["{d}/study_good.toml", "--growth-dt", "1e400"],
+                               r"argument --growth-dt: expected a finite number of hours > 0, got inf"),
+        "accuracy_nan": (["{d}/study_good.toml", "--accuracy", "nan"], r"argument --accuracy: expected a finite"),
+        **{k: (["{d}/study_good.toml", *v[0]], v[1]) for k, v in integer_cases("--max-halvings", 0, 12).items()},
+        **{k: (["{d}/study_good.toml", *v[0]], v[1]) for k, v in integer_cases("--quadrature-degree", 1, 12).items()},
+    }),
     "calibrate": (["--data", str(ROOT / "data" / "defreitas.csv"), "--protocol", "mwf", "--fit", "kM", "--no-check",
                    "--output", "{out}"], "calibration", {
         **FOLDER_OUTPUT,
@@ -153,7 +207,12 @@ JOBS = {
     }),
     "dose": (["--output", "{out}"], "dose", {
         **FOLDER_OUTPUT,
-        "budget": (["--budgets", "0"], r"--budgets: every budget must be > 0"),
+        **integer_cases("--seed", 0, 2**32 - 1),
+        **integer_cases("--checks", 0, 1000),
+        "seed_past_32_bits": (["--seed", str(2**32)], r"argument --seed: expected an integer in \[0, 4294967295\]"),
+        "budget_zero": (["--budgets", "1", "0"], r"argument --budgets: expected a finite number of hours > 0, got 0"),
+        "budget_inf": (["--budgets", "inf"], r"argument --budgets: expected a finite number of hours > 0"),
+        "accuracy_text": (["--accuracy", "tight"], r"argument --accuracy: expected a number, got 'tight'"),
     }),
     "box": (["{d}/R.h5", "--output", "{out}/box.h5"], "box.h5", {
         "output_is_the_result": (["--output", "{d}/R.h5"], r"R.h5: is an input of this job \(.*R.h5\)"),
@@ -165,6 +224,17 @@ JOBS = {
                                    r"surface: holds an input of this job .*replacing the folder would delete it"),
         "force_over_a_file": (["--output", "{d}/a_file", "--force"], r"a_file: exists and is not a folder"),
         "output_is_the_surface": (["--output", "{d}/surface/s.stl", "--force"], r"s.stl: exists and is not a folder"),
+        "origin_toward_zero": (["--origin-toward", "0", "0", "0"],
+                               r"argument --origin-toward: expected a nonzero direction, got 0 0 0"),
+        "origin_toward_nan": (["--origin-toward", "nan", "nan", "nan"],
+                              r"argument --origin-toward: expected a finite number, got 'nan'"),
+        "axis_inf": (["--axis", "inf", "0", "0"], r"argument --axis: expected a finite number, got 'inf'"),
+        "axis_overflow": (["--axis", "1e400", "0", "0"], r"argument --axis: expected a finite number, got '1e400'"),
+        "axis_text": (["--axis", "x", "0", "0"], r"argument --axis: expected a number, got 'x'"),
+        "axis_two": (["--axis", "1", "0"], r"argument --axis: expected 3 arguments"),
+        "end_band_half": (["--end-band", "0.5"], r"argument --end-band: expected a number in \(0, 0.5\), got 0.5"),
+        "end_band_nan": (["--end-band", "nan"], r"argument --end-band: expected a finite number, got 'nan'"),
+        **integer_cases("--cells", 200, 2_000_000),
     }),
 }
 
@@ -181,6 +251,9 @@ def inputs(tmp_path_factory):
     for name, text in PROTOCOL_FILES.items():
         (d / name).write_text(text)
     (d / "huge_params.toml").write_text("kM = " + "1" * 401 + "\n")
+    for name, (text, _) in STUDY_FILES.items():
+        (d / f"study_{name}.toml").write_text(text)
+    (d / "study_good.toml").write_text(STUDY)
     (d / "a_file").write_text("not a folder\n")
     (d / "a_folder.toml").mkdir()
     (d / "surface").mkdir()
@@ -203,8 +276,6 @@ def listing(folder: Path):
 @pytest.mark.parametrize("job, options, message", list(cases()))
 def test_every_job_refuses_bad_input_in_one_line_and_writes_nothing(inputs, tmp_path, capsys, job, options,
                                                                      message):
-    import re
-
     out = tmp_path / "out"
     before = listing(inputs)
     assert cli.main(command(job, options, inputs, out)) == cli.EXIT_INPUT
@@ -478,3 +549,202 @@ def test_a_term_stops_a_sobol_job_with_its_chunks_kept(tmp_path):
         job.kill()
     assert rc == cli.EXIT_TERMINATED, stderr
     assert 1 <= len(list(chunks.glob("*/*.npz"))) < 60
+
+
+# ------------------------------------------------------------------ the mechanisms
+# One reader per class of input (hyper.core.params), tested as such; the table above shows
+# that the jobs use them, the properties below that they hold for any malformed value.
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from hyper.core.params import InputError, as_float, as_int, as_seed, as_vector, float_text, int_text  # noqa: E402
+
+
+def test_the_numeric_reader_refuses_what_a_float64_or_int64_cannot_hold_and_names_the_key():
+    assert as_float(3, "k") == 3.0 and type(as_float(3, "k")) is float
+    assert as_float(0.5, "k", least=0, most=1) == 0.5
+    for value, message in [(10**400, "k: expected a finite number, got an integer of 401 digits"),
+                           (math.nan, "k: expected a finite number, got nan"), (-math.inf, "got -inf"),
+                           ("1", "k: expected a number, got '1'"), (True, "k: expected a number, got True"),
+                           (None, "expected a number, got None")]:
+        with pytest.raises(InputError, match=re.escape(message)):
+            as_float(value, "k")
+    for kw, message in [({"least": 0}, ">= 0"), ({"above": 0}, "> 0"), ({"least": 0, "below": 1}, "in [0, 1)"),
+                        ({"most": -2}, "<= -2")]:
+        with pytest.raises(InputError, match=re.escape(f"k: expected a number {message}, got -1")):
+            as_float(-1, "k", **kw)
+    assert as_int(2**63 - 1, "n") == 2**63 - 1
+    for value, message in [(2**63, "fits in 64 bits"), (-(2**63) - 1, "fits in 64 bits"), (2.0, "integer, got 2.0"),
+                           (False, "integer, got False"), ("3", "integer, got '3'")]:
+        with pytest.raises(InputError, match=re.escape(message)):
+            as_int(value, "n")
+    with pytest.raises(InputError, match=re.escape("n: expected an integer in [1, 12], got 13")):
+        as_int(13, "n", 1, 12)
+    # the field a message names is where the number was given, so build() can name the option
+    with pytest.raises(InputError) as err:
+        as_float(math.inf, "growth_dt")
+    assert err.value.field == "growth_dt"
+
+
+def test_a_seed_is_an_integer_that_numpy_salib_and_hdf5_all_take():
+    assert as_seed(0, "seed") == 0 and as_seed(2**32 - 1, "seed") == 2**32 - 1
+    for bad in (-1, 2**32, 10**400, 1.0, "1"):
+        with pytest.raises(InputError, match="seed: expected an integer"):
+            as_seed(bad, "seed")
+
+
+def test_option_text_is_read_by_the_same_reader():
+    assert float_text("1e-3", "--x") == 1e-3 and int_text("-7", "--n") == -7
+    for text, message in [("1e400", "expected a finite number, got '1e400'"), ("nan", "finite"),
+                          ("fast", "expected a number, got 'fast'"), ("9" * 5000, "(5002 characters)")]:
+        with pytest.raises(InputError, match=re.escape(message)):
+            float_text(text, "--x")
+    for text in ("2.5", "1e3", "1" * 5000, "", "0x10"):
+        with pytest.raises(InputError, match="expected an integer"):
+            int_text(text, "--n")
+    with pytest.raises(InputError, match="expected an integer that fits in 64 bits"):
+        int_text(str(2**64), "--n")
+
+
+def test_the_vector_reader_gives_a_unit_direction_or_refuses():
+    assert as_vector([0, 0, 2], "--axis") == (0.0, 0.0, 1.0)
+    assert as_vector([3, 4, 0], "--axis") == pytest.approx((0.6, 0.8, 0.0), abs=1e-16)
+    assert as_vector([1e300, 1e300, 0], "--axis") == pytest.approx((2**-0.5, 2**-0.5, 0.0))  # no overflow
+    assert as_vector([5e-324, 0, 0], "--axis") == (1.0, 0.0, 0.0)  # no underflow
+    for bad, message in [([0, 0, 0], "nonzero direction"), ([math.nan, 0, 0], "finite"), ([math.inf, 0, 0], "finite"),
+                         ([1, 0], "3 components"), ([1, 0, 0, 0], "3 components"), (["x", 0, 0], "a number")]:
+        with pytest.raises(InputError, match=message):
+            as_vector(bad, "--axis")
+
+
+def test_a_repeat_rule_counts_its_sessions_before_it_builds_them(monkeypatch):
+    from hyper.model import protocols
+
+    for rule in (protocols.Repeat(1.0, 0.5, 3, every_days=2.5, lead_in_days=1.5),
+                 protocols.Repeat(1.0, 0.5, 2, weekdays=("mon", "thu")), protocols.Repeat(1.0, 0.5, 1, every_days=7)):
+        assert rule.count() == len(rule.protocol("r").sessions)
+    built = []
+    monkeypatch.setattr(protocols, "Session", lambda *a: built.append(a))  # nothing may be built
+    with pytest.raises(InputError, match="sessions, more than 100000"):
+        protocols.Repeat(1e-12, 0.5, 520, every_days=1e-9)
+    assert built == []
+
+
+def test_a_sobol_file_s_names_are_checked_where_it_is_read(tmp_path):
+    from hyper.analysis import sobol
+
+    path = tmp_path / "p.toml"
+    for text, message in [('names = ["bogus"]\n', "names: expected distinct parameters"),
+                          ('function = "signaling"\nnames = ["hill_n"]\n', "got hill_n"),
+                          ('names = ["kM", "kM"]\n', "expected distinct"),
+                          ('names = ["kM"]\nbounds = [[2, 1]]\n', "bounds: kM: expected 0 < lower < upper")]:
+        path.write_text(text)
+        with pytest.raises(InputError, match=message):
+            sobol.read_config(path)
+    path.write_text('names = ["kM", "hill_n"]\n')  # no function: --function csa-gain may still choose it
+    assert sobol.read_config(path)["names"] == ["kM", "hill_n"]
+
+
+# Property-based: any malformed value of any numeric key or option is refused as bad input.
+# Parse-level only (no job gets as far as its work); derandomized, so every run draws alike.
+PROPERTY = settings(max_examples=30, derandomize=True, deadline=None,
+                    suppress_health_check=[HealthCheck.function_scoped_fixture])
+HUGE_INTS = st.one_of(st.integers(min_value=2**1100, max_value=2**1300), st.integers(max_value=-(2**1100)))
+NOT_NUMBERS = st.one_of(st.text(max_size=8).filter(lambda t: not _parses(t)), st.booleans(), st.just([1.0]))
+NON_FINITE = st.sampled_from([math.nan, math.inf, -math.inf])
+NEGATIVE = st.one_of(st.integers(max_value=-1), st.floats(max_value=-1e-9, allow_nan=False, allow_infinity=False))
+
+
+def _parses(text):
+    try:
+        float(text)
+        return True
+    except ValueError:
+        return False
+
+
+def toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float) and not math.isfinite(value):
+        return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
+    if isinstance(value, str):
+        return '"' + "".join(c if c.isalnum() or c in " .-_" else "" for c in value) + '"'
+    return repr(value) if isinstance(value, float) else str(value) if isinstance(value, int) else "[1.0]"
+
+
+# (the section's text before the key, the key, whether a negative value is bad too)
+STUDY_KEYS = [
+    ("[numerics]", "growth_dt", True), ("[numerics]", "signaling_dt", True), ("[numerics]", "accuracy", True),
+    ("[numerics]", "max_halvings", True), ("[numerics]", "quadrature_degree", True),
+    ("[output]", "snapshot_every", True), ("[signaling]", "a10", True), ("[material]", "c1", True),
+    ("[heterogeneity]\nseed = 1", "epsilon", True), ("[heterogeneity]", "seed", True),
+    ('[heterogeneity]\nmodel = "matern"\nseed = 1', "length", True),
+    ("[sobol]", "at", True), ("[sobol]", "samples", True), ('[sobol]\nnames = ["kM"]', "num_vars", True),
+    ('[[protocol]]\nname = "r"\n[protocol.repeat]\nduration = 1\nintensity = 0.5\nweeks = 1', "every_days", True),
+    ('[[protocol]]\nname = "r"\n[protocol.repeat]\nevery_days = 2\nintensity = 0.5\nweeks = 1', "duration", True),
+    ('[[protocol]]\nname = "r"\n[protocol.repeat]\nevery_days = 2\nduration = 1\nintensity = 0.5', "weeks", True),
+    ('[[protocol]]\nname = "r"\n[protocol.repeat]\nweekdays = ["mon"]\nduration = 1\nintensity = 0.5\nweeks = 1',
+     "lead_in_days", True),
+]
+
+
+def refused(capsys, argv, out):
+    """The job's answer to ``argv`` is bad input: exit 2, one error line, nothing else, nothing written."""
+    code = cli.main(argv)
+    captured = capsys.readouterr()
+    lines = [line for line in captured.err.splitlines() if line.strip()]
+    assert code == cli.EXIT_INPUT and len(lines) == 1 and lines[0].startswith("error: "), (argv, captured.err)
+    assert captured.out == "" and not out.exists(), argv
+
+
+@PROPERTY
+@given(where=st.sampled_from(STUDY_KEYS), data=st.data())
+def test_any_malformed_number_in_a_study_file_is_refused(tmp_path, capsys, where, data):
+    section, key, positive = where
+    bad = data.draw(st.one_of(HUGE_INTS, NOT_NUMBERS, NON_FINITE, *([NEGATIVE] if positive else [])))
+    base = 'geometries = ["cylinder"]\n' + ("" if section.startswith("[[protocol]]") else 'protocols = ["mwf"]\n')
+    path = tmp_path / "s.toml"
+    path.write_text(f"{base}{section}\n{key} = {toml_value(bad)}\n")
+    refused(capsys, ["study", str(path), "--output", str(tmp_path / "out")], tmp_path / "out")
+
+
+# (job, its command, the option, whether a negative value is bad too); {out} its output
+OPTIONS = [
+    *[("study", ["{study}"], o, True) for o in ("--growth-dt", "--signaling-dt", "--accuracy", "--max-halvings",
+                                                "--snapshot-every", "--quadrature-degree")],
+    *[("signaling", ["--protocol", "mwf"], o, True) for o in ("--signaling-dt", "--sample-every")],
+    *[("sobol", [], o, True) for o in ("--samples", "--at", "--seed", "--chunk", "--resamples", "--signaling-dt")],
+    *[("ensemble", ["--geometry", "cylinder"], o, True) for o in ("--epsilon", "--samples", "--first-seed", "--nu",
+                                                                  "--growth-dt")],
+    *[("cohort", ["--geometries", "cylinder"], o, True) for o in ("--growth-dt", "--max-halvings")],
+    ("dose", [], "--seed", True), ("dose", [], "--accuracy", False), ("dose", [], "--budgets", True),
+    ("contraction", ["--geometry", "cylinder"], "--steps", True),
+    ("mesh", ["{surface}"], "--end-band", True), ("mesh", ["{surface}"], "--cells", True),
+]
+
+
+@PROPERTY
+@given(where=st.sampled_from(OPTIONS), data=st.data())
+def test_any_malformed_number_in_an_option_is_refused(tmp_path, capsys, where, data):
+    job, base, option, positive = where
+    bad = data.draw(st.one_of(HUGE_INTS.map(str), st.sampled_from(["nan", "inf", "-inf", "1e400", "-1e400"]),
+                              st.text(max_size=8).filter(lambda t: not _parses(t) and not t.startswith("-")),
+                              *([NEGATIVE.map(str)] if positive else [])))
+    study = tmp_path / "s.toml"
+    study.write_text('geometries = ["cylinder"]\nprotocols = ["mwf"]\n')
+    out = tmp_path / "out"
+    fill = {"study": str(study), "surface": str(tmp_path / "absent.stl")}
+    argv = [job, *(a.format(**fill) for a in base), "--output", str(out if job != "contraction" else out / "c.h5")]
+    refused(capsys, [*argv, f"{option}={bad}"], out)
+
+
+@PROPERTY
+@given(components=st.lists(st.one_of(st.sampled_from(["nan", "inf", "-inf", "1e400", "x", ""]),
+                                     st.just("0")), min_size=3, max_size=3))
+def test_any_malformed_direction_is_refused(tmp_path, capsys, components):
+    """Each component is not a finite number, or all three are zero."""
+    out = tmp_path / "out"
+    for option in ("--axis", "--origin-toward"):
+        refused(capsys, ["mesh", str(tmp_path / "absent.stl"), "--output", str(out), option, *components], out)

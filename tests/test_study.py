@@ -169,9 +169,12 @@ def test_command_line_options_override_the_file(tmp_path):
     assert s.output == study.Output(tmp_path / "b", False)
     # what the command line leaves out stays the file's
     assert study_job.from_args(study_job.parser().parse_args([str(path)])).numerics.growth_dt == 24.0
-    # a bad overriding value is named by its option
-    with pytest.raises(InputError, match=r"^--growth-dt: expected a finite number of hours > 0"):
-        study_job.from_args(study_job.parser().parse_args([str(path), "--growth-dt", "-1"]))
+    # a bad overriding value is named by its option: where the option reads it (a number of hours > 0) …
+    with pytest.raises(InputError, match=r"^argument --growth-dt: expected a finite number of hours > 0"):
+        study_job.parser().parse_args([str(path), "--growth-dt", "-1"])
+    # … or where the study checks it against the rest
+    with pytest.raises(InputError, match=r"^--signaling-dt: 0.5 h must not exceed the growth step \(0.1 h\)"):
+        study_job.from_args(study_job.parser().parse_args([str(path), "--growth-dt", "0.1", "--signaling-dt", "0.5"]))
 
 
 def test_shipped_studies_load():

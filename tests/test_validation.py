@@ -73,7 +73,7 @@ BAD_PARAMS = {
 BAD_OPTIONS = {
     "growth_dt_negative": (["--growth-dt", "-1"], r"--growth-dt: expected a finite number of hours > 0, got -1"),
     "growth_dt_nan": (["--growth-dt", "nan"], r"--growth-dt: expected a finite number of hours > 0, got nan"),
-    "growth_dt_text": (["--growth-dt", "1day"], r"argument --growth-dt: invalid float value: '1day'"),
+    "growth_dt_text": (["--growth-dt", "1day"], r"argument --growth-dt: expected a number of hours, got '1day'"),
     "signaling_dt_zero": (["--signaling-dt", "0"], r"--signaling-dt: expected a finite number of hours > 0, got 0"),
     "signaling_dt_above_growth_dt": (["--growth-dt", "8", "--signaling-dt", "12"],
                                      r"--signaling-dt: 12 h must not exceed the growth step \(8 h\)"),
@@ -89,7 +89,7 @@ BAD_OPTIONS = {
     "checkpoint_every": (["--checkpoint-every", "-2"], r"--checkpoint-every: expected an integer >= 0"),
     "checkpoint_every_fraction": (["--checkpoint-every", "2.5"],
                                   r"argument --checkpoint-every: expected an integer, got '2.5'"),
-    "max_halvings": (["--max-halvings", "40"], r"--max-halvings: must be an integer in \[0, 12\], got 40"),
+    "max_halvings": (["--max-halvings", "40"], r"argument --max-halvings: expected an integer in \[0, 12\], got 40"),
     "petsc_option_no_value": (["--petsc-option", "snes_max_it"], r"--petsc-option 'snes_max_it': expected KEY=VALUE"),
     "petsc_option_dash": (["--petsc-option=-snes_max_it=3"], r"--petsc-option '-snes_max_it=3': expected KEY=VALUE"),
     "petsc_option_lag": (["--petsc-option", "snes_lag_jacobian=0"], r"snes_lag_jacobian must be a positive integer"),

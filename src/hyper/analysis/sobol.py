@@ -43,7 +43,7 @@ import numpy as np
 
 from hyper.analysis.sobolmodels import FUNCTIONS, GAIN_PARAMETERS, HILL_N, ISHIGAMI_AB, PARAMETERS
 from hyper.core import io
-from hyper.core.params import InputError, read_toml
+from hyper.core.params import InputError, as_float, as_int, positive_hours, read_toml, shown
 from hyper.model import protocols, signaling
 
 LOW, HIGH = 0.5, 2.0  # bounds as multiples of the baseline value
@@ -125,25 +125,34 @@ def read_config(path) -> dict:
         raise InputError(f"{where}: unknown key(s) {', '.join(unknown)}; known: {', '.join(CONFIG_KEYS)}")
     checks = {
         "function": lambda v: v in FUNCTIONS, "protocol": lambda v: isinstance(v, str),
-        "at": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
         "names": lambda v: isinstance(v, list) and all(isinstance(n, str) for n in v),
-        "bounds": lambda v: isinstance(v, list) and all(
-            isinstance(b, list) and len(b) == 2 and all(isinstance(x, (int, float)) and not isinstance(x, bool)
-                                                        for x in b) for b in v),
-        "num_vars": lambda v: isinstance(v, int) and not isinstance(v, bool),
-        "samples": lambda v: isinstance(v, int) and not isinstance(v, bool) and 2 <= v <= MAX_SAMPLES,
+        "bounds": lambda v: isinstance(v, list) and all(isinstance(b, list) and len(b) == 2 for b in v),
     }
     expected = {"function": f"one of {', '.join(FUNCTIONS)}", "protocol": "a protocol name or file",
-                "at": "a number of hours", "names": "an array of parameter names",
-                "bounds": "an array of [lower, upper] pairs", "num_vars": "an integer",
-                "samples": f"an integer in [2, {MAX_SAMPLES}]"}
+                "names": "an array of parameter names", "bounds": "an array of [lower, upper] pairs"}
     for key, value in data.items():
-        if not checks[key](value):
-            raise InputError(f"{where}: {key}: expected {expected[key]}, got {value!r}")
+        if key in checks and not checks[key](value):
+            raise InputError(f"{where}: {key}: expected {expected[key]}, got {shown(value)}")
+    # the numbers, by the one numeric reader: finite, representable, in range
+    if "at" in data:
+        data["at"] = positive_hours(data["at"], f"{where}: at")
+    if "samples" in data:
+        data["samples"] = as_int(data["samples"], f"{where}: samples", 2, MAX_SAMPLES)
+    if "num_vars" in data:
+        data["num_vars"] = as_int(data["num_vars"], f"{where}: num_vars", 1)
+    if "bounds" in data:
+        data["bounds"] = [[as_float(x, f"{where}: bounds") for x in b] for b in data["bounds"]]
     if "num_vars" in data and data["num_vars"] != len(data.get("names", ())):
         raise InputError(f"{where}: num_vars: {data['num_vars']} does not count names ({len(data.get('names', ()))})")
     if "bounds" in data and "names" not in data:
         raise InputError(f"{where}: bounds: give the names they belong to")
+    if "names" in data or "bounds" in data:
+        # checked here, against the file's function (the widest set, csa-gain's, where the
+        # file names none: --function may choose it), not only when the analysis starts
+        try:
+            design(data.get("function", "csa-gain"), data.get("names"), data.get("bounds"))
+        except InputError as err:
+            raise InputError(f"{where}: {err}") from None
     text = data.get("protocol")
     if text is not None and text not in (*protocols.NAMES, "all") and not Path(text).is_absolute():
         data["protocol"] = str(Path(path).parent / data["protocol"])  # a file beside the config

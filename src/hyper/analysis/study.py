@@ -7,13 +7,22 @@ geometry × one protocol as `hyper grow` does, more as a cohort on the MPI farm
 from __future__ import annotations
 
 import dataclasses
-import math
 from pathlib import Path
 
 from hyper.analysis import cohort, sobol
 from hyper.core import io
 from hyper.core.log import PROGRESS_EVERY
-from hyper.core.params import InputError, as_attributes, build, positive_hours, read_toml, replace_from_mapping
+from hyper.core.params import (
+    InputError,
+    as_attributes,
+    as_seed,
+    build,
+    finite,
+    positive_hours,
+    read_toml,
+    replace_from_mapping,
+    shown,
+)
 from hyper.fem import geometry as geo
 from hyper.fem.coupled import GrowthSettings
 from hyper.model import material as mat
@@ -57,18 +66,18 @@ class Numerics:
                              field="signaling_dt")
         a = self.accuracy
         if a is not None and (isinstance(a, bool) or not isinstance(a, (int, float))
-                              or not (math.isfinite(a) and 0 < a < 0.5)):
-            raise InputError(f"expected a number in (0, 0.5), a fraction of the growth (1e-3 is 0.1 %), got {a!r}",
+                              or not (finite(a) and 0 < a < 0.5)):
+            raise InputError(f"expected a number in (0, 0.5), a fraction of the growth (1e-3 is 0.1 %), got {shown(a)}",
                              field="accuracy")
         q = self.quadrature_degree
         if q is not None and (isinstance(q, bool) or not isinstance(q, int) or not 1 <= q <= 12):
-            raise InputError(f"expected an integer in [1, 12], got {q!r}", field="quadrature_degree")
+            raise InputError(f"expected an integer in [1, 12], got {shown(q)}", field="quadrature_degree")
         if self.linear_solver is not None and self.linear_solver not in runspec.LINEAR_SOLVERS:
             raise InputError(f"expected one of {', '.join(runspec.LINEAR_SOLVERS)}, got {self.linear_solver!r}",
                              field="linear_solver")
         m = self.max_halvings
         if isinstance(m, bool) or not isinstance(m, int) or not 0 <= m <= GrowthSettings.MAX_HALVINGS:
-            raise InputError(f"expected an integer in [0, {GrowthSettings.MAX_HALVINGS}], got {m!r}",
+            raise InputError(f"expected an integer in [0, {GrowthSettings.MAX_HALVINGS}], got {shown(m)}",
                              field="max_halvings")
         if self.feedback not in FEEDBACK_LAWS:
             raise InputError(f"expected one of {', '.join(FEEDBACK_LAWS)}, got {self.feedback!r}", field="feedback")
@@ -201,10 +210,7 @@ def heterogeneity_of(values: dict, where: str) -> tuple[Heterogeneity | None, in
     if not values:
         return None, None
     values = dict(values)
-    seed = values.pop("seed", None)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise InputError(f"{where}: seed: expected an integer >= 0 (the per-cell parameters' random seed), "
-                         f"got {seed!r}")
+    seed = as_seed(values.pop("seed", None), f"{where}: seed")  # the per-cell parameters' random seed
     try:
         return Heterogeneity(**values), seed
     except (InputError, TypeError) as err:

@@ -98,10 +98,10 @@ def parser() -> cli.Parser:
     p.add_argument("--fit", action="append", required=True, metavar="NAME[=LOW:HIGH]",
                    help=f"a parameter to fit (default bounds for {', '.join(BOUNDS)})")
     p.add_argument("--geometry", default="idealized", help="geometry of the coupled model and the check")
-    p.add_argument("--accuracy", type=float, default=fidelity.DEFAULT_ACCURACY,
+    p.add_argument("--accuracy", type=cli.number(), default=fidelity.DEFAULT_ACCURACY,
                    help="error allowed of the model, a fraction of the growth (hyper.runs.fidelity)")
     p.add_argument("--feedback", default="hill", help="h(CSA/CSA0): hill, linear or none")
-    p.add_argument("--exclude-until", type=float, default=0.0, metavar="WEEK",
+    p.add_argument("--exclude-until", type=cli.number(), default=0.0, metavar="WEEK",
                    help="leave out the points in (0, WEEK] weeks (early oedema)")
     p.add_argument("--no-check", action="store_true", help="skip the coupled run at the optimum")
     p.add_argument("--output", type=cli.output(folder=True), default="results/calibration", help="output folder")

@@ -17,7 +17,6 @@ import argparse
 import contextlib
 import importlib
 import logging
-import math
 import os
 import re
 import select
@@ -27,10 +26,11 @@ import traceback
 from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
+from typing import Any
 
 from hyper.core import io
 from hyper.core.log import PROGRESS_EVERY, error
-from hyper.core.params import InputError
+from hyper.core.params import SEED_MAX, InputError, as_float, as_vector, float_text, int_text, shown
 from hyper.runs.locks import Busy, hold
 
 EXIT_OK = 0
@@ -107,38 +107,68 @@ def _values(value) -> list:
     return [] if value is None else [v for v in value if v is not None] if isinstance(value, list) else [value]
 
 
-def integer(least: int, most: int | None = None) -> Callable[[str], int]:
-    """An argparse type: an integer in [least, most], checked where the option is defined
-    (argparse names the option in the message)."""
+def _option_type(name: str, read: Callable[[str], Any]) -> Callable[[str], Any]:
+    """An argparse type from a reader of `hyper.core.params` (the one numeric reader of
+    every job): its InputError becomes argparse's error, which names the option."""
 
-    def parse(text: str) -> int:
+    def parse(text: str):
         try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if value < least or (most is not None and value > most):
-            bounds = f">= {least}" if most is None else f"in [{least}, {most}]"
-            raise argparse.ArgumentTypeError(f"expected an integer {bounds}, got {value}")
-        return value
+            return read(text)
+        except InputError as err:
+            raise argparse.ArgumentTypeError(err.reason) from None
 
-    parse.__name__ = "integer"  # what argparse calls the type in its messages
+    parse.__name__ = name  # what argparse calls the type in its messages
     return parse
+
+
+def integer(least: int, most: int | None = None) -> Callable[[str], int]:
+    """An argparse type: an integer in [least, most] (and in int64), checked where the
+    option is defined (argparse names the option in the message)."""
+    return _option_type("integer", lambda text: int_text(text, "", least, most))
+
+
+def seed() -> Callable[[str], int]:
+    """An argparse type: a random seed, in [0, SEED_MAX] as every seed a file gives."""
+    return integer(0, SEED_MAX)
+
+
+def number(least: float | None = None, most: float | None = None, *, above: float | None = None,
+           below: float | None = None) -> Callable[[str], float]:
+    """An argparse type: a finite number within the bounds given (`as_float`'s)."""
+    return _option_type("number", lambda text: float_text(text, "", least, most, above=above, below=below))
 
 
 def positive(unit: str) -> Callable[[str], float]:
     """An argparse type: a finite number > 0 of ``unit`` (hours, seconds)."""
 
-    def parse(text: str) -> float:
+    def read(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number of {unit}, got {text!r}") from None
-        if not (math.isfinite(value) and value > 0):
-            raise argparse.ArgumentTypeError(f"expected a finite number of {unit} > 0, got {text}")
-        return value
+            raise InputError(f"expected a number of {unit}, got {shown(text)}") from None
+        try:
+            return as_float(value, "", above=0)
+        except InputError:
+            raise InputError(f"expected a finite number of {unit} > 0, got {value:g}") from None
 
-    parse.__name__ = "number"
-    return parse
+    return _option_type("number", read)
+
+
+class _Vector(argparse.Action):
+    """The three components of a direction option, read by `as_vector`: finite,
+    not all zero, scaled to unit length."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        try:
+            vector = as_vector([float_text(v, "") for v in values], "")
+        except InputError as err:
+            raise argparse.ArgumentError(self, err.reason) from None
+        setattr(namespace, self.dest, vector)
+
+
+def vector_option(p: argparse.ArgumentParser, name: str, **kwargs) -> None:
+    """A direction option NAME X Y Z (every vector option of every job)."""
+    p.add_argument(name, nargs=3, metavar=("X", "Y", "Z"), action=_Vector, **kwargs)
 
 
 def progress_option(p: Parser) -> None:

@@ -78,12 +78,13 @@ def parser() -> cli.Parser:
     p.add_argument("--output", type=cli.output(folder=True), default="results/cohort", help="output folder")
     p.add_argument("--ranks-per-job", type=cli.integer(1), default=1,
                    help="MPI ranks per run; must divide the number of ranks")
-    p.add_argument("--growth-dt", type=float,
+    p.add_argument("--growth-dt", type=cli.positive("hours"),
                    help=f"growth step Δtg (h); {GrowthSettings.growth_dt:g} unless --settings sets it")
     p.add_argument("--material", type=Path, metavar="F.toml", reads=True,
                    help="TOML file overriding the muscle law's parameters (hyper.model.material.MaterialParams)")
     presets.add_options(p)
-    p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
+    p.add_argument("--max-halvings", type=cli.integer(0, GrowthSettings.MAX_HALVINGS),
+                   default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run fails; a failed run "
                         "resumes from its checkpoint with a larger value")
     p.add_argument("--snapshot-every", type=cli.positive("hours"), default=driver.SNAPSHOT_EVERY, metavar="HOURS",

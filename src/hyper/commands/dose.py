@@ -42,10 +42,10 @@ from hyper.runs import fidelity
 def parser() -> cli.Parser:
     p = cli.Parser("dose", __doc__)
     p.add_argument("--checks", type=cli.integer(0, 1000), default=10, help="protocols checked by coupled runs")
-    p.add_argument("--seed", type=cli.integer(0), default=0, help="seed of the protocols checked")
-    p.add_argument("--budgets", type=float, nargs="+", default=[1.0, 2.0, 4.0, 8.0],
+    p.add_argument("--seed", type=cli.seed(), default=0, help="seed of the protocols checked")
+    p.add_argument("--budgets", type=cli.positive("hours"), nargs="+", default=[1.0, 2.0, 4.0, 8.0],
                    help="weekly loads Σ intensity × duration (h) to find the best protocol under")
-    p.add_argument("--accuracy", type=float, default=fidelity.DEFAULT_ACCURACY,
+    p.add_argument("--accuracy", type=cli.number(), default=fidelity.DEFAULT_ACCURACY,
                    help="error allowed, a fraction of the growth: chooses the RK4 step (hyper.runs.fidelity)")
     p.add_argument("--output", type=cli.output(folder=True), default="results/dose", help="output folder")
     return p

@@ -43,10 +43,13 @@ from mpi4py import MPI
 from hyper.analysis.ensemble import Sample, run_sample, write_results
 from hyper.commands import cli
 from hyper.core.log import hms, info
-from hyper.core.params import InputError, build
+from hyper.core.params import SEED_MAX, InputError, build
 from hyper.fem.coupled import GrowthSettings
 from hyper.model import heterogeneity, protocols
 from hyper.runs import driver, farm, locks, runspec
+
+# one coupled run each: beyond this an ensemble is a typing mistake, and its job list would not fit in memory
+MAX_SAMPLES = 100_000
 
 
 def parser() -> cli.Parser:
@@ -54,16 +57,20 @@ def parser() -> cli.Parser:
     p.add_argument("--geometry", default="BFLH_VHF_Left", help="geometry id (idealized, BFLH_VHF_Left, …)")
     p.add_argument("--protocol", default="mwf", metavar="NAME|FILE",
                    help=f"a named protocol ({', '.join(protocols.NAMES)}) or a TOML protocol file")
-    p.add_argument("--samples", type=cli.integer(1), default=5, help="heterogeneous samples besides the uniform case")
-    p.add_argument("--first-seed", type=cli.integer(0, 2**32 - 1), default=1,
+    p.add_argument("--samples", type=cli.integer(1, MAX_SAMPLES), default=5,
+                   help="heterogeneous samples besides the uniform case")
+    p.add_argument("--first-seed", type=cli.seed(), default=1,
                    help="seed of the first sample (then +1 each)")
-    p.add_argument("--epsilon", type=float, default=0.01, help="relative half-width ε of the perturbation")
+    p.add_argument("--epsilon", type=cli.number(), default=0.01, help="relative half-width ε of the perturbation")
     p.add_argument("--model", choices=heterogeneity.MODELS, default="uniform-noise", help="heterogeneity model")
-    p.add_argument("--length", type=float, default=heterogeneity.Heterogeneity.length,
+    p.add_argument("--length", type=cli.number(), default=heterogeneity.Heterogeneity.length,
                    help="Matérn correlation range ℓ (m; matern only)")
-    p.add_argument("--nu", type=float, default=heterogeneity.Heterogeneity.nu, help="Matérn smoothness ν (matern only)")
-    p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step Δtg (h)")
-    p.add_argument("--signaling-dt", type=float, default=GrowthSettings.signaling_dt, help="RK4 step (h)")
+    p.add_argument("--nu", type=cli.number(), default=heterogeneity.Heterogeneity.nu,
+                   help="Matérn smoothness ν (matern only)")
+    p.add_argument("--growth-dt", type=cli.positive("hours"), default=GrowthSettings.growth_dt,
+                   help="growth step Δtg (h)")
+    p.add_argument("--signaling-dt", type=cli.positive("hours"), default=GrowthSettings.signaling_dt,
+                   help="RK4 step (h)")
     p.add_argument("--ranks-per-job", type=cli.integer(1), default=1, help="MPI ranks per coupled run")
     p.add_argument("--snapshot-every", type=cli.positive("hours"), default=driver.SNAPSHOT_EVERY, metavar="HOURS",
                    help="fields snapshot every HOURS of simulated time, besides the first and the last state")
@@ -88,6 +95,10 @@ def plan(comm, args) -> tuple[list[farm.Job], heterogeneity.Heterogeneity, Path]
         spec = runspec.RunSpec(args.geometry, protocol, settings=settings, heterogeneity=het, seed=seed)
         return farm.Job(key, 1.0, Sample(spec, h5))
 
+    # the seeds first_seed, first_seed + 1, …: the last one too must be a seed (params.SEED_MAX)
+    if args.first_seed + args.samples - 1 > SEED_MAX:
+        raise InputError(f"--first-seed {args.first_seed} with --samples {args.samples}: the last seed would be "
+                         f"{args.first_seed + args.samples - 1}, past {SEED_MAX}")
     jobs = [job("uniform", None, None, base / "uniform.h5")]
     for i in range(args.samples):
         seed = args.first_seed + i

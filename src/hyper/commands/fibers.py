@@ -40,7 +40,7 @@ def parser() -> cli.Parser:
                    help="folder for summary.csv and the pictures")
     p.add_argument("--meshes-dir", type=Path, default=geo.MESHES_DIR,
                    help="folder of the meshes, where the fibre files go")
-    p.add_argument("--penalty", type=float, default=fibers.StokesParams.penalty, help="Nitsche penalty γ")
+    p.add_argument("--penalty", type=cli.number(), default=fibers.StokesParams.penalty, help="Nitsche penalty γ")
     return p
 
 

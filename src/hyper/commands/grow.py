@@ -60,7 +60,7 @@ def scene_options(p: cli.Parser) -> None:
     p.add_argument("--ask", choices=fidelity.ASKS, default="growth",
                    help="what the run answers: CSA and volume (the coupled model on a mesh) or N and the "
                         "signaling states (the ODEs alone, no mesh)")
-    p.add_argument("--accuracy", type=float, nargs="?", const=fidelity.DEFAULT_ACCURACY, metavar="A",
+    p.add_argument("--accuracy", type=cli.number(), nargs="?", const=fidelity.DEFAULT_ACCURACY, metavar="A",
                    help="the cheapest model and longest steps whose tabulated error stays within A, a fraction "
                         f"of the growth (or of N); A in (0, 0.5), {fidelity.DEFAULT_ACCURACY:g} when left out. "
                         "An explicit --growth-dt or --signaling-dt wins over it")
@@ -68,7 +68,7 @@ def scene_options(p: cli.Parser) -> None:
                    help=f"a named protocol ({', '.join(protocols.NAMES)}), 'all' for "
                         f"{', '.join(protocols.PAPER)}, or a TOML protocol file")
     p.add_argument("--params", type=Path, reads=True, help="TOML file overriding signaling parameters")
-    p.add_argument("--signaling-dt", type=float,
+    p.add_argument("--signaling-dt", type=cli.positive("hours"),
                    help=f"RK4 step (h); {fidelity.SIGNALING_DT0:g} unless --accuracy chooses one")
     method_option(p, default=None)
 
@@ -94,11 +94,12 @@ def parser(ask: str = "growth") -> cli.Parser:
     p.add_argument("--output", type=cli.output(), default="results/grow", help="an .h5 file (one protocol) or a folder")
     p.add_argument("--material", type=Path, metavar="F.toml", reads=True,
                    help="TOML file overriding the muscle law's parameters (hyper.model.material.MaterialParams)")
-    p.add_argument("--growth-dt", type=float,
+    p.add_argument("--growth-dt", type=cli.positive("hours"),
                    help=f"growth step Δtg (h); {GrowthSettings.growth_dt:g} unless --accuracy chooses one")
     p.add_argument("--feedback", choices=FEEDBACK_LAWS, default="hill", help="feedback of CSA on protein synthesis")
     presets.add_options(p, signaling_method=False)
-    p.add_argument("--max-halvings", type=int, default=GrowthSettings.max_halvings,
+    p.add_argument("--max-halvings", type=cli.integer(0, GrowthSettings.MAX_HALVINGS),
+                   default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run stops")
     p.add_argument("--linear-solver", choices=runspec.LINEAR_SOLVERS, help="MUMPS LU, GMRES with MUMPS's block "
                    "low-rank LU (less memory, same answer) or auto (LU while it fits); lu, or auto with --accuracy")

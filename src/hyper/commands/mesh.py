@@ -36,12 +36,13 @@ def parser() -> cli.Parser:
                    "geometry's identifier")
     p.add_argument("--unit", choices=tuple(hm.UNITS_MM), default="mm", help="length unit of the STL")
     p.add_argument("--cells", type=cli.integer(200, 2_000_000), default=hm.DEFAULT_CELLS, help="target cell count")
-    p.add_argument("--end-band", type=float, default=hm.END_BAND, help="an end: the facets within this share of "
+    p.add_argument("--end-band", type=cli.number(above=0, below=0.5), default=hm.END_BAND,
+                   help="an end: the facets within this share of "
                    "the length from an extreme along the axis")
-    p.add_argument("--axis", type=float, nargs=3, metavar=("X", "Y", "Z"), help="the muscle's long axis "
-                   "(the first principal axis of the mesh vertices by default)")
-    p.add_argument("--origin-toward", type=float, nargs=3, metavar=("X", "Y", "Z"), default=hm.ORIGIN_TOWARD,
-                   help="the origin (tag 1) is the end further along this direction")
+    cli.vector_option(p, "--axis", help="the muscle's long axis (the first principal axis of the mesh vertices by "
+                      "default)")
+    cli.vector_option(p, "--origin-toward", default=hm.ORIGIN_TOWARD,
+                      help="the origin (tag 1) is the end further along this direction")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
     return p
 

@@ -32,10 +32,10 @@ def parser() -> cli.Parser:
                    "or a TOML protocol file")
     p.add_argument("--params", type=Path, metavar="F.toml", reads=True,
                    help="parameter overrides, keys as in MODEL.md's table")
-    p.add_argument("--signaling-dt", type=float, default=0.05, metavar="H",
+    p.add_argument("--signaling-dt", type=cli.positive("hours"), default=0.05, metavar="H",
                    help="largest step (h), of either method")
     method_option(p)
-    p.add_argument("--sample-every", type=float, default=0.5, metavar="H", help="output sampling (h)")
+    p.add_argument("--sample-every", type=cli.positive("hours"), default=0.5, metavar="H", help="output sampling (h)")
     p.add_argument("--output", type=cli.output(), default="results/signaling",
                    help="an .h5 file (one protocol) or a folder that gets <protocol>.h5 per protocol")
     p.add_argument("--plot", type=cli.output(folder=False, suffixes=(".png",)), metavar="F.png",

@@ -52,12 +52,12 @@ def parser() -> cli.Parser:
     p.add_argument("--parameters", nargs="+", metavar="NAME",
                    help="the parameters varied (SignalingParams fields; csa-gain also hill_n); the function's "
                         "own set by default")
-    p.add_argument("--range", nargs=2, type=float, metavar=("LOW", "HIGH"), default=(LOW, HIGH),
+    p.add_argument("--range", nargs=2, type=cli.number(), metavar=("LOW", "HIGH"), default=(LOW, HIGH),
                    help="each parameter uniform on [LOW, HIGH] x its baseline (unless the file gives bounds)")
-    p.add_argument("--at", type=float, metavar="H",
+    p.add_argument("--at", type=cli.positive("hours"), metavar="H",
                    help="the output's time (h): N, or the CSA gain, at H hours; the protocol's end by default")
     p.add_argument("--output", type=cli.output(folder=True), default="results/sobol", help="output folder")
-    p.add_argument("--signaling-dt", type=float, default=0.05, metavar="H", help="largest RK4 step (h)")
+    p.add_argument("--signaling-dt", type=cli.positive("hours"), default=0.05, metavar="H", help="largest RK4 step (h)")
     p.add_argument("--chunk", type=cli.integer(1, MAX_SAMPLES), default=10000, help="rows per job and per chunk file")
     p.add_argument("--seed", type=cli.integer(0, 2**32 - 2), default=1,
                    help="seed of the design; the bootstrap uses seed + 1")

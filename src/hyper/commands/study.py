@@ -85,6 +85,7 @@ from hyper.commands import cli, grow
 from hyper.commands.cohort import exit_code
 from hyper.core.log import PROGRESS_EVERY, info
 from hyper.core.params import InputError
+from hyper.fem.coupled import GrowthSettings
 from hyper.runs import driver, locks, runspec, sequence
 
 
@@ -94,12 +95,13 @@ def parser() -> cli.Parser:
     p.add_argument("--output", type=cli.output(folder=True), help="output folder; overrides [output] folder")
     p.add_argument("--figures", action=argparse.BooleanOptionalAction,
                    help="write the figures (--no-figures: none); overrides [output] figures")
-    p.add_argument("--growth-dt", type=float, help="growth step (h); overrides [numerics] growth_dt")
-    p.add_argument("--accuracy", type=float, help="fidelity choice of the steps; overrides [numerics] accuracy")
-    p.add_argument("--signaling-dt", type=float, help="RK4 step (h); overrides [numerics] signaling_dt")
+    p.add_argument("--growth-dt", type=cli.positive("hours"), help="growth step (h); overrides [numerics] growth_dt")
+    p.add_argument("--accuracy", type=cli.number(), help="fidelity choice of the steps; overrides [numerics] accuracy")
+    p.add_argument("--signaling-dt", type=cli.positive("hours"), help="RK4 step (h); overrides [numerics] signaling_dt")
     p.add_argument("--quadrature-degree", type=cli.integer(1, 12), help="overrides [numerics] quadrature_degree")
     p.add_argument("--linear-solver", choices=runspec.LINEAR_SOLVERS, help="overrides [numerics] linear_solver")
-    p.add_argument("--max-halvings", type=cli.integer(0), help="overrides [numerics] max_halvings")
+    p.add_argument("--max-halvings", type=cli.integer(0, GrowthSettings.MAX_HALVINGS),
+                   help="overrides [numerics] max_halvings")
     p.add_argument("--snapshot-every", type=cli.positive("hours"), metavar="HOURS",
                    help="fields snapshot every HOURS of simulated time; overrides [output] snapshot_every")
     p.add_argument("--data", type=Path, metavar="CSV", reads=True,

@@ -53,7 +53,7 @@ import numpy as np
 from mpi4py import MPI
 from scipy import fft, ndimage, special
 
-from hyper.core.params import InputError
+from hyper.core.params import InputError, as_seed, finite, shown
 from hyper.model.signaling import SignalingParams
 
 PERTURBED = ("a10", "a20", "a3", "a4", "b1", "b2", "b3", "b4", "c21", "c32", "c42", "c43")
@@ -85,10 +85,10 @@ class Heterogeneity:
             raise InputError(f"heterogeneity model must be one of {', '.join(MODELS)}, got {self.model!r}")
         for name, low, high in (("epsilon", 0.0, 1.0), ("length", 0.0, math.inf), ("nu", 0.0, 10.0)):
             value = getattr(self, name)
-            ok = not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
+            ok = not isinstance(value, bool) and isinstance(value, (int, float)) and finite(value)
             if not ok or not (low <= value < high) or (name != "epsilon" and value == 0):
                 bounds = "[0, 1) (p = p0 (1 + ε ξ) stays positive)" if name == "epsilon" else f"({low:g}, {high:g})"
-                raise InputError(f"{name} must be a number in {bounds}, got {value!r}")
+                raise InputError(f"{name} must be a number in {bounds}, got {shown(value)}")
 
     def label(self) -> str:
         """A file-name-safe tag, e.g. uniform-noise_eps0.01 or matern_eps0.1_l0.02_nu1."""
@@ -107,8 +107,7 @@ class Heterogeneity:
 
 def generator(seed: int, stream: int, k: int) -> np.random.Generator:
     """The Philox generator of parameter k in a stream of a seed."""
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise InputError(f"seed must be a non-negative integer, got {seed!r}")
+    seed = as_seed(seed, "seed")
     return np.random.Generator(np.random.Philox(np.random.SeedSequence([int(seed), stream, k])))
 
 

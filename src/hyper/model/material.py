@@ -17,7 +17,7 @@ import math
 
 import ufl
 
-from hyper.core.params import InputError, read_toml, replace_from_mapping
+from hyper.core.params import InputError, finite, read_toml, replace_from_mapping, shown
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,8 +37,8 @@ class MaterialParams:
     def __post_init__(self):
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise InputError(f"expected a finite number, got {value!r}", field=f.name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not finite(value):
+                raise InputError(f"expected a finite number, got {shown(value)}", field=f.name)
         for name in ("c1", "lambda0", "g2", "k_tendon"):
             if getattr(self, name) <= 0:
                 raise InputError(f"expected a number > 0, got {getattr(self, name)!r}", field=name)

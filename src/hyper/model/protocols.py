@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper.core.params import InputError, as_float, read_toml
+from hyper.core.params import InputError, as_float, as_int, finite, read_toml, shown
 
 NAMES = ("mwf", "weekly", "every3days", "daily15", "rest")
 
@@ -61,8 +61,8 @@ class Protocol:
             where = f"session {i}"
             for field in ("start", "duration", "intensity"):
                 value = getattr(s, field)
-                if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-                    raise InputError(f"{where}: {field} must be a finite number, got {value!r}")
+                if isinstance(value, bool) or not isinstance(value, numbers.Real) or not finite(value):
+                    raise InputError(f"{where}: {field} must be a finite number, got {shown(value)}")
             if s.start < 0:
                 raise InputError(f"{where}: start must be >= 0 h, got {s.start:g}")
             if s.duration <= 0:
@@ -87,8 +87,8 @@ class Protocol:
             tuple(Session(float(s.start), float(s.duration), float(s.intensity)) for s in self.sessions)
         )
         end = self.end
-        if isinstance(end, bool) or not isinstance(end, numbers.Real) or not math.isfinite(end) or end <= 0:
-            raise InputError(f"end must be a finite number > 0 h, got {end!r}")
+        if isinstance(end, bool) or not isinstance(end, numbers.Real) or not finite(end) or end <= 0:
+            raise InputError(f"end must be a finite number > 0 h, got {shown(end)}")
         if end > MAX_END:
             raise InputError(f"end must be at most {MAX_END:g} h (ten years), got {end:g}")
         if self.sessions and end < self.sessions[-1].end:
@@ -189,13 +189,31 @@ class Repeat:
                 raise InputError(f"expected days of {', '.join(WEEKDAYS)}, got {day!r}", field="weekdays")
         if len(set(self.weekdays)) < len(self.weekdays):
             raise InputError(f"a day appears twice in {list(self.weekdays)}", field="weekdays")
-        if self.every_days is not None and not (math.isfinite(self.every_days) and self.every_days > 0):
-            raise InputError(f"expected a finite number of days > 0, got {self.every_days!r}", field="every_days")
-        if isinstance(self.weeks, bool) or not isinstance(self.weeks, int) or not 1 <= self.weeks <= MAX_END / WEEK:
-            raise InputError(f"expected an integer in [1, {MAX_END / WEEK:g}], got {self.weeks!r}", field="weeks")
-        if not (math.isfinite(self.lead_in_days) and self.lead_in_days >= 0):
-            raise InputError(f"expected a finite number of days >= 0, got {self.lead_in_days!r}",
-                             field="lead_in_days")
+        if self.every_days is not None and not (finite(self.every_days) and self.every_days > 0):
+            raise InputError(f"expected a finite number of days > 0, got {shown(self.every_days)}",
+                             field="every_days")
+        as_int(self.weeks, "weeks", 1, int(MAX_END / WEEK))
+        # the lead-in and the training weeks together within MAX_END, so that start times stay finite
+        most = MAX_END / DAY - self.weeks * 7
+        if not (finite(self.lead_in_days) and 0 <= self.lead_in_days <= most):
+            raise InputError(f"expected a number of days in [0, {most:g}] (with {self.weeks} weeks, ten years in "
+                             f"all), got {shown(self.lead_in_days)}", field="lead_in_days")
+        # bound before expanding: a tiny period would build millions of sessions first
+        if self._periods() > MAX_SESSIONS:
+            raise InputError(f"{self._periods():.3g} sessions, more than {MAX_SESSIONS}: every_days "
+                             f"{self.every_days:g} over {self.weeks} weeks", field="every_days")
+
+    def _periods(self) -> float:
+        """The sessions the rule makes, as a float (inf for a period too small to count)."""
+        if self.weekdays:
+            return float(self.weeks * len(self.weekdays))
+        # every_days apart from the lead-in's end until the last training week ends (`protocol`)
+        first = self.lead_in_days * DAY
+        return (first + self.weeks * WEEK - first) / (self.every_days * DAY)
+
+    def count(self) -> int:
+        """How many sessions the rule makes, counted without making them (at most MAX_SESSIONS)."""
+        return math.ceil(self._periods())
 
     def protocol(self, name: str, end: float | None = None) -> Protocol:
         """The sessions of the rule; ``end`` (h) by default the end of the last training week."""
@@ -206,8 +224,7 @@ class Repeat:
                             for d in self.weekdays)
         else:
             # sessions start in the training weeks: every_days apart, the first at the lead-in's end
-            count = math.ceil((stop - first) / (self.every_days * DAY))
-            starts = [first + k * self.every_days * DAY for k in range(count)]
+            starts = [first + k * self.every_days * DAY for k in range(self.count())]
         return Protocol(tuple(Session(s, self.duration, self.intensity) for s in starts),
                         stop if end is None else end, name)
 
@@ -226,9 +243,7 @@ def repeat_from_table(table, where: str) -> Repeat:
     if not isinstance(weekdays, list) or not all(isinstance(d, str) for d in weekdays):
         raise InputError(f"{where}: weekdays: expected an array of day names ({', '.join(WEEKDAYS)}), "
                          f"got {weekdays!r}")
-    weeks = table["weeks"]
-    if isinstance(weeks, bool) or not isinstance(weeks, int):
-        raise InputError(f"{where}: weeks: expected an integer, got {weeks!r}")
+    weeks = as_int(table["weeks"], f"{where}: weeks", 1, int(MAX_END / WEEK))
     every = table.get("every_days")
     try:
         return Repeat(as_float(table["duration"], f"{where}: duration"),

@@ -30,7 +30,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-from hyper.core.params import InputError, as_attributes, positive_hours
+from hyper.core.params import InputError, as_attributes, finite, positive_hours, shown
 
 ASKS = ("growth", "signaling")
 MODELS = ("signaling-only", "uniform", "per-cell")
@@ -193,10 +193,10 @@ def choose(scene: Scene, accuracy: float = DEFAULT_ACCURACY, *, growth_dt: float
     accuracy that is not a finite number in (0, 0.5), or tighter than the tables promise.
     """
     if isinstance(accuracy, bool) or not isinstance(accuracy, (int, float)) or not (
-        math.isfinite(accuracy) and 0 < accuracy < 0.5
+        finite(accuracy) and 0 < accuracy < 0.5
     ):
         raise InputError(f"accuracy must be a finite number in (0, 0.5), a fraction of what is asked "
-                         f"(1e-3 is 0.1 %), got {accuracy!r}")
+                         f"(1e-3 is 0.1 %), got {shown(accuracy)}")
     _check_steps(scene, growth_dt, signaling_dt)
     accuracy = float(accuracy)
     growth_share, signaling_share = _shares(scene.ask)

@@ -12,7 +12,7 @@ from mpi4py import MPI
 
 from hyper.core import io
 from hyper.core.collective import on_rank0
-from hyper.core.params import InputError, as_attributes
+from hyper.core.params import InputError, as_attributes, as_seed
 from hyper.model import signaling
 from hyper.model.material import MaterialParams
 from hyper.model.protocols import Protocol
@@ -128,6 +128,8 @@ class RunSpec:
                              f"got {self.linear_solver!r}")
         if (self.heterogeneity is None) != (self.seed is None):
             raise InputError("per-cell parameters need both a heterogeneity model and a seed")
+        if self.seed is not None:
+            as_seed(self.seed, "seed")  # every job's seed, however given: it is stored as an attribute
         if isinstance(self.refine, bool) or not isinstance(self.refine, int) or self.refine < 0:
             raise InputError(f"expected an integer >= 0, got {self.refine!r}", field="refine")
         if self.quadrature_degree is not None and not (isinstance(self.quadrature_degree, int)

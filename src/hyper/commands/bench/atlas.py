@@ -405,7 +405,7 @@ def parser() -> cli.Parser:
     p.add_argument("--geometries", nargs="+", metavar="ID", default=["idealized", "BFLH_VHF_Left"],
                    help="geometries of the dimensions measured here")
     p.add_argument("--protocol", default="mwf", help="named protocol")
-    p.add_argument("--timeout", type=float, default=1800.0, help="seconds per run before it counts as failed")
+    p.add_argument("--timeout", type=cli.number(), default=1800.0, help="seconds per run before it counts as failed")
     p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
     p.add_argument("--replot", action="store_true", help="redraw the charts from OUTPUT/atlas.json, run nothing")
     return p

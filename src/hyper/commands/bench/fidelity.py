@@ -63,8 +63,8 @@ def compare(rows: dict[str, dict], accuracy: float) -> dict:
 def parser() -> cli.Parser:
     p = cli.Parser("bench fidelity", __doc__)
     p.add_argument("--geometries", nargs="+", metavar="ID", default=["TA_VHF_Right"], help="geometries")
-    p.add_argument("--accuracy", type=float, default=1e-3, help="requested error, fraction of the growth")
-    p.add_argument("--timeout", type=float, default=7200.0, help="seconds per run")
+    p.add_argument("--accuracy", type=cli.number(), default=1e-3, help="requested error, fraction of the growth")
+    p.add_argument("--timeout", type=cli.number(), default=7200.0, help="seconds per run")
     p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
     return p
 

@@ -353,12 +353,13 @@ def parser() -> cli.Parser:
     p = cli.Parser("bench growth", __doc__)
     p.add_argument("--geometry", default="idealized", help="the mesh")
     p.add_argument("--protocol", default="mwf", help="named protocol")
-    p.add_argument("--dts", nargs="+", type=float, metavar="H", default=list(DTS),
+    p.add_argument("--dts", nargs="+", type=cli.number(), metavar="H", default=list(DTS),
                    help="growth steps Δtg in hours; the smallest is the reference (1e9: one step per period)")
     p.add_argument("--quick", action="store_true", help="leave out the finest Δtg (a check, not the result)")
-    p.add_argument("--tolerance", type=float, default=TOLERANCE, help="error allowed, as a fraction of the growth")
-    p.add_argument("--ranks", type=int, default=1, help="MPI ranks per configuration")
-    p.add_argument("--timeout", type=float, default=5400.0, help="seconds per configuration")
+    p.add_argument("--tolerance", type=cli.number(), default=TOLERANCE,
+                   help="error allowed, as a fraction of the growth")
+    p.add_argument("--ranks", type=cli.integer(1), default=1, help="MPI ranks per configuration")
+    p.add_argument("--timeout", type=cli.number(), default=5400.0, help="seconds per configuration")
     p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
     common.add_worker_options(p)
     return p

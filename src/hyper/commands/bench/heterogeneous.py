@@ -114,8 +114,8 @@ def chart(result: dict, path: Path) -> None:
 def parser() -> cli.Parser:
     p = cli.Parser("bench heterogeneous", __doc__)
     p.add_argument("--geometry", default="BFLH_VHF_Left", help="the mesh")
-    p.add_argument("--end", type=float, default=336.0, help="end of the cut mwf protocol (h)")
-    p.add_argument("--growth-dt", type=float, default=GrowthSettings.growth_dt, help="growth step (h)")
+    p.add_argument("--end", type=cli.number(), default=336.0, help="end of the cut mwf protocol (h)")
+    p.add_argument("--growth-dt", type=cli.positive("hours"), default=GrowthSettings.growth_dt, help="growth step (h)")
     p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
     return p
 

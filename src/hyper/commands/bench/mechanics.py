@@ -177,10 +177,10 @@ def parser() -> cli.Parser:
     p = cli.Parser("bench mechanics", __doc__)
     p.add_argument("--geometries", nargs="+", metavar="ID", default=["idealized", "BFLH_VHF_Left"],
                    help="geometries of the contractions")
-    p.add_argument("--ranks", nargs="+", type=int, metavar="N", default=[1, 2],
+    p.add_argument("--ranks", nargs="+", type=cli.integer(1), metavar="N", default=[1, 2],
                    help="rank counts of the contractions")
     p.add_argument("--quadrature-geometry", default="idealized", help="the mesh of the quadrature comparison")
-    p.add_argument("--estimated-timeout", type=float, default=900.0,
+    p.add_argument("--estimated-timeout", type=cli.number(), default=900.0,
                    help="seconds per Jacobian assembly of the quadrature comparison before it counts as failed")
     p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
     common.add_worker_options(p)

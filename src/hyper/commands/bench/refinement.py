@@ -147,8 +147,8 @@ def chart(path: Path, result: dict) -> None:
 
 def parser() -> cli.Parser:
     p = cli.Parser("bench refinement", __doc__)
-    p.add_argument("--levels", type=int, default=3, help="meshes: the given one and LEVELS-1 refinements")
-    p.add_argument("--memory-gib", type=float, default=22.0,
+    p.add_argument("--levels", type=cli.integer(1), default=3, help="meshes: the given one and LEVELS-1 refinements")
+    p.add_argument("--memory-gib", type=cli.number(), default=22.0,
                    help="memory available to the factorisation, GiB (22: a 24 GiB machine less 2)")
     p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
     return p

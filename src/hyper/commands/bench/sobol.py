@@ -83,9 +83,9 @@ def _backends(members: int) -> dict:
 
 def parser() -> cli.Parser:
     p = cli.Parser("bench sobol", __doc__)
-    p.add_argument("--samples", type=int, default=2048, help="base samples per CLI run")
-    p.add_argument("--chunk", type=int, default=4096, help="rows per chunk")
-    p.add_argument("--members", type=int, default=4096, help="batch of the backend comparison")
+    p.add_argument("--samples", type=cli.integer(1), default=2048, help="base samples per CLI run")
+    p.add_argument("--chunk", type=cli.integer(1), default=4096, help="rows per chunk")
+    p.add_argument("--members", type=cli.integer(1), default=4096, help="batch of the backend comparison")
     p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
     return p
 

@@ -247,13 +247,13 @@ def chart(path: Path, result: dict) -> None:
 
 def parser() -> cli.Parser:
     p = cli.Parser("bench solvers", __doc__)
-    p.add_argument("--levels", nargs="+", type=int, choices=range(4), metavar="LEVEL", default=[0, 1, 2],
+    p.add_argument("--levels", nargs="+", type=cli.integer(0, 3), metavar="LEVEL", default=[0, 1, 2],
                    help="refinement levels of the idealized shape (0 to 3)")
-    p.add_argument("--ranks", type=int, default=2, help="MPI ranks per run")
-    p.add_argument("--precision-level", type=int, default=1, help="level of the BLR precision ladder")
+    p.add_argument("--ranks", type=cli.integer(1), default=2, help="MPI ranks per run")
+    p.add_argument("--precision-level", type=cli.integer(0, 3), default=1, help="level of the BLR precision ladder")
     p.add_argument("--parts", nargs="+", choices=PARTS, metavar="PART", default=list(PARTS),
                    help=f"which parts to run ({', '.join(PARTS)}); the others are kept from OUTPUT/solvers.json")
-    p.add_argument("--timeout", type=float, default=3600.0, help="seconds per run before it counts as failed")
+    p.add_argument("--timeout", type=cli.number(), default=3600.0, help="seconds per run before it counts as failed")
     p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
     p.add_argument("--replot", action="store_true", help="redraw the chart from OUTPUT/solvers.json, run nothing")
     common.add_worker_options(p)

@@ -207,8 +207,8 @@ def parser() -> cli.Parser:
     p = cli.Parser("bench speed", __doc__)
     p.add_argument("--geometries", nargs="+", default=list(GEOMETRIES), help="meshes")
     p.add_argument("--protocol", default="mwf", help="named protocol")
-    p.add_argument("--ranks", type=int, default=1, help="MPI ranks per run")
-    p.add_argument("--timeout", type=float, default=3600.0, help="seconds per run")
+    p.add_argument("--ranks", type=cli.integer(1), default=1, help="MPI ranks per run")
+    p.add_argument("--timeout", type=cli.number(), default=3600.0, help="seconds per run")
     p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
     common.add_worker_options(p)
     return p
