@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import errno
 import os
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -187,3 +188,49 @@ def test_a_cohort_run_takes_the_lock_of_its_own_result(tmp_path, monkeypatch):
     with locks.locked([cohort.series_path(out, run)]):
         [result] = cohort.run_cohort(MPI.COMM_WORLD, [run], out)
     assert result.status == "failed" and "another run is writing this output" in result.error and not seen
+
+
+def test_an_xdmf_write_without_room_is_refused_before_hdf5_sees_it(tmp_path, monkeypatch):
+    """DOLFINx's HDF5 aborts the process on a failed write; the room check refuses it first."""
+    from dolfinx import fem
+    from dolfinx import mesh as dmesh
+    from mpi4py import MPI
+
+    mesh = dmesh.create_unit_cube(MPI.COMM_WORLD, 2, 2, 2)
+    u = fem.Function(fem.functionspace(mesh, ("Lagrange", 1, (3,))), name="u")
+    disk = shutil.disk_usage(tmp_path)
+    room = io.ROOM_FACTOR * MPI.COMM_WORLD.allreduce(u.x.array.nbytes + mesh.geometry.x.nbytes) + io.ROOM_SLACK
+    monkeypatch.setattr(io.shutil, "disk_usage", lambda path: disk._replace(free=int(room) - 1))
+    with pytest.raises(io.WriteFailed) as caught:
+        with io.atomic_xdmf(MPI.COMM_WORLD, tmp_path / "f.xdmf") as xdmf:
+            xdmf.write_function(u, 0.0)
+    assert "f.xdmf: cannot write: No space left on device" in str(caught.value)
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.setattr(io.shutil, "disk_usage", lambda path: disk._replace(free=int(2 * room)))
+    with io.atomic_xdmf(MPI.COMM_WORLD, tmp_path / "f.xdmf") as xdmf:
+        xdmf.write_mesh(mesh)
+        xdmf.write_function(u, 0.0)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.h5", "f.xdmf"]
+
+
+def test_a_growth_run_whose_fields_do_not_fit_exits_3_in_one_line(tmp_path, capsys):
+    """A disk with room for the lock and the first writes, not for the fields: one line, exit 3,
+    nothing left (before the room check: pages of HDF5-DIAG, then exit 134)."""
+    folder = tmp_path / "small"
+    folder.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=600k", "tmpfs", str(folder)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("needs a small tmpfs (root and mount)")
+    try:
+        (folder / ".filler").write_bytes(b"\0" * 540_000)
+        protocol = tmp_path / "short.toml"
+        protocol.write_text("end = 48.0\n[[session]]\nstart = 10\nduration = 1\nintensity = 1.0\n")
+        code = cli.main(["grow", "--geometry", "cylinder", "--protocol", str(protocol), "--growth-dt", "12",
+                         "--output", str(folder / "out"), "--quiet"])
+        err = capsys.readouterr().err
+        lines = [line for line in err.splitlines() if line.strip()]
+        assert code == cli.EXIT_FAILED and len(lines) == 1 and "No space left on device" in lines[0], err
+        assert "_fields.xdmf: cannot write" in lines[0]
+        assert written(folder) == []
+    finally:
+        subprocess.run(["umount", str(folder)], check=True)

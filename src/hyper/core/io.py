@@ -372,6 +372,57 @@ def one_grid(xml: str) -> str:
     return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
 
 
+# DOLFINx's HDF5 cannot fail a write cleanly: on a full disk it prints pages of HDF5-DIAG,
+# its close raises, and HDF5 then aborts the process (exit 134). So every write to an XDMF
+# file first checks that the disk has room for it, and a want of room is a `WriteFailed`
+# before HDF5 sees any of it. The room asked for is the arrays' bytes (on every rank) times
+# ROOM_FACTOR, for HDF5's chunks and metadata and the XML, plus ROOM_SLACK.
+ROOM_FACTOR = 2.0
+ROOM_SLACK = 64 * 1024  # bytes
+
+
+class RoomCheckedXDMF:
+    """A dolfinx XDMFFile whose writes each check, collectively, that the disk holding
+    ``path`` has room for them (`ROOM_FACTOR`); anything else is the file's own."""
+
+    def __init__(self, xdmf, comm, path: Path, shown: Path | None = None):
+        self._xdmf, self._comm, self._path = xdmf, comm, path
+        self._shown = path if shown is None else shown  # the name a refusal gives
+
+    def _room_for(self, nbytes: int) -> None:
+        needed = ROOM_FACTOR * self._comm.allreduce(int(nbytes)) + ROOM_SLACK
+        free = shutil.disk_usage(self._path.parent).free if self._comm.rank == 0 else None
+        if self._comm.bcast(free, root=0) < needed:
+            raise write_failed(self._shown, OSError(errno.ENOSPC, os.strerror(errno.ENOSPC)))
+
+    def write_mesh(self, mesh, *args, **kwargs):
+        self._room_for(mesh.geometry.x.nbytes + 8 * mesh.topology.index_map(mesh.topology.dim).size_local
+                       * mesh.geometry.dofmap.shape[1])
+        return self._xdmf.write_mesh(mesh, *args, **kwargs)
+
+    def write_meshtags(self, tags, *args, **kwargs):
+        self._room_for(tags.values.nbytes + tags.indices.nbytes * 4)
+        return self._xdmf.write_meshtags(tags, *args, **kwargs)
+
+    def write_function(self, function, *args, **kwargs):
+        # a higher-degree field is written at the mesh's nodes: its own dofs are the most
+        self._room_for(function.x.array.nbytes + function.function_space.mesh.geometry.x.nbytes)
+        return self._xdmf.write_function(function, *args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self._xdmf, name)
+
+
+@contextlib.contextmanager
+def room_checked_xdmf(comm, path: str | Path, shown: Path | None = None) -> Iterator[RoomCheckedXDMF]:
+    """A new dolfinx XDMFFile at ``path`` for writing, its writes room-checked (a refusal
+    names ``shown``, where the file is bound for, if given)."""
+    from dolfinx.io import XDMFFile
+
+    with XDMFFile(comm, str(path), "w") as xdmf:
+        yield RoomCheckedXDMF(xdmf, comm, Path(path), shown)
+
+
 @contextlib.contextmanager
 def atomic_xdmf(comm, path: str | Path) -> Iterator[Any]:
     """An open dolfinx XDMFFile that appears at ``path`` (with its .h5) only when closed,
@@ -379,10 +430,10 @@ def atomic_xdmf(comm, path: str | Path) -> Iterator[Any]:
 
     The pair is written into a ``<name>.partial/`` folder, so the .xdmf keeps the
     relative reference to its .h5, and moved into place: the .h5 first, the .xdmf last,
-    so a visible .xdmf always has its data. Collective over ``comm``.
+    so a visible .xdmf always has its data. Every write is room-checked
+    (`RoomCheckedXDMF`): a full disk is a `WriteFailed` and leaves nothing. Collective
+    over ``comm``.
     """
-    from dolfinx.io import XDMFFile
-
     path = Path(path)
     stage = path.with_name(path.name + PARTIAL)
     if comm.rank == 0:
@@ -391,20 +442,28 @@ def atomic_xdmf(comm, path: str | Path) -> Iterator[Any]:
     comm.barrier()
     ok = False
     try:
-        with XDMFFile(comm, str(stage / path.name), "w") as xdmf:
+        with room_checked_xdmf(comm, stage / path.name, shown=path) as xdmf:
             yield xdmf
         ok = True
     finally:
         comm.barrier()
+        fault = None
         if comm.rank == 0:
             if ok:
-                staged = stage / path.name
-                staged.write_text(one_grid(staged.read_text()))
-                h5 = path.with_suffix(".h5")
-                os.replace(stage / h5.name, h5)
-                os.replace(stage / path.name, path)
+                try:
+                    staged = stage / path.name
+                    staged.write_text(one_grid(staged.read_text()))
+                    h5 = path.with_suffix(".h5")
+                    os.replace(stage / h5.name, h5)
+                    os.replace(stage / path.name, path)
+                except OSError as err:
+                    fault = write_failed(path, err)
+                    if fault is None:
+                        raise
             shutil.rmtree(stage, ignore_errors=True)
-        comm.barrier()
+        fault = comm.bcast(fault, root=0)
+        if fault is not None:
+            raise fault
 
 
 def read_point_field(path: str | Path, name: str) -> tuple[np.ndarray, list[tuple[float, np.ndarray]]]:

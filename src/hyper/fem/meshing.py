@@ -61,6 +61,7 @@ from pathlib import Path
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
 
+from hyper.core import io
 from hyper.core.params import InputError
 
 UNITS_MM = {"mm": 1.0, "m": 1.0e3}  # millimetres per unit: the folder stores millimetres, as the shipped ones
@@ -466,7 +467,6 @@ def write_xdmf(comm, path: Path, x_mm: np.ndarray, tets: np.ndarray, facets: np.
     import ufl
     from dolfinx import mesh as dmesh
     from dolfinx.graph import adjacencylist
-    from dolfinx.io import XDMFFile
     from dolfinx.io.utils import distribute_entity_data
 
     if comm.rank != 0:
@@ -479,7 +479,7 @@ def write_xdmf(comm, path: Path, x_mm: np.ndarray, tets: np.ndarray, facets: np.
     mesh.topology.create_connectivity(2, 3)
     facet_tags = dmesh.meshtags_from_entities(mesh, 2, adjacencylist(local_facets), local_tags.astype(np.int32))
     facet_tags.name = "ft_small"
-    with XDMFFile(comm, str(path), "w") as xdmf:
+    with io.room_checked_xdmf(comm, path) as xdmf:
         xdmf.write_mesh(mesh)
         xdmf.write_meshtags(facet_tags, mesh.geometry)
 
