@@ -213,7 +213,16 @@ def test_an_xdmf_write_without_room_is_refused_before_hdf5_sees_it(tmp_path, mon
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.h5", "f.xdmf"]
 
 
-def test_a_growth_run_whose_fields_do_not_fit_exits_3_in_one_line(tmp_path, capsys):
+SHORT = "end = 48.0\n[[session]]\nstart = 10\nduration = 1\nintensity = 1.0\n"
+# job -> its command, {p} a short protocol file, {s} a one-run study file of it, {out} the output
+ONE_RUN = {
+    "grow": ["grow", "--geometry", "cylinder", "--protocol", "{p}", "--growth-dt", "12", "--output", "{out}"],
+    "study": ["study", "{s}", "--output", "{out}"],
+}
+
+
+@pytest.mark.parametrize("job", sorted(ONE_RUN))
+def test_a_run_whose_fields_do_not_fit_exits_3_in_one_line(tmp_path, capsys, job):
     """A disk with room for the lock and the first writes, not for the fields: one line, exit 3,
     nothing left (before the room check: pages of HDF5-DIAG, then exit 134)."""
     folder = tmp_path / "small"
@@ -223,10 +232,12 @@ def test_a_growth_run_whose_fields_do_not_fit_exits_3_in_one_line(tmp_path, caps
         pytest.skip("needs a small tmpfs (root and mount)")
     try:
         (folder / ".filler").write_bytes(b"\0" * 540_000)
-        protocol = tmp_path / "short.toml"
-        protocol.write_text("end = 48.0\n[[session]]\nstart = 10\nduration = 1\nintensity = 1.0\n")
-        code = cli.main(["grow", "--geometry", "cylinder", "--protocol", str(protocol), "--growth-dt", "12",
-                         "--output", str(folder / "out"), "--quiet"])
+        protocol, study = tmp_path / "short.toml", tmp_path / "study.toml"
+        protocol.write_text(SHORT)
+        study.write_text('geometries = ["cylinder"]\n[[protocol]]\nname = "short"\n'
+                         + SHORT.replace("[[session]]", "[[protocol.session]]") + "[numerics]\ngrowth_dt = 12\n")
+        paths = {"p": protocol, "s": study, "out": folder / "out"}
+        code = cli.main([a.format(**paths) for a in ONE_RUN[job]] + ["--quiet"])
         err = capsys.readouterr().err
         lines = [line for line in err.splitlines() if line.strip()]
         assert code == cli.EXIT_FAILED and len(lines) == 1 and "No space left on device" in lines[0], err
