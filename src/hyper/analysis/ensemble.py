@@ -13,7 +13,6 @@ a field varying over the body's size R ≈ 1/size.
 from __future__ import annotations
 
 import dataclasses
-import json
 from collections.abc import Callable
 from pathlib import Path
 
@@ -188,6 +187,5 @@ def write_results(jobs: list[farm.Job], het: heterogeneity.Heterogeneity, result
     numbers["settings"] = dataclasses.asdict(jobs[0].payload.spec.settings)
     numbers["wall_s"] = {r.key: r.wall_s for r in results}
     folder.mkdir(parents=True, exist_ok=True)
-    with io.atomic_path(folder / "summary.json") as tmp:
-        tmp.write_text(json.dumps(numbers, indent=2))
+    io.write_json(folder / "summary.json", numbers)
     return numbers, figures(uniform, samples, folder, title)

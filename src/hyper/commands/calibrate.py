@@ -32,7 +32,6 @@ Writes OUTPUT/calibration.json and OUTPUT/calibration.png (data, fit, 95 % band)
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from pathlib import Path
 
@@ -192,13 +191,7 @@ def write(args, datasets: list[Dataset], f: Fit, kind: str, reasons: list[str], 
         "evaluations": f.evaluations, "fit_wall_s": f.wall_s, "check": checks, "versions": io.versions(),
     }
     path = args.output / "calibration.json"
-    with io.atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(result, indent=2) + "\n")
-    return path
-
+    return io.write_json(path, result)
 
 
 main = cli.entry(parser, run, locks=lambda args: [args.output])
-
-if __name__ == "__main__":
-    raise SystemExit(main())

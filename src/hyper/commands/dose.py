@@ -23,7 +23,6 @@ dose_returns.png (the diminishing returns).
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -104,13 +103,7 @@ def write(args, gains, best, checks, worst, atlas_s, choice) -> Path:
               "goal_pp": GOAL_PP, "atlas_wall_s": atlas_s, "signaling_dt": choice.signaling_dt,
               "section_factor": surrogate.section_factor("idealized"), "versions": io.versions()}
     path = args.output / "dose.json"
-    with io.atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(result, indent=1) + "\n")
-    return path
-
+    return io.write_json(path, result, indent=1)
 
 
 main = cli.entry(parser, run, locks=lambda args: [args.output])
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -7,7 +7,6 @@ replaces ``--output`` whole."""
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import shutil
 import sys
@@ -17,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from hyper.commands import cli
-from hyper.core.io import atomic_path, write_series
+from hyper.core.io import write_json, write_series
 from hyper.core.log import info
 from hyper.core.params import InputError, as_attributes
 from hyper.fem import fibers, meshstats
@@ -120,8 +119,7 @@ def run(comm, args) -> int:
                       "statistics": {k: v for k, v in row.items() if k != "geometry"},
                       "fibers": {k: float(v) for k, v in stats.items()},
                       "check_s": built["check_s"], "mesh_s": built["mesh_s"]}
-            with atomic_path(stage / "mesh.json") as tmp:
-                tmp.write_text(json.dumps(record, indent=2) + "\n")
+            write_json(stage / "mesh.json", record)
             axis = np.asarray(built["rule"]["axis"])
             plot.save(figure(name, arrays["x"], arrays["facets"], arrays["tags"], cells[0], cells[1], axis),
                       stage / f"{name}.png", dpi=110)

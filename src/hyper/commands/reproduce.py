@@ -32,7 +32,6 @@ BFLH_VHF_Left at the end of its original-settings run) and idealized_mwf.png.
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 
@@ -133,8 +132,7 @@ def reproduce(comm, args) -> int:
             text += ("\n## Figures\n\n" + "\n\n".join(shown) + "\n") if shown else ""
             with io.atomic_path(output / "REPORT.md") as tmp:
                 tmp.write_text(text)
-            with io.atomic_path(output / "report.json") as tmp:
-                tmp.write_text(json.dumps(data, indent=1, default=float))
+            io.write_json(output / "report.json", data, indent=1)
             info(comm, text)
             info(comm, f"{farm.summary_line(results)}; wrote {output / 'REPORT.md'}, {output / 'report.json'}")
         failed = comm.bcast(any(r.status == "failed" for r in results), root=0)

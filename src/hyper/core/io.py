@@ -12,6 +12,7 @@ import contextlib
 import datetime
 import errno
 import functools
+import json
 import os
 import platform
 import shutil
@@ -220,6 +221,13 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         if fault is not None:
             raise fault from None
         raise
+
+
+def write_json(path: str | Path, data: Any, *, indent: int | None = 2) -> Path:
+    """A JSON file, written atomically (`atomic_path`); numpy scalars as floats."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=indent, default=float) + "\n")
+    return Path(path)
 
 
 def write_series(

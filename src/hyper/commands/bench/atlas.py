@@ -434,7 +434,7 @@ def run(comm, args) -> int:
               "dimensions": dimensions, "failure": failure, "collected": collect(args.output),
               "versions": io.versions(), "wall_s": time.perf_counter() - start}
     args.output.mkdir(parents=True, exist_ok=True)
-    common.write_json(args.output / "atlas.json", result)
+    io.write_json(args.output / "atlas.json", result)
     _charts(args.output, result)
     for name, rows in dimensions.items():
         for row in rows:
@@ -453,6 +453,3 @@ def run(comm, args) -> int:
 
 
 main = cli.entry(parser, run)
-
-if __name__ == "__main__":
-    raise SystemExit(main())

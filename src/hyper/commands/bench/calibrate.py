@@ -85,12 +85,9 @@ def run(comm, args) -> int:
         print(f"fit by coupled runs: {result['fit_coupled']}; the ODE model is {result['speedup']:.0f}x faster",
               flush=True)
     if comm.rank == 0:
-        common.write_json(args.output / "calibrate.json", result)
+        io.write_json(args.output / "calibrate.json", result)
     print(f"wrote {args.output / 'calibrate.json'}")
     return 0
 
 
 main = cli.entry(parser, run)
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -23,8 +23,6 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper.core import io
-
 
 def machine() -> dict:
     """The host, its cores and its load now: a shared machine's absolute times vary, so
@@ -37,14 +35,6 @@ def add_worker_options(parser: argparse.ArgumentParser) -> None:
     """The hidden options a worker process is started with."""
     parser.add_argument("--worker", type=json.loads, help=argparse.SUPPRESS)
     parser.add_argument("--json", type=Path, help=argparse.SUPPRESS)
-
-
-def write_json(path: Path, result: dict) -> None:
-    """A benchmark's result file, written atomically: a killed bench leaves the previous
-    file (or none), never half of one."""
-
-    with io.atomic_path(Path(path)) as tmp:
-        tmp.write_text(json.dumps(result, indent=2, default=float) + "\n")
 
 
 def write_worker_result(comm, path: Path, result: dict) -> None:

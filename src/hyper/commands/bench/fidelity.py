@@ -96,12 +96,9 @@ def run(comm, args) -> int:
         if "speedup_wall" in comparison:
             print(f"  choice is {comparison['speedup_wall']:.1f}x faster (wall), "
                   f"{comparison['speedup_cpu']:.1f}x (CPU) than the paper's settings", flush=True)
-    common.write_json(args.output / "fidelity.json", result)
+    io.write_json(args.output / "fidelity.json", result)
     print(f"wrote {args.output / 'fidelity.json'}")
     return 0
 
 
 main = cli.entry(parser, run)
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -42,7 +42,7 @@ import numpy as np
 
 from hyper.commands import cli
 from hyper.commands.bench import common
-from hyper.core import log
+from hyper.core import io, log
 from hyper.core.log import Progress
 from hyper.core.params import InputError
 from hyper.fem import geometry as geo
@@ -488,7 +488,7 @@ def run(comm, args) -> int:
     }
     out = args.output
     out.mkdir(parents=True, exist_ok=True)
-    common.write_json(out / "growth.json", result)
+    io.write_json(out / "growth.json", result)
     pareto_chart(out / "growth.png", result)
     series_chart(out / "growth_series.png", result,
                  {r["label"]: series[r["label"]] for r in sweep if r["label"] in series})

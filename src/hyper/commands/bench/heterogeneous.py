@@ -139,7 +139,7 @@ def run(comm, args) -> int:
     result["machine"]["load_average_at_end"] = os.getloadavg()
     if comm.rank == 0:
         args.output.mkdir(parents=True, exist_ok=True)
-        common.write_json(args.output / "heterogeneous.json", result)
+        io.write_json(args.output / "heterogeneous.json", result)
         chart(result, args.output / "heterogeneous.png")
     t, s = result["throughput"], result["coupled"]
     info(comm, f"per-cell RK4 on {sum(t['cells_per_rank'])} cells ({comm.size} rank(s)): compiled "

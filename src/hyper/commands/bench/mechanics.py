@@ -27,6 +27,7 @@ import numpy as np
 
 from hyper.commands import cli
 from hyper.commands.bench import common
+from hyper.core import io
 from hyper.core.params import InputError
 from hyper.fem import fibers
 from hyper.fem import geometry as geo
@@ -258,7 +259,7 @@ def run(comm, args) -> int:
     }
     out = args.output
     out.mkdir(parents=True, exist_ok=True)
-    common.write_json(out / "mechanics.json", result)
+    io.write_json(out / "mechanics.json", result)
     chart(out / "mechanics.png", result)
     print(f"wrote {out / 'mechanics.json'} and {out / 'mechanics.png'}")
     return 0

@@ -44,7 +44,7 @@ import numpy as np
 
 from hyper.commands import cli
 from hyper.commands import mesh as mesh_job
-from hyper.commands.bench import common
+from hyper.core import io
 from hyper.core.log import info
 from hyper.core.params import InputError
 from hyper.fem import fibers, meshstats, section
@@ -203,7 +203,7 @@ def run(comm, args) -> int:
                        f" -> {grown['new']['csa_solid_pct']:+.3f} % ({d['csa_solid_pct']:+.3f} pp)")
         rows.append(row)
     if comm.rank == 0:
-        common.write_json(args.output / "mesh.json", {"rows": rows})
+        io.write_json(args.output / "mesh.json", {"rows": rows})
     info(comm, f"wrote {args.output / 'mesh.json'}")
     return cli.EXIT_OK
 

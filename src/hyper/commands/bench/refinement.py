@@ -168,7 +168,7 @@ def run(comm, args) -> int:
               "lu_memory": memory_limit(rows, args.memory_gib), "versions": io.versions()}
     if comm.rank == 0:
         args.output.mkdir(parents=True, exist_ok=True)
-        common.write_json(args.output / "refinement.json", result)
+        io.write_json(args.output / "refinement.json", result)
         chart(args.output / "refinement.png", result)
         for key, value in result["forces"].items():
             if "order" in value:
@@ -181,6 +181,3 @@ def run(comm, args) -> int:
 
 
 main = cli.entry(parser, run)
-
-if __name__ == "__main__":
-    raise SystemExit(main())

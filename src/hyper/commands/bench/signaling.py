@@ -27,6 +27,7 @@ import numpy as np
 
 from hyper.commands import cli
 from hyper.commands.bench import common
+from hyper.core import io
 from hyper.model import signaling
 from hyper.model.protocols import named
 from hyper.model.signaling import compiled
@@ -300,7 +301,7 @@ def run(comm, args) -> int:
 
     folder = args.output
     path = folder / "signaling.json"
-    common.write_json(path, result)
+    io.write_json(path, result)
     charts = _charts(result, folder)
     print(f"wrote {path}, " + ", ".join(map(str, charts)))
     return 0

@@ -109,7 +109,7 @@ def run(comm, args) -> int:
         "backends": backends,
     }
     args.output.mkdir(parents=True, exist_ok=True)
-    common.write_json(args.output / "sobol.json", result)
+    io.write_json(args.output / "sobol.json", result)
 
     plt = plot.pyplot()
     fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.6))

@@ -321,7 +321,7 @@ def run(comm, args) -> int:
               "memory_fit": {s: memory_fit([r for r in rows if r["solver"] == s]) for s in ("lu", "iterative")},
               "versions": io.versions(), "wall_s": time.perf_counter() - start}
     args.output.mkdir(parents=True, exist_ok=True)
-    common.write_json(args.output / "solvers.json", result)
+    io.write_json(args.output / "solvers.json", result)
     chart(args.output / "solvers.png", result)
     for r in precision + gamg:
         print(f"{r.get('variant', r['solver']):40s} {r['geometry']:12s} precision {r.get('precision', '-')}: " +

@@ -43,6 +43,7 @@ import numpy as np
 
 from hyper.commands import cli
 from hyper.commands.bench import common
+from hyper.core import io
 from hyper.core.params import InputError
 from hyper.fem import geometry as geo
 from hyper.fem.coupled import GrowthSettings
@@ -262,7 +263,7 @@ def run(comm, args) -> int:
               "wall_s": time.perf_counter() - started}
     out = args.output
     out.mkdir(parents=True, exist_ok=True)
-    common.write_json(out / "speed.json", result)
+    io.write_json(out / "speed.json", result)
     chart(out / "speed.png", result)
     print(f"wrote {out / 'speed.json'}, {out / 'speed.png'}")
     return 0
