@@ -17,14 +17,13 @@ import importlib
 import logging
 import math
 import re
-import signal
 import sys
 import traceback
 from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
 
-from hyper.core import io
+from hyper.core import io, term
 from hyper.core.log import PROGRESS_EVERY, error
 from hyper.core.params import InputError
 from hyper.runs.locks import Busy, hold
@@ -34,7 +33,7 @@ EXIT_SOME_FAILED = 1
 EXIT_INPUT = 2
 EXIT_FAILED = 3
 EXIT_BUSY = 4
-EXIT_TERMINATED = 128 + signal.SIGTERM  # 143, what a shell reports for a TERM-killed job
+EXIT_TERMINATED = term.EXIT_TERMINATED  # 143, what a shell reports for a TERM-killed job
 
 # `hyper JOB` runs hyper.commands.JOB.main (`python -m hyper.JOB`: the shim hyper/JOB.py); the
 # benches keep their own dispatcher (hyper bench NAME).
@@ -233,6 +232,7 @@ def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool 
 
 def main(argv=None) -> int:
     """``hyper JOB [options]``: the job's own ``main`` with the rest of the command line."""
+    term.install()  # before the job's imports (PETSc): from here on a TERM ends in exit status 143
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] in JOBS:
         return importlib.import_module(f"hyper.commands.{argv[0]}").main(argv[1:]) or 0
