@@ -255,6 +255,18 @@ def cell_size(volume: float, cells: int) -> float:
     return (CELLS_PER_H3 * volume / cells) ** (1.0 / 3.0)
 
 
+def surface_covariance(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """The covariance (3, 3) of the surface's area: its triangles' exact second moments,
+    so that how a face is cut into triangles does not matter (∫ x xᵀ dA over a triangle
+    a, b, c is A/12 (a aᵀ + b bᵀ + c cᵀ + s sᵀ), s = a + b + c)."""
+    corners = points[triangles]
+    area = facet_areas(points, triangles)
+    total = corners.sum(axis=1)
+    mean = (area[:, None] * total).sum(axis=0) / (3.0 * area.sum())
+    second = np.einsum("f,fvi,fvj->ij", area, corners, corners) + np.einsum("f,fi,fj->ij", area, total, total)
+    return second / (12.0 * area.sum()) - np.outer(mean, mean)
+
+
 def check_meshable(path: Path, points_mm: np.ndarray, triangles: np.ndarray, cells: int) -> None:
     """InputError where a valid closed surface is too degenerate for ``cells`` cells: too
     few triangles, too thin, or without one long axis (the bounds above MIN_TRIANGLES)."""
@@ -271,10 +283,7 @@ def check_meshable(path: Path, points_mm: np.ndarray, triangles: np.ndarray, cel
         raise InputError(f"{path}: too thin for {cells} cells: its mean thickness (2 volume / area) is "
                          f"{thickness:.3g} mm, {thickness / size:.2g} of their size ({size:.3g} mm), below "
                          f"{MIN_THICKNESS:g}; {remedy}")
-    corners = points_mm[triangles]
-    weight = facet_areas(points_mm, triangles)
-    centred = corners.mean(axis=1) - np.average(corners.mean(axis=1), axis=0, weights=weight)
-    variance = np.linalg.eigvalsh((centred * weight[:, None]).T @ centred / weight.sum())
+    variance = np.linalg.eigvalsh(surface_covariance(points_mm, triangles))
     if variance[2] - variance[1] <= AXIS_MARGIN * variance[2]:
         raise InputError(f"{path}: no long axis: the surface is about as wide as it is long (its two largest "
                          f"principal variances are within {AXIS_MARGIN:.0%}), as a cube or a disc is; a muscle's "
