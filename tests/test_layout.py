@@ -15,6 +15,11 @@ import pytest
 SRC = Path(__file__).resolve().parents[1] / "src" / "hyper"
 
 
+# The standard library's own documented names with an underscore: not another module's
+# internals. os._exit: an exit without unwinding (hyper.core.term's TERM handler).
+STDLIB_UNDERSCORE_NAMES = {"os._exit"}
+
+
 def _private(name: str) -> bool:
     return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
 
@@ -35,6 +40,8 @@ def violations(source: str, filename: str = "<source>") -> list[str]:
                 continue
             if isinstance(owner, ast.Call) and isinstance(owner.func, ast.Name) and owner.func.id == "super":
                 continue  # the class's own implementation, one level up
+            if ast.unparse(node) in STDLIB_UNDERSCORE_NAMES:
+                continue
             found.append(f"{filename}:{node.lineno}: {ast.unparse(node)}")
     return found
 
@@ -146,8 +153,12 @@ def test_every_module_sits_in_a_layer():
     shims = [m for m in MODULES if layer(m) == SHIM]
     for name in shims:
         text = MODULES[name].read_text()
-        assert f"from hyper.commands.{name.split('.')[1]} import main" in text, f"{name} is not a thin shim"
-        assert len(text.splitlines()) <= 8, f"{name} is more than a shim"
+        job = f"from hyper.commands.{name.split('.')[1]} import main"
+        assert job in text, f"{name} is not a thin shim"
+        assert len(text.splitlines()) <= 11, f"{name} is more than a shim"
+        # the early TERM handler (hyper.core.term) before the job's imports: see test_term.py
+        assert "from hyper.core import term\n\nterm.install()" in text.split(job)[0], (
+            f"{name} does not install hyper.core.term before it imports its job")
 
 
 def test_imports_point_down_the_layers():

@@ -29,6 +29,7 @@ import numpy as np
 import pytest
 
 from hyper.commands import slurm
+from hyper.core.io import is_complete
 
 PYTHON = sys.executable
 SRC = Path(slurm.__file__).resolve().parents[2]  # src/, holding hyper/ (this module is hyper/commands/slurm.py)
@@ -370,3 +371,44 @@ def test_sobol_stopped_requeued_and_resumed(cluster, tmp_path):
         for name in ("X", "Y", "S1", "S1_conf", "ST", "ST_conf", "S2", "S2_conf", "S1_bootstrap", "ST_bootstrap"):
             assert got[name][()].tobytes() == want[name][()].tobytes(), name
         assert got.attrs["digest"] == want.attrs["digest"] and got.attrs["evaluations_computed"] == 960 - 16 * kept
+
+
+def _grow_started(folder: Path) -> bool:
+    """Whether a `python -m hyper.grow` of the job in ``folder`` (its --chdir) has started."""
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            if b"hyper.grow" in cmdline.read_bytes() and Path(cmdline.parent / "cwd").resolve() == folder.resolve():
+                return True
+        except OSError:  # ended meanwhile, or not ours to read
+            continue
+    return False
+
+
+def test_grow_array_task_termed_in_its_start_up_is_requeued_and_finishes(cluster, tmp_path):
+    # Slurm's warning as soon as the run has started: its TERM reaches the rank while it
+    # imports and starts PETSc (some 0.7 s), before its growth steps. PETSc's own handler
+    # once ended such a task, TERMed 2 s after its start, with 'PETSC ERROR: Caught
+    # signal' and exit status 15 or 59, which the template did not requeue: it was lost.
+    script = render(cluster, "grow-array", tmp_path, "--geometries", "cylinder", "--protocols", "weekly",
+                    "--args=" + " ".join(GROW_ARGS[2:]))
+    array = submit(cluster, script)
+    log = tmp_path / "logs" / f"hyper-grow-array-{array}_0.out"
+    task = wait_until("task 0 to start", lambda: job(cluster, f"{array}_0")["JobId"], timeout=60)
+    wait_until("the run to start", lambda: _grow_started(tmp_path), timeout=60)
+    warn(cluster, task)
+    requeued_then_released(cluster, task)
+    completed(cluster, task)
+    text = log.read_text()
+    assert_in_order(text, [
+        f"sending TERM to the run's ranks (scancel --signal=TERM {task})",
+        "task 0: Exited with exit code 143",
+        f"the run stopped on the TERM (exit status 143): requeueing job {task} (restart 1 of at most 1)",
+        f"task 0 (job {task}): cylinder weekly on", "restart 1",
+        "the run ended with exit status 0",
+    ])
+    assert "PETSC ERROR" not in text
+    # stopped by hyper.core.term's handler, before the run's own (srun may pass its stderr on later)
+    first = text.split("requeueing job")[0]
+    assert "hyper: stopped by SIGTERM outside a run's growth steps; exit status 143" in first, first
+    result = tmp_path / "results" / "grow" / "cylinder_weekly.h5"
+    assert is_complete(result), f"{result} is not complete"

@@ -2,7 +2,10 @@
 
 import sys
 
-from hyper.commands.calibrate import main
+from hyper.core import term
+
+term.install()  # first, before the job's imports: from here on a TERM ends in exit status 143
+from hyper.commands.calibrate import main  # noqa: E402
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -28,7 +28,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from hyper.core import io
+from hyper.core import io, term
 from hyper.core.log import PROGRESS_EVERY, error
 from hyper.core.params import SEED_MAX, InputError, as_float, as_vector, float_text, int_text, shown
 from hyper.runs.locks import Busy, hold
@@ -38,7 +38,7 @@ EXIT_SOME_FAILED = 1
 EXIT_INPUT = 2
 EXIT_FAILED = 3
 EXIT_BUSY = 4
-EXIT_TERMINATED = 128 + signal.SIGTERM  # 143, what a shell reports for a TERM-killed job
+EXIT_TERMINATED = term.EXIT_TERMINATED  # 143, what a shell reports for a TERM-killed job
 # 141, what a shell reports for `yes | head -1`'s yes, which SIGPIPE ends: a job whose stdout's
 # reader has gone stops as Unix tools do, silently, and a pipeline with pipefail sees the cut
 EXIT_PIPE = 128 + signal.SIGPIPE
@@ -353,6 +353,7 @@ def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool 
 
 def main(argv=None) -> int:
     """``hyper JOB [options]``: the job's own ``main`` with the rest of the command line."""
+    term.install()  # before the job's imports (PETSc): from here on a TERM ends in exit status 143
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] in JOBS:
         return importlib.import_module(f"hyper.commands.{argv[0]}").main(argv[1:]) or 0

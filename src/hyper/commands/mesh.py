@@ -34,7 +34,10 @@ def parser() -> cli.Parser:
                    help="the folder to write, meshes/NAME/; NAME is the "
                    "geometry's identifier")
     p.add_argument("--unit", choices=tuple(hm.UNITS_MM), default="mm", help="length unit of the STL")
-    p.add_argument("--cells", type=cli.integer(200, 2_000_000), default=hm.DEFAULT_CELLS, help="target cell count")
+    p.add_argument("--cells", type=cli.integer(200, hm.MAX_CELLS), default=hm.DEFAULT_CELLS, help="target cell count")
+    p.add_argument("--gmsh-budget", type=cli.positive("seconds"), metavar="SECONDS", help="wall time of gmsh's "
+                   f"tries, after which the job stops with an error (default {hm.GMSH_BUDGET_S:g} s and "
+                   f"{hm.GMSH_BUDGET_S_PER_CELL:g} s a cell)")
     p.add_argument("--end-band", type=cli.number(above=0, below=0.5), default=hm.END_BAND,
                    help="an end: the facets within this share of "
                    "the length from an extreme along the axis")
@@ -57,7 +60,8 @@ def build(args) -> dict:
     hm.check_surface(path, points, triangles)
     checked = time.perf_counter()
     points_mm = points * hm.UNITS_MM[args.unit]
-    x, tets = hm.tetrahedralize(points_mm, triangles, args.cells, args.axis)
+    hm.check_meshable(path, points_mm, triangles, args.cells)
+    x, tets = hm.tetrahedralize(points_mm, triangles, args.cells, args.axis, args.gmsh_budget)
     x, offset = hm.fill_surface(x, tets, hm.enclosed_volume(points_mm, triangles))
     tets, quality = hm.check_quality(x, tets)
     quality["surface_offset_mm"] = offset

@@ -21,6 +21,9 @@ Steps, each of which stops the job with one ``error:`` line (exit 2) and nothing
    directions by its two triangles (consistent orientation), the enclosed volume
    positive (normals outward), and no two triangles without a common vertex crossing
    (an edge of one through the other; pairs that share a vertex are not tested).
+   Then what gmsh can mesh at --cells (`check_meshable`): at least 8 triangles, a mean
+   thickness of at least 0.3 cells, one long axis; gmsh runs in a process of its own,
+   stopped after --gmsh-budget seconds.
 3. Tetrahedra by gmsh (Delaunay, then Netgen's optimizer, which lifts the minimum
    dihedral angle of the TA from 4-5° to 10-12°, as in the shipped meshes). Why gmsh:
    a PyPI wheel that builds everywhere; it remeshes the surface to the target size with
@@ -56,6 +59,7 @@ from __future__ import annotations
 
 import math
 import struct
+import time
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
@@ -63,6 +67,7 @@ import numpy as np
 
 from hyper.core import io
 from hyper.core.params import InputError
+from hyper.fem import gmshvolume
 
 UNITS_MM = {"mm": 1.0, "m": 1.0e3}  # millimetres per unit: the folder stores millimetres, as the shipped ones
 MUSCLE_LENGTH_MM = (10.0, 1000.0)  # run.MUSCLE_LENGTH_M: a muscle's longest side
@@ -84,6 +89,17 @@ CELLS_PER_H3 = 9.0  # cells per volume/h³ after optimization, measured on the T
 TIP_SIZE, TIP_REACH, TIP_EDGE = 0.1, 0.1, 0.25
 TIP_BAND = 0.005  # share of the length: the points that make a tip (`extremes`)
 CELL_CORRECTIONS = 4  # meshes after the first, while the count is off --cells by over 10 %
+# The least surface `tetrahedralize` takes, checked before gmsh (`check_meshable`): as many
+# triangles as a triangular prism, the fewest with two ends and a side between them (gmsh's
+# classifySurfaces looped for ever on a tetrahedron's four); a mean thickness 2 V/A of at
+# least MIN_THICKNESS cells of the size --cells gives (every shipped muscle has 0.48 or
+# more at 200 cells; a 0.05 mm sheet had 0.1 and gmsh ran minutes); and one long axis,
+# the surface's largest principal variance AXIS_MARGIN above the next (a cube has none,
+# and the end rule and the mid-section need it).
+MIN_TRIANGLES, MIN_THICKNESS, AXIS_MARGIN = 8, 0.3, 0.01
+MAX_CELLS = 2_000_000
+# gmsh's wall time, all tries together (`gmsh_budget`): about ten times what they take
+GMSH_BUDGET_S, GMSH_BUDGET_S_PER_CELL = 60.0, 0.01
 
 
 # ---------------------------------------------------------------------------- reading
@@ -235,21 +251,64 @@ def segment_hits_triangle(start, end, tri) -> np.ndarray:
     return ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
 
 
+def cell_size(volume: float, cells: int) -> float:
+    """The target edge (mm) that gives about ``cells`` cells in ``volume`` (mm³): the first guess."""
+    return (CELLS_PER_H3 * volume / cells) ** (1.0 / 3.0)
+
+
+def surface_covariance(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """The covariance (3, 3) of the surface's area: its triangles' exact second moments,
+    so that how a face is cut into triangles does not matter (∫ x xᵀ dA over a triangle
+    a, b, c is A/12 (a aᵀ + b bᵀ + c cᵀ + s sᵀ), s = a + b + c)."""
+    corners = points[triangles]
+    area = facet_areas(points, triangles)
+    total = corners.sum(axis=1)
+    mean = (area[:, None] * total).sum(axis=0) / (3.0 * area.sum())
+    second = np.einsum("f,fvi,fvj->ij", area, corners, corners) + np.einsum("f,fi,fj->ij", area, total, total)
+    return second / (12.0 * area.sum()) - np.outer(mean, mean)
+
+
+def check_meshable(path: Path, points_mm: np.ndarray, triangles: np.ndarray, cells: int) -> None:
+    """InputError where a valid closed surface is too degenerate for ``cells`` cells: too
+    few triangles, too thin, or without one long axis (the bounds above MIN_TRIANGLES)."""
+    if len(triangles) < MIN_TRIANGLES:
+        raise InputError(f"{path}: {len(triangles)} triangles; a muscle's surface has two ends and a side between "
+                         f"them, at least {MIN_TRIANGLES} triangles (a triangular prism)")
+    volume = enclosed_volume(points_mm, triangles)
+    thickness = 2.0 * volume / float(facet_areas(points_mm, triangles).sum())
+    size = cell_size(volume, cells)
+    if thickness < MIN_THICKNESS * size:
+        enough = math.ceil(CELLS_PER_H3 * volume * (MIN_THICKNESS / thickness) ** 3)
+        remedy = (f"give --cells {enough} or more" if enough <= MAX_CELLS else
+                  f"even --cells {MAX_CELLS} is too few: a sheet or a needle, not a muscle")
+        raise InputError(f"{path}: too thin for {cells} cells: its mean thickness (2 volume / area) is "
+                         f"{thickness:.3g} mm, {thickness / size:.2g} of their size ({size:.3g} mm), below "
+                         f"{MIN_THICKNESS:g}; {remedy}")
+    variance = np.linalg.eigvalsh(surface_covariance(points_mm, triangles))
+    if variance[2] - variance[1] <= AXIS_MARGIN * variance[2]:
+        raise InputError(f"{path}: no long axis: the surface is about as wide as it is long (its two largest "
+                         f"principal variances are within {AXIS_MARGIN:.0%}), as a cube or a disc is; a muscle's "
+                         "surface is longer than wide")
+
+
 # ------------------------------------------------------------------------ tetrahedra
 
 
 def tetrahedralize(points_mm: np.ndarray, triangles: np.ndarray, cells: int,
-                   axis=None) -> tuple[np.ndarray, np.ndarray]:
+                   axis=None, budget_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(x (n, 3) mm, tetrahedra (m, 4)) near ``cells`` cells inside the surface (gmsh),
     finer at its two tips (`extremes` along ``axis``; by default the first principal axis
-    of its vertices, as find_ends takes the mesh's)."""
+    of its vertices, as find_ends takes the mesh's). InputError when gmsh has not done
+    within ``budget_s`` seconds, all its tries together (`gmsh_budget` by default)."""
+    budget_s = gmsh_budget(cells) if budget_s is None else budget_s
+    deadline = time.monotonic() + budget_s
     volume = enclosed_volume(points_mm, triangles)
     tips = extremes(points_mm, axis)
     corners = points_mm[triangles]
     finest = TIP_EDGE * float(np.median(np.linalg.norm(corners - corners[:, [1, 2, 0]], axis=2)))
     reach = TIP_REACH * float(np.linalg.norm(tips[1] - tips[0]))
-    size = (CELLS_PER_H3 * volume / cells) ** (1.0 / 3.0)
-    x, tets = gmsh_volume(points_mm, triangles, size, tips, finest, reach)
+    size = cell_size(volume, cells)
+    x, tets = gmsh_volume(points_mm, triangles, size, tips, finest, reach, deadline, budget_s)
     # The count is not cubic in 1/h (the surface and the tips count too): the exponent
     # is measured from the last two meshes, a secant on log(count) against log(h).
     slope, tried = -3.0, [(size, len(tets))]
@@ -261,7 +320,7 @@ def tetrahedralize(points_mm: np.ndarray, triangles: np.ndarray, cells: int,
             if h1 != h0 and n1 != n0:
                 slope = min(-1.0, math.log(n1 / n0) / math.log(h1 / h0))
         size *= (cells / len(tets)) ** (1.0 / slope)
-        x, tets = gmsh_volume(points_mm, triangles, size, tips, finest, reach)
+        x, tets = gmsh_volume(points_mm, triangles, size, tips, finest, reach, deadline, budget_s)
         tried.append((size, len(tets)))
     return x, tets
 
@@ -280,56 +339,24 @@ def extremes(x: np.ndarray, axis=None) -> np.ndarray:
     return np.array([x[along <= along.min() + width].mean(axis=0), x[along >= along.max() - width].mean(axis=0)])
 
 
+def gmsh_budget(cells: int) -> float:
+    """The default wall time (s) of gmsh's tries for ``cells`` cells: GMSH_BUDGET_S, and
+    GMSH_BUDGET_S_PER_CELL a cell (140 s for 8000, which take 3-15 s)."""
+    return GMSH_BUDGET_S + GMSH_BUDGET_S_PER_CELL * cells
+
+
 def gmsh_volume(points: np.ndarray, triangles: np.ndarray, size: float, tips: np.ndarray, finest: float,
-                reach: float) -> tuple[np.ndarray, np.ndarray]:
+                reach: float, deadline: float, budget_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Tetrahedra of the surface at ``size``, falling to max(TIP_SIZE size, ``finest``) at
-    ``tips`` and back to ``size`` within ``reach`` (mm) of them."""
-    import gmsh
-
+    ``tips`` and back to ``size`` within ``reach`` (mm) of them: gmsh in a process of its
+    own (`gmshvolume`), stopped at ``deadline`` (time.monotonic), the end of ``budget_s``."""
     tip_size = min(size, max(TIP_SIZE * size, finest))
-
-    gmsh.initialize(interruptible=False)
     try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.option.setNumber("General.NumThreads", 1)
-        gmsh.model.add("surface")
-        surface = gmsh.model.addDiscreteEntity(2)
-        gmsh.model.mesh.addNodes(2, surface, np.arange(1, len(points) + 1), points.ravel())
-        gmsh.model.mesh.addElementsByType(surface, 2, [], (triangles + 1).ravel())
-        gmsh.model.mesh.classifySurfaces(math.radians(FEATURE_DEG), True, True, math.pi)
-        gmsh.model.mesh.createGeometry()
-        loop = gmsh.model.geo.addSurfaceLoop([tag for _, tag in gmsh.model.getEntities(2)])
-        gmsh.model.geo.addVolume([loop])
-        points_at = [gmsh.model.geo.addPoint(*tip) for tip in tips]
-        gmsh.model.geo.synchronize()
-        field = gmsh.model.mesh.field
-        distance = field.add("Distance")
-        field.setNumbers(distance, "PointsList", points_at)
-        ramp = field.add("Threshold")
-        field.setNumber(ramp, "InField", distance)
-        field.setNumber(ramp, "SizeMin", tip_size)
-        field.setNumber(ramp, "SizeMax", size)
-        field.setNumber(ramp, "DistMin", 0.0)
-        field.setNumber(ramp, "DistMax", reach)
-        field.setAsBackgroundMesh(ramp)
-        # the field alone sets the size: not the STL's own points, nor the surface's spacing
-        gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
-        gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
-        gmsh.option.setNumber("Mesh.MeshSizeMin", tip_size)
-        gmsh.option.setNumber("Mesh.MeshSizeMax", size)
-        gmsh.model.mesh.generate(3)
-        gmsh.model.mesh.optimize("Netgen")
-        node_tags, coords, _ = gmsh.model.mesh.getNodes()
-        _, tet_nodes = gmsh.model.mesh.getElementsByType(4)
-    except Exception as err:  # gmsh raises a bare Exception with its last error
-        raise InputError(f"gmsh could not mesh the surface: {err}") from None
-    finally:
-        gmsh.finalize()
-    position = np.full(int(node_tags.max()) + 1, -1, dtype=np.int64)
-    position[node_tags] = np.arange(len(node_tags))
-    tets = position[np.asarray(tet_nodes, dtype=np.int64).reshape(-1, 4)]
-    used, compact = np.unique(tets, return_inverse=True)
-    return coords.reshape(-1, 3)[used], compact.reshape(-1, 4)
+        return gmshvolume.tetrahedra(points, triangles, size=size, tip_size=tip_size, tips=tips, reach=reach,
+                                     feature_deg=FEATURE_DEG, seconds=max(0.0, deadline - time.monotonic()))
+    except gmshvolume.OverBudget:
+        raise InputError(f"gmsh had not meshed the surface after {budget_s:g} s (--gmsh-budget) and was stopped: "
+                         "a surface it cannot parametrize, or more cells than the budget allows") from None
 
 
 def fill_surface(x: np.ndarray, tets: np.ndarray, volume: float) -> tuple[np.ndarray, float]:

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 
-from hyper.core import io
+from hyper.core import io, term
 from hyper.core.collective import on_rank0
 from hyper.core.log import PROGRESS_EVERY, Progress, info
 from hyper.core.params import InputError, as_attributes
@@ -86,8 +86,11 @@ class StopOnTerm:
 
     def __enter__(self):
         # PETSc installs a SIGTERM handler that aborts when it starts, which would replace
-        # ours if a job started it later (the farm's first DOLFINx import did, once): start
-        # it now, before ours.
+        # ours if a job started it later (the farm's first DOLFINx import did, once). The
+        # entry points (term.install) have PETSc start without it; a caller that did not
+        # come through them gets the same here. PETSc is still started now, before ours,
+        # as it was: on every rank at once, and ours replaces a handler it already has.
+        term.keep_petsc_off_signals()
         with contextlib.suppress(ImportError):  # a job without PETSc (signaling only)
             import dolfinx_solver  # noqa: F401  (must precede petsc4py)
             from petsc4py import PETSc  # noqa: F401
