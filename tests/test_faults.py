@@ -130,6 +130,17 @@ WRITERS = {
     "calibrate": ["calibrate", "--data", DATA, "--protocol", "mwf", "--fit", "kM", "--no-check", "--output", "{out}"],
     "signaling": ["signaling", "--protocol", "mwf", "--output", "{out}/mwf.h5"],
     "meshstats": ["meshstats", "--geometries", "cylinder", "--output", "{out}/stats.csv"],
+    # these take their output locks first: the lock file is their first write
+    "grow": ["grow", "--geometry", "cylinder", "--protocol", "weekly", "--output", "{out}/g"],
+    "contraction": ["contraction", "--geometry", "cylinder", "--steps", "1", "--output", "{out}/c.h5"],
+    "cohort": ["cohort", "--geometries", "cylinder", "--protocols", "weekly", "--output", "{out}/co"],
+    "ensemble": ["ensemble", "--geometry", "cylinder", "--protocol", "weekly", "--samples", "1", "--output", "{out}/e"],
+    "sobol": ["sobol", "--samples", "8", "--output", "{out}/s"],
+    "fibers": ["fibers", "--geometries", "cylinder", "--output", "{out}/f"],
+    "reproduce": ["reproduce", "--cases", "signaling", "--output", "{out}/r"],
+    "demo": ["demo", "--output", "{out}/d"],
+    "study": ["study", str(ROOT / "studies" / "custom.toml"), "--output", "{out}/st"],
+    "mesh": ["mesh", str(ROOT / "tests" / "data" / "TA_VHF_Right_coarse.stl"), "--output", "{out}/m"],
 }
 
 

@@ -748,3 +748,34 @@ def test_any_malformed_direction_is_refused(tmp_path, capsys, components):
     out = tmp_path / "out"
     for option in ("--axis", "--origin-toward"):
         refused(capsys, ["mesh", str(tmp_path / "absent.stl"), "--output", str(out), option, *components], out)
+
+
+def every_parser():
+    """(name, parser) of every job and benchmark, with the subcommands' parsers."""
+    import importlib
+
+    from hyper.commands import bench
+
+    found = [(job, importlib.import_module(f"hyper.commands.{job}").parser()) for job in cli.JOBS if job != "bench"]
+    found += [(f"bench {name}", importlib.import_module(f"hyper.commands.bench.{name}").parser())
+              for name in bench.available()]
+    for name, parser in list(found):
+        for action in parser._actions:
+            for sub, subparser in getattr(action, "_name_parser_map", {}).items():
+                found.append((f"{name} {sub}", subparser))
+    return found
+
+
+def test_every_numeric_option_of_every_job_is_read_by_the_numeric_reader():
+    """The property tests draw from some options; this holds the rest to the same reader:
+    no option of any job or benchmark reads numbers with a bare float() or int()."""
+    def bare(parsers):
+        return [f"{name} {action.option_strings}" for name, parser in parsers for action in parser._actions
+                if action.type in (float, int)]
+
+    loose = cli.Parser("loose")
+    loose.add_argument("--dt", type=float)
+    assert bare([("loose", loose)]) == ["loose ['--dt']"]  # the check sees a bare float
+    parsers = every_parser()
+    assert len(parsers) > len(cli.JOBS)
+    assert bare(parsers) == []
