@@ -405,7 +405,7 @@ class RoomCheckedXDMF:
 
     def write_mesh(self, mesh, *args, **kwargs):
         self._room_for(mesh.geometry.x.nbytes + 8 * mesh.topology.index_map(mesh.topology.dim).size_local
-                       * mesh.geometry.dofmap.shape[1])
+                       * mesh.geometry.dofmaps[0].shape[1])
         return self._xdmf.write_mesh(mesh, *args, **kwargs)
 
     def write_meshtags(self, tags, *args, **kwargs):
