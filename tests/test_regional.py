@@ -135,3 +135,64 @@ def test_the_coupled_cylinder_detrains_as_the_surrogate():
     np.testing.assert_allclose(N, lost.N, rtol=1e-10)  # the feedback sees the measured CSA
     np.testing.assert_allclose(csa, lost.N, rtol=1e-9)
     assert csa[-1] < csa.max() - 1e-3  # it lost what it gained
+
+
+def test_a_data_file_names_its_section_and_the_comparison_uses_that_series(tmp_path):
+    from hyper.runs import measured
+
+    path = tmp_path / "mri.csv"
+    path.write_text("# vastus lateralis, MRI\nsection = 0.45\n\nday,csa_change_percent\n0,0\n2,1.0\n4,2.0\n")
+    data = measured.read(path)
+    assert data.section == 0.45
+    np.testing.assert_allclose(data.csa_ratio, [1.01, 1.02])
+    t = np.array([0.0, 48.0, 96.0])
+    fractions = section.section_fractions(9)
+    ratios = 1.0 + np.outer(t / 96.0, fractions) * 0.1  # the change grows along the axis
+    # 0.45 lies halfway between the sections at 0.4 and 0.5: the mean of their series
+    got = measured.compare(data, t, np.ones(3), (fractions, ratios))
+    np.testing.assert_allclose(got.model_csa_ratio, 1.0 + np.array([0.5, 1.0]) * 0.045, rtol=1e-14)
+    assert got.attributes()["section"] == 0.45
+    at = measured.Measured(path, "x", data.t, data.csa_ratio, 0.3)
+    np.testing.assert_array_equal(measured.compare(at, t, np.ones(3), (fractions, ratios)).model_csa_ratio,
+                                  ratios[1:, 2])  # a recorded section: its own series
+    with pytest.raises(InputError, match="records no regional sections"):
+        measured.compare(data, t, np.ones(3))
+    # without a section line: the mid-belly series, as before
+    path.write_text("day,csa_change_percent\n0,0\n2,1.0\n4,2.0\n")
+    plain = measured.read(path)
+    assert plain.section is None
+    np.testing.assert_array_equal(measured.compare(plain, t, t / 96.0 + 1.0, (fractions, ratios)).model_csa_ratio,
+                                  [1.5, 2.0])
+
+
+@pytest.mark.parametrize("preamble, message", [
+    ("section = 0\n", r"line 1: section: expected a number in \(0, 1\), got 0"),
+    ("section = half\n", r"line 1: section: expected a number, got 'half'"),
+    ("section = 0.5\nsection = 0.6\n", r"line 2: section given twice"),
+    ("# fraction = 0.5\n", r"line 1: unknown setting 'fraction'"),
+    ("a note\n", r"line 1: expected a setting 'name = value' before the header"),
+])
+def test_bad_section_lines_are_refused(tmp_path, preamble, message):
+    from hyper.runs import measured
+
+    path = tmp_path / "mri.csv"
+    path.write_text(preamble + "day,csa\n0,1\n4,1.1\n")
+    if "a note" in preamble:  # a line without '=' is the header: then the columns are wrong
+        message = r"missing column 'csa'"
+    with pytest.raises(InputError, match=message):
+        measured.read(path)
+
+
+def test_the_study_of_a_run_with_the_switches_reruns_it(tmp_path):
+    from hyper.analysis import study
+    from hyper.runs import provenance, runspec
+
+    settings = GrowthSettings(sections=3, detraining=500.0)
+    spec = runspec.RunSpec("cylinder", short_protocol(), settings=settings)
+    text = provenance.study_text(spec)
+    assert "sections = 3" in text and "detraining = 500.0" in text
+    assert "sections" not in provenance.study_text(runspec.RunSpec("cylinder", short_protocol()))
+    path = tmp_path / "s.toml"
+    path.write_text(text)
+    again, _ = study.steps(study.load(path))
+    assert again == settings

@@ -143,6 +143,8 @@ class Study:
             raise InputError("per-cell parameters need both a model and a seed", field="heterogeneity")
         for p in self.protocols if self.data is not None else ():
             measured.check_span(self.data, p, "data.file")
+        if self.data is not None:
+            measured.check_section(self.data, self.numerics.sections, "data.file")
 
     @property
     def names(self) -> list[str]:

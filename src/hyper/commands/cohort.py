@@ -122,6 +122,7 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings, mat.MaterialParams]:
     runs = plan(args.geometries, [p for text in args.protocols for p in protocols.from_option(text, "--protocols")])
     if args.data is not None:
         data = measured.read(args.data)
+        measured.check_section(data, settings.sections)
         for r in runs:
             measured.check_span(data, r.protocol)
     return runs, settings, mat.load(args.material) if args.material else mat.MaterialParams()

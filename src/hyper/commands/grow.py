@@ -227,6 +227,7 @@ def plan_from(comm, args) -> sequence.Plan:
     data = None
     if args.data is not None:
         data = measured.read(args.data)
+        measured.check_section(data, settings.sections)
         for p in runs:
             measured.check_span(data, p)
     if mesh is not None:
