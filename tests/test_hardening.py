@@ -65,6 +65,10 @@ STUDY_FILES = {  # name -> (text, the message); the study job's rows below
                        r"lead_in_days: expected a number of days in \[0, 3633\]"),
     "repeat_duration": (REPEAT + f"every_days = 2\nduration = {HUGE}\nintensity = 0.5\nweeks = 1\n",
                         r"duration: expected a finite number, got an integer of 401 digits"),
+    "sections": (STUDY + "[numerics]\nsections = -1\n", r"numerics.sections: expected an integer in \[0, 99\], got -1"),
+    "detraining": (STUDY + "[numerics]\ndetraining = 0\n",
+                   r"numerics.detraining: expected a finite number of hours > 0, got 0"),
+    "detraining_nan": (STUDY + "[numerics]\ndetraining = nan\n", r"numerics.detraining: expected a finite number"),
     "sobol_names": (STUDY + '[sobol]\nnames = ["bogus"]\n',
                     r"sobol: names: expected distinct parameters of .* got bogus"),
     "sobol_names_of_ishigami": (STUDY + '[sobol]\nfunction = "ishigami"\nnames = ["kM"]\n',
@@ -100,6 +104,13 @@ STEP_CASES = {
     "tiny": (["--signaling-dt", "1e-300"], r"--signaling-dt: expected at least 0.0001 h, got 1e-300"),
     "text": (["--signaling-dt", "fast"], r"argument --signaling-dt: expected a number of hours, got 'fast'"),
 }
+
+
+# issue 35: --detraining TAU, hours > 0 (0, nan, -1 and inf refused)
+DETRAINING_CASES = {f"detraining_{name}": (["--detraining", text], rf"argument --detraining: expected a finite "
+                                           rf"number of hours > 0{tail}")
+                    for name, text, tail in (("zero", "0", ", got 0"), ("nan", "nan", ""),
+                                             ("negative", "-1", ", got -1"), ("inf", "inf", ""))}
 
 
 def integer_cases(option, least, most=None):
@@ -153,6 +164,8 @@ JOBS = {
         "geometry_empty": (["--geometries", ""], r"--geometries: unknown"),
         "plot_geometry": (["--plot-geometry", "nowhere"], r"--plot-geometry nowhere: not one of --geometries"),
         "unknown_option": (["--bogus"], r"unrecognized arguments: --bogus"),
+        **integer_cases("--sections", 0, 99),
+        **DETRAINING_CASES,
     }),
     "ensemble": (["--geometry", "cylinder", "--protocol", "mwf", "--output", "{out}"], "ensemble", {
         **{f"protocol_{k}": v for k, v in PROTOCOL_CASES.items()},
@@ -198,6 +211,8 @@ JOBS = {
         "accuracy_nan": (["{d}/study_good.toml", "--accuracy", "nan"], r"argument --accuracy: expected a finite"),
         **{k: (["{d}/study_good.toml", *v[0]], v[1]) for k, v in integer_cases("--max-halvings", 0, 12).items()},
         **{k: (["{d}/study_good.toml", *v[0]], v[1]) for k, v in integer_cases("--quadrature-degree", 1, 12).items()},
+        **{k: (["{d}/study_good.toml", *v[0]], v[1]) for k, v in integer_cases("--sections", 0, 99).items()},
+        **{k: (["{d}/study_good.toml", *v[0]], v[1]) for k, v in DETRAINING_CASES.items()},
     }),
     "calibrate": (["--data", str(ROOT / "data" / "defreitas.csv"), "--protocol", "mwf", "--fit", "kM", "--no-check",
                    "--output", "{out}"], "calibration", {

@@ -139,6 +139,24 @@ BAD_OPTIONS = {
     "plot_under_proc": (["--plot", "/proc/figure.png"], r"--plot: /proc/figure.png: under /proc"),
     "lock_is_a_folder": (["--output", "{d}/locked/run.h5"], r"cannot take the output lock: .*run.h5.lock"),
     "params_folder": (["--params", "{d}/a_folder"], r"a_folder: is a folder, not a TOML file"),
+    # issue 35: the regional sections and detraining
+    "sections_negative": (["--sections", "-1"], r"argument --sections: expected an integer in \[0, 99\], got -1"),
+    "sections_fraction": (["--sections", "2.5"], r"argument --sections: expected an integer, got '2.5'"),
+    "sections_huge": (["--sections", "100"], r"argument --sections: expected an integer in \[0, 99\], got 100"),
+    "detraining_zero": (["--detraining", "0"], r"argument --detraining: expected a finite number of hours > 0, got 0"),
+    "detraining_nan": (["--detraining", "nan"], r"argument --detraining: expected a finite number of hours > 0"),
+    "detraining_negative": (["--detraining", "-1"],
+                            r"argument --detraining: expected a finite number of hours > 0, got -1"),
+    "detraining_inf": (["--detraining", "inf"], r"argument --detraining: expected a finite number of hours > 0"),
+    "data_section_without_sections": (["--data", "{d}/at_section.csv", "--sections", "0"],
+                                      r"at_section.csv: measured at section 0.45 of the length; the runs record no "
+                                      r"regional sections \(--sections 0\)"),
+    "data_section_outside": (["--data", "{d}/at_section.csv", "--sections", "1"],
+                             r"at_section.csv: measured at section 0.45 .*outside the 1 regional sections"),
+    "data_section_bad": (["--data", "{d}/bad_section.csv"],
+                         r"bad_section.csv: line 1: section: expected a number in \(0, 1\), got 1.5"),
+    "data_setting_unknown": (["--data", "{d}/bad_setting.csv"],
+                             r"bad_setting.csv: line 1: unknown setting 'sectoin'; known: section"),
 }
 
 
@@ -198,6 +216,9 @@ def write_inputs(d: Path) -> None:
     data = (d / "truncated.h5").read_bytes()
     (d / "truncated.h5").write_bytes(data[: len(data) // 2])
     (d / "no_data.h5").unlink()
+    (d / "at_section.csv").write_text("section = 0.45\nday,csa_change_percent\n0,0\n4,0.2\n")
+    (d / "bad_section.csv").write_text("section = 1.5\nday,csa_change_percent\n0,0\n4,0.2\n")
+    (d / "bad_setting.csv").write_text("# sectoin = 0.5\nday,csa_change_percent\n0,0\n4,0.2\n")
     (d / "a_folder").mkdir()
     (d / "locked").mkdir()
     (d / "locked" / "run.h5.lock").mkdir()

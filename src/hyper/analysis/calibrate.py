@@ -54,6 +54,9 @@ class Dataset:
 def dataset(path: str | Path, protocol: Protocol, exclude_until: float = 0.0) -> Dataset:
     """The data of ``path`` under ``protocol``, without the points in (0, exclude_until] weeks."""
     measured_data = measured.read(path)
+    if measured_data.section is not None:  # no silent fallback to the mid-belly CSA
+        raise InputError(f"{path}: measured at section {measured_data.section:g} of the length; calibration "
+                         f"fits the mid-belly CSA (its models have no regional sections)")
     t, ratio = measured_data.t, measured_data.csa_ratio
     keep = t > exclude_until * protocols.WEEK
     if keep.sum() < 1:

@@ -182,7 +182,8 @@ def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: Gr
             groups = runspec.result_groups(specs[entry.key], done.choice)
             against = data if data is not None else measured.of_protocol(entry.protocol)
             if against is not None:
-                groups["data"] = measured.compare(against, done.series["t"], done.series["csa_ratio"]).attributes()
+                groups["data"] = measured.compare(against, done.series["t"], done.series["csa_ratio"],
+                                                  measured.run_sections(done.series, done.meta)).attributes()
             out.store(done.series, {**done.meta, **member(entry.geometry), "protocol": entry.protocol.name}, groups)
             return {"csa_ratio": float(done.series["csa_ratio"][-1]),
                     "volume_ratio": float(done.series["volume_ratio"][-1])}

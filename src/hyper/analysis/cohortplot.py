@@ -49,6 +49,28 @@ def ratio_figure(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def section_figure(rows: list[dict], path: Path) -> None:
+    """The final CSA change along each muscle: one line per geometry over the fraction of its
+    length (`hyper.analysis.cohortsummary.section_rows`), one panel per protocol."""
+    plt = plot.pyplot()
+    names = list(dict.fromkeys(r["protocol"] for r in rows))
+    geometries = list(dict.fromkeys(r["geometry"] for r in rows))
+    fig, axes = plt.subplots(1, len(names), figsize=(4.6 * len(names), 3.8), layout="constrained", squeeze=False,
+                             sharey=True)
+    for ax, name in zip(axes[0], names):
+        for g in geometries:
+            mine = [r for r in rows if r["protocol"] == name and r["geometry"] == g]
+            if mine:
+                ax.plot([100 * r["section"] for r in mine], [r["csa_change_percent"] for r in mine], ".-", label=g)
+        ax.set_title(name)
+        ax.set_xlabel("position along the principal axis (% of the length)")
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("final CSA change (%)")
+    axes[0][-1].legend(fontsize=7)
+    plot.save(fig, path, dpi=140)
+    plt.close(fig)
+
+
 def final_fields(xdmf: Path) -> dict:
     """Mesh and the last snapshot of u and det Ḡ from a run's XDMF output (its .h5)."""
     import h5py

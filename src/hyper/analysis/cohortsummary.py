@@ -1,6 +1,8 @@
 """A cohort's summary, written by rank 0 from the complete .h5 files (so a rerun that had
 nothing left to do writes the same summary): summary.csv, failures.txt, the figures of
-`hyper.analysis.cohortplot` and table.md, the results against the paper (MODEL.md §8)."""
+`hyper.analysis.cohortplot` and table.md, the results against the paper (MODEL.md §8);
+where the runs recorded regional sections (--sections), sections.csv, the final CSA change
+at each section of each run, and its figure sections.png."""
 
 from __future__ import annotations
 
@@ -10,7 +12,7 @@ import math
 from pathlib import Path
 
 from hyper.analysis.cohort import PAPER_PROTOCOLS, Run, member, series_path
-from hyper.analysis.cohortplot import final_fields, ratio_figure, shape_figure
+from hyper.analysis.cohortplot import final_fields, ratio_figure, section_figure, shape_figure
 from hyper.analysis.cohortstats import PAPER_MWF_INCREASE, increases, mwf_statistics, ordered, ratio_column
 from hyper.core import io
 from hyper.core.log import hms, info
@@ -47,6 +49,24 @@ def summary_row(path: Path) -> dict:
         }
 
 
+SECTION_COLUMNS = ("geometry", "protocol", "section", "csa0_cm2", "final_csa_ratio", "csa_change_percent")
+
+
+def section_rows(path: Path) -> list[dict]:
+    """One row per regional section of a complete series file (none where it has none)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        if "csa_ratio_sections" not in f:
+            return []
+        a = f.attrs
+        final = f["csa_ratio_sections"][-1]
+        return [{"geometry": str(a["geometry"]), "protocol": str(a["protocol"]), "section": float(x),
+                 "csa0_cm2": float(area) * 1e4, "final_csa_ratio": float(r),
+                 "csa_change_percent": 100.0 * (float(r) - 1.0)}
+                for x, area, r in zip(a["section_fractions"], a["csa0_sections_m2"], final, strict=True)]
+
+
 def summarize(output: Path, runs: list[Run], failed: dict[str, str], interrupted=()) -> list[dict]:
     """One row per run, in the order of ``runs``: read back from its complete file, or
     marked failed (``failed``: run key -> error), interrupted or missing, with blank numbers."""
@@ -63,9 +83,9 @@ def summarize(output: Path, runs: list[Run], failed: dict[str, str], interrupted
     return rows
 
 
-def write_csv(rows: list[dict], path: Path) -> None:
+def write_csv(rows: list[dict], path: Path, columns=COLUMNS) -> None:
     with io.atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=COLUMNS)
+        writer = csv.DictWriter(f, fieldnames=columns)
         writer.writeheader()
         for row in rows:
             writer.writerow({k: ("" if isinstance(v, float) and math.isnan(v) else
@@ -160,6 +180,15 @@ def finish(output: Path, runs: list[Run], results, settings: GrowthSettings, ela
     if done and figures:
         ratio_figure(done, output / "ratios.png")
         written.append(output / "ratios.png")
+    # the regional CSA of the runs that recorded it (read back, as the summary is)
+    sections = [s for r in runs if r.key not in failed and io.is_complete(series_path(output, r))
+                for s in section_rows(series_path(output, r))]
+    if sections:
+        write_csv(sections, output / "sections.csv", SECTION_COLUMNS)
+        written.append(output / "sections.csv")
+        if figures:
+            section_figure(sections, output / "sections.png")
+            written.append(output / "sections.png")
     pictured = {r.protocol.name: runspec.Outputs(series_path(output, r)).fields for r in runs
                 if r.geometry == plot_geometry}
     pictured = {name: p for name, p in pictured.items() if p.is_file()}

@@ -56,6 +56,8 @@ class Numerics:
     feedback: str = GrowthSettings.feedback  # hill, linear or none
     grow_during_sessions: bool = GrowthSettings.grow_during_sessions  # False: the original code's
     consistent_stress: bool = GrowthSettings.consistent_stress  # False: the original code's P = Fe S
+    sections: int = GrowthSettings.sections  # regional CSA sections along the principal axis (0: none)
+    detraining: float | None = None  # h, the gain's turnover time constant; None: none (the paper's)
 
     def __post_init__(self):
         for name in ("growth_dt", "signaling_dt"):
@@ -84,6 +86,7 @@ class Numerics:
         for name in ("grow_during_sessions", "consistent_stress"):
             if not isinstance(getattr(self, name), bool):
                 raise InputError(f"expected true or false, got {getattr(self, name)!r}", field=name)
+        GrowthSettings(sections=self.sections, detraining=self.detraining)  # checks both, naming them
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,6 +143,8 @@ class Study:
             raise InputError("per-cell parameters need both a model and a seed", field="heterogeneity")
         for p in self.protocols if self.data is not None else ():
             measured.check_span(self.data, p, "data.file")
+        if self.data is not None:
+            measured.check_section(self.data, self.numerics.sections, "data.file")
 
     @property
     def names(self) -> list[str]:
@@ -294,11 +299,12 @@ def steps(study: Study) -> tuple[GrowthSettings, fidelity.Choice | None]:
         except InputError as err:
             raise InputError(f"numerics.accuracy {n.accuracy:g}: {err}") from None
         growth_dt, signaling_dt = choice.growth_dt, choice.signaling_dt
-    settings = build(GrowthSettings, {k: f"numerics.{k}" for k in ("growth_dt", "signaling_dt", "max_halvings")},
+    settings = build(GrowthSettings, {k: f"numerics.{k}" for k in ("growth_dt", "signaling_dt", "max_halvings",
+                                                                    "sections", "detraining")},
                      growth_dt=GrowthSettings.growth_dt if growth_dt is None else growth_dt,
                      signaling_dt=GrowthSettings.signaling_dt if signaling_dt is None else signaling_dt,
                      max_halvings=n.max_halvings, feedback=n.feedback, grow_during_sessions=n.grow_during_sessions,
-                     consistent_stress=n.consistent_stress)
+                     consistent_stress=n.consistent_stress, sections=n.sections, detraining=n.detraining)
     return settings, choice
 
 

@@ -58,7 +58,7 @@ from pathlib import Path
 from hyper.analysis import cohortsummary
 from hyper.analysis.cohort import PAPER_PROTOCOLS, Run, idle_barrier, plan, run_cohort
 from hyper.analysis.cohortplot import SHAPE_GEOMETRY
-from hyper.commands import cli
+from hyper.commands import cli, grow
 from hyper.core.log import info
 from hyper.core.params import InputError
 from hyper.fem import geometry as geo
@@ -83,6 +83,7 @@ def parser() -> cli.Parser:
     p.add_argument("--material", type=Path, metavar="F.toml", reads=True,
                    help="TOML file overriding the muscle law's parameters (hyper.model.material.MaterialParams)")
     presets.add_options(p)
+    grow.model_options(p)
     p.add_argument("--max-halvings", type=cli.integer(0, GrowthSettings.MAX_HALVINGS),
                    default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run fails; a failed run "
@@ -121,6 +122,7 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings, mat.MaterialParams]:
     runs = plan(args.geometries, [p for text in args.protocols for p in protocols.from_option(text, "--protocols")])
     if args.data is not None:
         data = measured.read(args.data)
+        measured.check_section(data, settings.sections)
         for r in runs:
             measured.check_span(data, r.protocol)
     return runs, settings, mat.load(args.material) if args.material else mat.MaterialParams()

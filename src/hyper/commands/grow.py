@@ -73,6 +73,22 @@ def scene_options(p: cli.Parser) -> None:
     method_option(p, default=None)
 
 
+def model_options(p: cli.Parser) -> None:
+    """--sections and --detraining, the switches beyond the paper (issue 35) that grow,
+    cohort and study share; left out (None): the defaults."""
+    from hyper.fem.section import MAX_SECTIONS, SECTIONS  # DOLFINx, as in parser()
+
+    p.add_argument("--sections", type=cli.integer(0, MAX_SECTIONS), metavar="K",
+                   help=f"record the CSA (exact cut) at K sections along the principal axis, at j/(K+1) of the "
+                        f"length (csa_ratio_sections, time × section, at the result's section_fractions), beside "
+                        f"the mid-belly series; 0: none. A measure only: the feedback sees the mid-belly CSA. "
+                        f"{SECTIONS} (10 %%, 20 %%, …, 90 %%) by default")
+    p.add_argument("--detraining", type=cli.positive("hours"), metavar="TAU",
+                   help="turnover of the gain with time constant TAU hours, dN/dt = f − (N − 1)/TAU "
+                        "(hyper.model.growth.detrained): the gain decays when training stops. Off by default "
+                        "(the paper's model keeps every gain)")
+
+
 def parser(ask: str = "growth") -> cli.Parser:
     if ask == "signaling":
         p = cli.Parser("grow --ask signaling", "A signaling question: the ODEs alone for each protocol, no mesh.")
@@ -98,6 +114,7 @@ def parser(ask: str = "growth") -> cli.Parser:
                    help=f"growth step Δtg (h); {GrowthSettings.growth_dt:g} unless --accuracy chooses one")
     p.add_argument("--feedback", choices=FEEDBACK_LAWS, default="hill", help="feedback of CSA on protein synthesis")
     presets.add_options(p, signaling_method=False)
+    model_options(p)
     p.add_argument("--max-halvings", type=cli.integer(0, GrowthSettings.MAX_HALVINGS),
                    default=GrowthSettings.max_halvings,
                    help="cuts of a growth step whose Newton solve fails before the run stops")
@@ -210,6 +227,7 @@ def plan_from(comm, args) -> sequence.Plan:
     data = None
     if args.data is not None:
         data = measured.read(args.data)
+        measured.check_section(data, settings.sections)
         for p in runs:
             measured.check_span(data, p)
     if mesh is not None:

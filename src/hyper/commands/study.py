@@ -49,6 +49,8 @@ of inputs are relative to the study file's folder (the output folder to the curr
     feedback = "hill"          # of CSA on protein synthesis: hill, linear or none
     grow_during_sessions = true   # false: the original code's
     consistent_stress = true      # false: the original code's P = Fe S
+    sections = 9               # regional CSA at j/10 of the length (0: none; hyper grow --sections)
+    detraining = 500.0         # h, the gain's turnover (left out: none, the paper's model)
 
     [output]
     folder = "results/study"   # (the default)
@@ -106,6 +108,7 @@ def parser() -> cli.Parser:
                    help="fields snapshot every HOURS of simulated time; overrides [output] snapshot_every")
     p.add_argument("--data", type=Path, metavar="CSV", reads=True,
                    help="measured CSA to compare with; overrides [data] file")
+    grow.model_options(p)  # override [numerics] sections and detraining
     p.add_argument("--ranks-per-job", type=cli.integer(1), default=1,
                    help="MPI ranks per run of a cohort; must divide the number of ranks")
     cli.progress_option(p)
@@ -114,7 +117,8 @@ def parser() -> cli.Parser:
 
 OVERRIDES = {"output": "folder", "figures": "figures", "growth_dt": "growth_dt", "accuracy": "accuracy",
              "signaling_dt": "signaling_dt", "quadrature_degree": "quadrature_degree",
-             "linear_solver": "linear_solver", "max_halvings": "max_halvings", "snapshot_every": "snapshot_every"}
+             "linear_solver": "linear_solver", "max_halvings": "max_halvings", "snapshot_every": "snapshot_every",
+             "sections": "sections", "detraining": "detraining"}
 
 
 def from_args(args) -> Study:

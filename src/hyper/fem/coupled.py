@@ -24,7 +24,7 @@ from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from hyper.core.params import InputError, positive_hours
+from hyper.core.params import InputError, as_int, positive_hours
 from hyper.fem import boxsection as box
 from hyper.fem import growthfield, section
 from hyper.fem.mechanics import MechanicsProblem, SolverError
@@ -62,13 +62,20 @@ class GrowthSettings:
     # dN of a growth step (growth.INCREMENTS): exact, N's change over the step; left-point,
     # f at the step's start times Δtg (the original code)
     growth_increment: str = "exact"
+    # CSA at this many sections along the principal axis, at j/(K+1) of the length (9: 10 %, …,
+    # 90 %), beside the mid-belly series: a measure only, the feedback sees the mid-belly CSA. 0: none.
+    sections: int = section.SECTIONS
+    # h, the time constant of the turnover of the gain (`hyper.model.growth.detrained`); None:
+    # none, the paper's model, where a gain is kept for ever
+    detraining: float | None = None
     preset: str = "default"  # the --settings preset these came from (hyper.runs.presets): a label
 
     # A step cut k times is 2^k solves: beyond this a run is better stopped and looked at.
     MAX_HALVINGS = 12
     # Settings added after results existed: in the digest only where they differ from their
     # defaults, so that the digests (and checkpoints) of default runs stay valid.
-    DIGEST_IF_CHANGED = ("signaling_method", "growth_increment", "growth_fields", "csa_method")
+    DIGEST_IF_CHANGED = ("signaling_method", "growth_increment", "growth_fields", "csa_method", "sections",
+                         "detraining")
 
     def __post_init__(self):
         positive_hours(self.growth_dt, "growth_dt", signaling.SMALLEST_DT)
@@ -96,6 +103,9 @@ class GrowthSettings:
         if self.growth_increment not in growth.INCREMENTS:
             raise InputError(f"must be one of {', '.join(growth.INCREMENTS)}, got {self.growth_increment!r}",
                              field="growth_increment")
+        as_int(self.sections, "sections", 0, section.MAX_SECTIONS)
+        if self.detraining is not None:
+            positive_hours(self.detraining, "detraining")
 
     def model_attributes(self) -> dict:
         """The settings that define the solution; max_halvings only decides how hard a
@@ -139,6 +149,7 @@ class StepReport:
     newton_iterations: int
     halvings: int = 0
     extra: dict = field(default_factory=dict)
+    sections: np.ndarray | None = None  # CSA/CSA0 at each regional section (None: none measured)
 
 
 
@@ -164,6 +175,25 @@ class PlaneSection:
         self.u.x.array[:] = self._w.x.array[self._map]
         return {"cut": self._cut.deformed_area(self.u) / self.areas0["cut"],
                 "box": self.box.deformed_area() / self.areas0["box"]}
+
+
+class RegionalSections:
+    """The CSA at ``fractions`` of the length along the principal axis (``settings.sections``
+    of them, `section.AxialSections`), each cut exactly; the deformed area by Nanson."""
+
+    def __init__(self, problem: MechanicsProblem, fractions):
+        mesh = problem.geometry.mesh
+        self._cuts = section.AxialSections(mesh, fractions, degree=problem.geometry.quadrature_degree)
+        self.fractions = self._cuts.fractions
+        self.areas0 = self._cuts.areas0
+        self._w = problem.w
+        space, self._map = problem.w.function_space.sub(0).collapse()
+        self.u = fem.Function(space)
+
+    def ratios(self) -> np.ndarray:
+        """CSA/CSA0 at each section."""
+        self.u.x.array[:] = self._w.x.array[self._map]
+        return self._cuts.deformed_areas(self.u) / self.areas0
 
 
 @dataclass
@@ -208,6 +238,7 @@ class CoupledModel:
         settings: GrowthSettings = GrowthSettings(),
         integrator: Callable | None = None,
         monitor=None,
+        regional: RegionalSections | None = None,
     ):
         self.geometry = problem.geometry
         self.comm = self.geometry.mesh.comm
@@ -228,6 +259,9 @@ class CoupledModel:
         self.csa0_by_method = dict(self.section.areas0) if isinstance(self.section, PlaneSection) else {}
         self.csa_ratios = dict.fromkeys(self.csa0_by_method, 1.0)
         self.volume0 = self.problem.volume()
+        # the regional sections (None: not measured) and their CSA/CSA0
+        self.regional = regional
+        self.section_ratios = None if regional is None else np.ones(len(regional.fractions))
 
         # Every run starts from the rest state of the baseline parameters (MODEL §1).
         # Per-cell parameters (one member per owned cell) give one ODE per cell, and ϑ,
@@ -282,6 +316,7 @@ class CoupledModel:
             newton_iterations=iterations,
             halvings=halvings,
             extra={f"csa_ratio_{name}": value for name, value in self.csa_ratios.items()},
+            sections=None if self.section_ratios is None else self.section_ratios.copy(),
         )
 
     @property
@@ -295,6 +330,8 @@ class CoupledModel:
             self.csa_ratio = self.csa_ratios[self.settings.csa_method]
         else:
             self.csa_ratio = self.section.area() / self.csa0
+        if self.regional is not None:
+            self.section_ratios = self.regional.ratios()
 
     def _solve(self) -> int:
         """Newton from the previous state; a failure with a lagged Jacobian is retried
@@ -385,6 +422,10 @@ class CoupledModel:
                                               self.params, self.period_kM)
                 if in_session and not s.grow_during_sessions:
                     dN = np.zeros_like(dN)
+                N1 = None
+                if s.detraining is not None:  # the gain's turnover, added to the step's dN
+                    N1 = growth.detrained(self.y[4], dN, times[k] - times[k - 1], s.detraining)
+                    dN = N1 - self.y[4]
                 theta = growth.area_multiplier(dN, self.csa_ratio)
                 # f vanishes below the thresholds (the rest week, early recovery):
                 # nothing grows, so the previous equilibrium stands.
@@ -395,6 +436,9 @@ class CoupledModel:
                         self.volume_ratio = self.problem.volume() / self.volume0
                     self.kM = self.kM0 * growth.feedback(self.csa_ratio, s.feedback)
                 self.y = ys[k]
+                if N1 is not None:  # the ODEs go on from the N the turnover left
+                    self.y = ys[k].copy()
+                    self.y[4] = N1
                 self.t = float(times[k])
                 self.step += 1
                 self.period_step = k
@@ -433,6 +477,8 @@ class CoupledModel:
             "volume0": self.volume0,
             **{name: value for name, value in zip(self.measures, self.csa_ratios.values())},
         }
+        if self.section_ratios is not None:
+            glob["csa_ratio_sections"] = self.section_ratios
         if jacobian["point"] is not None:
             w_j, g_j = jacobian["point"]
             per_cell["jacobian_w"] = w_j[wdofs]
@@ -503,6 +549,10 @@ class CoupledModel:
         # a checkpoint from before both CSA measures were kept has neither: unknown until measured
         self.csa_ratios = {method: float(glob[name]) if name in glob else float("nan")
                            for method, name in zip(self.csa_ratios, self.measures)}
+        if self.section_ratios is not None:
+            # a checkpoint from before the regional sections were kept has none: unknown until measured
+            self.section_ratios = (np.array(glob["csa_ratio_sections"], dtype=float) if "csa_ratio_sections" in glob
+                                   else np.full(len(self.section_ratios), np.nan))
         self.t = float(glob["t"])
         self.step = int(glob["step"])
         self.period = int(glob["period"])
@@ -620,5 +670,7 @@ def build_model(
         section_ = growthfield.FacetSection(geometry, problem.F)
     else:
         section_ = PlaneSection(problem)
+    regional = (RegionalSections(problem, section.section_fractions(settings.sections)) if settings.sections
+                else None)
     return CoupledModel(problem, growth_field, section_, jacobian, protocol, params=params, settings=settings,
-                        integrator=integrator, monitor=monitor)
+                        integrator=integrator, monitor=monitor, regional=regional)

@@ -18,6 +18,27 @@ import dolfinx_solver  # noqa: F401  (must precede dolfinx)
 import numpy as np
 from mpi4py import MPI
 
+# Regional CSA (MRI studies measure at fractions of a muscle's length): K sections at
+# j/(K+1) of the length along the first principal axis, j = 1 … K.
+SECTIONS = 9  # 10 %, 20 %, …, 90 %
+MAX_SECTIONS = 99  # 1 % apart: finer than any MRI slice spacing of a muscle
+
+
+def section_fractions(count: int) -> np.ndarray:
+    """The ``count`` fractions j/(count+1) of the length, j = 1 … count (9: 0.1 … 0.9)."""
+    return np.arange(1, count + 1) / (count + 1)
+
+
+def axial_planes(points, fractions) -> tuple[np.ndarray, np.ndarray]:
+    """(origins (K, 3), unit normal): planes normal to the first principal axis of
+    ``points`` (`principal_plane`) at ``fractions`` of their extent along it, from the
+    end whose points lie lowest on the normal (its largest component is positive)."""
+    origin, normal = principal_plane(points)
+    d = signed_distance(np.asarray(points, dtype=float), origin, normal)
+    lo, hi = float(d.min()), float(d.max())
+    offsets = lo + np.asarray(fractions, dtype=float) * (hi - lo)
+    return origin + offsets[:, None] * normal, normal
+
 
 def principal_plane(points) -> tuple[np.ndarray, np.ndarray]:
     """(origin, unit normal): the plane through the mean of ``points`` (n, 3), normal to
@@ -302,3 +323,17 @@ class CutSection:
         F = np.eye(3) + np.einsum("pai,paj->pij", values, dphi)
         local = float(self._weights @ nanson_density(F, self.normal))
         return self.mesh.comm.allreduce(local, op=MPI.SUM)
+
+
+class AxialSections:
+    """`CutSection`s of a mesh at ``fractions`` of its length along the first principal
+    axis of its vertices (`axial_planes`); ``areas0`` and ``deformed_areas`` are collective."""
+
+    def __init__(self, mesh, fractions, *, degree: int = 4):
+        self.fractions = np.asarray(fractions, dtype=float)
+        origins, normal = axial_planes(global_vertices(mesh, mesh.comm), self.fractions)
+        self.cuts = [CutSection(mesh, origin, normal, degree=degree) for origin in origins]
+        self.areas0 = np.array([cut.area0() for cut in self.cuts])
+
+    def deformed_areas(self, u) -> np.ndarray:
+        return np.array([cut.deformed_area(u) for cut in self.cuts])

@@ -63,6 +63,34 @@ def population_change(rule: str, y0, y1, dt: float, params, kM):
     raise ValueError(f"unknown growth increment {rule!r}; expected one of {', '.join(INCREMENTS)}")
 
 
+def detrained(N0, dN, dt: float, tau: float):
+    """N at the end of a growth step of dt (h) from N0, with the step's dN (`population_change`)
+    and a turnover of the gain with time constant tau (h): detraining, off by default.
+
+    The paper's model keeps every gain: f = dN/dt vanishes below the thresholds and N, and
+    with it the CSA, stays where training left it. With turnover the gain above the
+    baseline N = 1 decays at the rate 1/τ,
+
+        dN/dt = f(x3, x4) − (N − 1)/τ,
+
+    at all times, sessions included: turnover is continual (Banister's impulse-response
+    model of training has one time constant of decay, always on); only once training stops
+    and f vanishes does it show alone, as N − 1 ∝ exp(−t/τ). It is a decay of N, not of a
+    separate grown state, so the CSA follows N (ϑ = 1 + dN CSA0/CSA, with dN now < 0) and the
+    feedback h(CSA/CSA0) sees the loss. f depends on x3, x4 only, never on N (but for the
+    bounds Nmin, Nmax), so the signaling ODEs are integrated as they are and the term is added
+    per growth step, exactly for f's share spread evenly over the step:
+
+        N1 − 1 = (N0 − 1) e^(−Δtg/τ) + dN (1 − e^(−Δtg/τ)) τ/Δtg,
+
+    exact where f vanishes (after training: e^(−Δtg/τ) per step) and first order in Δtg/τ
+    otherwise (where in the step f's pulses fall).
+    """
+    x = dt / tau
+    kept, spread = math.exp(-x), -math.expm1(-x) / x  # (1 − e^(−x))/x without cancellation
+    return 1.0 + (np.asarray(N0, dtype=float) - 1.0) * kept + np.asarray(dN, dtype=float) * spread
+
+
 def area_multiplier(dN, csa_ratio):
     """ϑ = 1 + dN CSA0/CSA for a population change dN over one growth step."""
     return 1.0 + np.asarray(dN, dtype=float) / csa_ratio

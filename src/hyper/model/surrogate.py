@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hyper.core.params import InputError
+from hyper.core.params import InputError, positive_hours
 from hyper.model import growth, signaling
 from hyper.model.protocols import Protocol, Session
 
@@ -62,18 +62,25 @@ class Growth:
 
 def grow(params: signaling.SignalingParams, protocol: Protocol, out_times, *, signaling_dt: float = 0.05,
          feedback: str = "hill", factor: float = 1.0, hill_n=4.0, backend: str = "auto",
-         failures: str = "raise") -> Growth:
+         failures: str = "raise", detraining: float | None = None, growth_dt: float = 168.0) -> Growth:
     """CSA/CSA0, N and kM at ``out_times`` (sorted, within [0, protocol.end]) from the
     baseline rest state, with kM = kM0 h(CSA/CSA0) updated at every period end.
 
     ``hill_n``: the Hill feedback's exponent n (float or per member; the paper's 4).
     ``backend`` and ``failures`` go to `signaling.integrate`; with ``failures="mask"`` a
-    member whose trajectory fails is NaN from then on, the others are their own bits."""
+    member whose trajectory fails is NaN from then on, the others are their own bits.
+
+    ``detraining`` τ (h; None: none, the paper's model): the gain's turnover of
+    `growth.detrained`, applied as the coupled model applies it, per growth step of at most
+    ``growth_dt`` (its `growth.step_times`, with the output times among the steps)."""
     if feedback not in growth.FEEDBACK_LAWS:
         raise InputError(f"feedback must be one of {', '.join(growth.FEEDBACK_LAWS)}, got {feedback!r}")
     times = np.asarray(out_times, dtype=float)
     if times.ndim != 1 or np.any(np.diff(times) <= 0) or times[0] < 0 or times[-1] > protocol.end:
         raise InputError(f"output times must increase strictly within [0, {protocol.end:g}] h")
+    if detraining is not None:
+        positive_hours(detraining, "detraining")
+        positive_hours(growth_dt, "growth_dt", signaling.SMALLEST_DT)
     n = params.size
     y = signaling.rest_state() if n is None else np.repeat(signaling.rest_state()[:, None], n, axis=1)
     kM0 = np.asarray(params.kM, dtype=float)
@@ -85,9 +92,19 @@ def grow(params: signaling.SignalingParams, protocol: Protocol, out_times, *, si
     for t0, t1, _ in protocol.periods():
         inside = (times > t0) & (times <= t1)
         sample = np.union1d(times[inside], [t0, t1])
+        if detraining is not None:
+            # the growth steps, but for those the round-off of their sum puts beside an output time
+            steps = growth.step_times(t0, t1, growth_dt)
+            apart = np.abs(steps[:, None] - sample[None, :]).min(axis=1) > 1e-9 * max(1.0, t1)
+            sample = np.union1d(sample, steps[apart])
         # masked failures come back NaN: a failed member stays NaN (and masked) in later periods
         ys = signaling.integrate(params, protocol, y, t0, t1, signaling_dt, out_times=sample, kM=kM,
                                  backend=backend, failures=failures)[1]
+        if detraining is not None:  # the turnover, step by step from the N the last period left
+            ys = ys.copy()
+            raw = ys[:, 4].copy()
+            for k in range(1, len(sample)):
+                ys[k, 4] = growth.detrained(ys[k - 1, 4], raw[k] - raw[k - 1], sample[k] - sample[k - 1], detraining)
         N[inside] = ys[np.searchsorted(sample, times[inside]), 4]
         km[inside] = kM
         y = ys[-1]

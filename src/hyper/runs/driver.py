@@ -53,6 +53,9 @@ from hyper.runs.status import write_status
 CHECKPOINT_EVERY = 25
 SNAPSHOT_EVERY = 24.0  # h of simulated time: a 9-week run writes 64 snapshots
 SERIES = ("t", "csa_ratio", "volume_ratio", "kM", *signaling.STATES, "newton_iterations", "halvings", "wall_s")
+# the regional CSA: (time, section) CSA/CSA0 at the fractions of the length the result's
+# attribute section_fractions lists (hyper.fem.section.section_fractions)
+SECTIONS_SERIES = "csa_ratio_sections"
 
 
 
@@ -130,13 +133,16 @@ class Series:
 
     ``extra`` is (names, function): the function of the model gives the values of all the
     extra columns at once (so a reduction over the communicator serves them all); every
-    rank calls it.
+    rank calls it. ``sections``: the number of regional sections (`SECTIONS_SERIES`, a row
+    of that many per step; 0: no such column).
     """
 
-    def __init__(self, extra: tuple[tuple[str, ...], Callable] | None = None, measures: tuple[str, ...] = ()):
+    def __init__(self, extra: tuple[tuple[str, ...], Callable] | None = None, measures: tuple[str, ...] = (),
+                 sections: int = 0):
         self.extra_names, self.extra = extra if extra is not None else ((), None)
         self.measures = tuple(measures)
-        self.columns = (*SERIES, *self.measures, *self.extra_names)
+        self.sections = sections
+        self.columns = (*SERIES, *self.measures, *((SECTIONS_SERIES,) if sections else ()), *self.extra_names)
         self.rows = {name: [] for name in self.columns}
 
     def append(self, report, model, wall_s: float) -> None:
@@ -151,17 +157,26 @@ class Series:
         self.rows["wall_s"].append(wall_s)
         for name in self.measures:
             self.rows[name].append(report.extra[name])
+        if self.sections:
+            self.rows[SECTIONS_SERIES].append(np.array(report.sections, dtype=float))
         if self.extra is not None:
             for name, value in zip(self.extra_names, self.extra(model), strict=True):
                 self.rows[name].append(value)
 
     def arrays(self) -> dict[str, np.ndarray]:
-        return {k: np.asarray(v) for k, v in self.rows.items()}
+        out = {k: np.asarray(v) for k, v in self.rows.items()}
+        if self.sections and not self.rows[SECTIONS_SERIES]:
+            out[SECTIONS_SERIES] = np.empty((0, self.sections))
+        return out
 
     def restore(self, saved: dict) -> None:
-        # a checkpoint from before both CSA measures were kept lacks them: unknown there
-        missing = [float("nan")] * len(saved["t"])
-        self.rows = {name: list(saved[name]) if name in saved or name not in self.measures else list(missing)
+        # a checkpoint from before both CSA measures (or the regional sections) were kept
+        # lacks them: unknown there
+        n = len(saved["t"])
+        missing = {name: [float("nan")] * n for name in self.measures}
+        if self.sections:
+            missing[SECTIONS_SERIES] = [np.full(self.sections, np.nan)] * n
+        self.rows = {name: list(saved[name]) if name in saved or name not in missing else list(missing[name])
                      for name in self.columns}
 
     @property
@@ -352,7 +367,8 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: float = SN
     run_digest = spec.digest()
     model, a0, solver, choice = build(comm, spec, monitor=monitor)
     snaps = Snapshots(model, a0)
-    series = Series(extra_series, model.measures)
+    sections = 0 if model.regional is None else len(model.regional.fractions)
+    series = Series(extra_series, model.measures, sections)
     segments = 1
     saved = None
     path = outputs.checkpoint
@@ -439,6 +455,8 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: float = SN
         "csa0_m2": model.csa0,
         **{f"csa0_{name}_m2": area for name, area in model.csa0_by_method.items()},
         "volume0_m3": model.volume0,
+        **({} if model.regional is None else {"section_fractions": model.regional.fractions,
+                                              "csa0_sections_m2": model.regional.areas0}),
         "ranks": comm.size,
         "growth_steps": model.step,
         "wall_s": wall0 + time.perf_counter() - start,

@@ -11,6 +11,14 @@ The error of a run against a data set (`compare`): the root-mean-square differen
 the CSA change over the measured times after time 0, in percentage points, and the
 difference (model − measured) at the last measured time; the model's CSA is interpolated
 linearly between its growth steps.
+
+Where a CSA was measured. MRI studies measure at a fraction of a muscle's length (or of a
+bone's, which approximates one). Lines before the header may name it, as ``section = 0.5``
+(or ``# section = 0.5``): a fraction in (0, 1) of the muscle's length along its principal
+axis, from the end lowest on that axis. The comparison then uses the run's regional CSA
+(`hyper.fem.section.section_fractions`, the result's csa_ratio_sections), linearly
+interpolated between the two sections about it (none needed at a recorded one); without the
+line, the mid-belly series as before. Other lines beginning with ``#`` are comments.
 """
 
 from __future__ import annotations
@@ -19,12 +27,13 @@ import csv
 import dataclasses
 import io
 import math
+import re
 from pathlib import Path
 
 import numpy as np
 
 from hyper.core import resources
-from hyper.core.params import InputError, read_text
+from hyper.core.params import InputError, float_text, read_text
 from hyper.model import protocols
 from hyper.model.protocols import Protocol
 from hyper.runs.checkpoint import file_digest
@@ -32,6 +41,8 @@ from hyper.runs.checkpoint import file_digest
 DATA_DIR = resources.folder("data")
 TIME_UNITS = {"week": protocols.WEEK, "day": 24.0, "hour": 1.0}  # h per unit
 CSA_COLUMNS = ("csa", "csa_change_percent")
+METADATA = ("section",)  # the names lines before the header may set
+SETTING = re.compile(r"([A-Za-z_]\w*)\s*=\s*(.*?)")
 # file -> (its label, the protocol it was measured under: a built-in name or a file in DATA_DIR)
 SHIPPED = {
     "defreitas.csv": ("DeFreitas et al. 2011", "mwf"),
@@ -48,12 +59,45 @@ class Measured:
     label: str
     t: np.ndarray  # h, the measurement times after time 0, increasing
     csa_ratio: np.ndarray  # CSA / CSA at time 0, at t
+    section: float | None = None  # the fraction of the muscle's length it was measured at; None: mid-belly
 
 
-def _table(path: Path) -> tuple[str, str, np.ndarray]:
-    """(time unit, CSA column, rows of [time, csa]) of a data file; InputError naming what is wrong."""
+def _metadata(path: Path, lines: list[str]) -> tuple[dict, int]:
+    """(metadata by name, the number of lines before the header): the leading lines that
+    are blank, comments (``#``) or settings ``name = value`` (after a ``#`` or not; a name
+    not in `METADATA` is an error, not a comment, so that a misspelt one is not lost)."""
+    found, count = {}, 0
+    for k, line in enumerate(lines, start=1):
+        text = line.strip()
+        comment = text.startswith("#")
+        if text and not comment and "=" not in text:
+            break  # the header
+        count = k
+        setting = SETTING.fullmatch(text.lstrip("#").strip())
+        if setting is None:
+            if text and not comment:
+                raise InputError(f"{path}: line {k}: expected a setting 'name = value' before the header, "
+                                 f"got {text!r}")
+            continue  # a blank line or a comment
+        name, value = setting.groups()
+        if name not in METADATA:
+            raise InputError(f"{path}: line {k}: unknown setting {name!r}; known: {', '.join(METADATA)}")
+        if name in found:
+            raise InputError(f"{path}: line {k}: {name} given twice")
+        try:
+            found[name] = float_text(value, "", above=0.0, below=1.0)
+        except InputError as err:
+            raise InputError(f"{path}: line {k}: {name}: {err.reason}, a fraction of the muscle's length") from None
+    return found, count
+
+
+def _table(path: Path) -> tuple[str, str, np.ndarray, dict]:
+    """(time unit, CSA column, rows of [time, csa], metadata) of a data file; InputError
+    naming what is wrong."""
+    text = read_text(path, "CSV file")
+    metadata, skipped = _metadata(path, text.splitlines())
     # newline="": the csv module's own reading of line ends, as with open(path, newline="")
-    rows = list(csv.reader(io.StringIO(read_text(path, "CSV file"), newline="")))
+    rows = list(csv.reader(io.StringIO(text, newline="")))[skipped:]
     if not rows:
         raise InputError(f"{path}: empty file")
     header = [h.strip().lower() for h in rows[0]]
@@ -71,7 +115,7 @@ def _table(path: Path) -> tuple[str, str, np.ndarray]:
         raise InputError(f"{path}: unknown time unit {units[0]!r}; known: {', '.join(TIME_UNITS)}")
     it, ic = header.index(units[0]), header.index(csa[0])
     values, lines = [], []
-    for k, row in enumerate(rows[1:], start=2):
+    for k, row in enumerate(rows[1:], start=skipped + 2):
         if not any(cell.strip() for cell in row):
             continue
         if len(row) != len(header):
@@ -92,18 +136,18 @@ def _table(path: Path) -> tuple[str, str, np.ndarray]:
         raise InputError(f"{path}: line {lines[int(np.flatnonzero(back)[0]) + 1]}: time must increase strictly")
     if data[0, 0] != 0.0:
         raise InputError(f"{path}: the first row must be time 0 (the baseline CSA), got {data[0, 0]:g}")
-    return units[0], csa[0], data
+    return units[0], csa[0], data, metadata
 
 
 def read(path: str | Path) -> Measured:
     """The CSA time course of a data file (hours, CSA / CSA at time 0)."""
     path = Path(path)
-    unit, column, data = _table(path)
+    unit, column, data, metadata = _table(path)
     csa = data[:, 1] if column == "csa" else 1.0 + data[:, 1] / 100.0
     if np.any(csa <= 0):
         raise InputError(f"{path}: CSA must be > 0" if column == "csa" else f"{path}: a CSA change must be > -100 %")
     label = SHIPPED[path.name][0] if is_shipped(path) else path.stem
-    return Measured(path, label, data[1:, 0] * TIME_UNITS[unit], csa[1:] / csa[0])
+    return Measured(path, label, data[1:, 0] * TIME_UNITS[unit], csa[1:] / csa[0], metadata.get("section"))
 
 
 def is_shipped(path: Path) -> bool:
@@ -137,6 +181,40 @@ def check_span(data: Measured, protocol: Protocol, where: str = "--data") -> Non
                          f"{protocol.name} ({protocol.end:g} h)")
 
 
+def check_section(data: Measured, sections: int, where: str = "--data") -> None:
+    """InputError where the data were measured at a section that a run recording ``sections``
+    regional sections (`hyper.fem.section.section_fractions`) does not span."""
+    if data.section is None:
+        return
+    if sections == 0:
+        raise InputError(f"{where} {data.path}: measured at section {data.section:g} of the length; the runs "
+                         f"record no regional sections (--sections 0)")
+    lo, hi = 1.0 / (sections + 1), sections / (sections + 1)
+    if not lo - SAME_SECTION <= data.section <= hi + SAME_SECTION:
+        raise InputError(f"{where} {data.path}: measured at section {data.section:g} of the length, outside the "
+                         f"{sections} regional sections ({lo:g} to {hi:g}); give more with --sections")
+
+
+# A section named within this of a recorded one is that one (0.3 in a file, 3/10 in a run).
+SAME_SECTION = 1e-9
+
+
+def section_series(data: Measured, fractions, ratios) -> np.ndarray:
+    """The run's CSA/CSA0 over time at the section ``data`` was measured at: its regional
+    series ``ratios`` (time × section, at ``fractions``) at that section, linearly between
+    the two recorded about it."""
+    fractions, ratios = np.asarray(fractions, dtype=float), np.asarray(ratios, dtype=float)
+    at = np.flatnonzero(np.abs(fractions - data.section) <= SAME_SECTION)
+    if len(at):
+        return ratios[:, at[0]]
+    if not fractions[0] < data.section < fractions[-1]:
+        raise InputError(f"{data.path}: measured at section {data.section:g} of the length, outside the run's "
+                         f"sections ({fractions[0]:g} to {fractions[-1]:g})")
+    j = int(np.searchsorted(fractions, data.section))
+    w = (data.section - fractions[j - 1]) / (fractions[j] - fractions[j - 1])
+    return (1.0 - w) * ratios[:, j - 1] + w * ratios[:, j]
+
+
 @dataclasses.dataclass(frozen=True)
 class Comparison:
     """A run's CSA against a measured course, in percentage points of CSA change."""
@@ -163,12 +241,29 @@ class Comparison:
 
     def attributes(self) -> dict:
         """The result's ``data`` group."""
+        where = {} if self.data.section is None else {"section": self.data.section}
         return {"file": str(self.data.path), "file_sha256": file_digest(self.data.path), "label": self.data.label,
+                **where,
                 "rmse_pp": self.rmse_pp, "last_difference_pp": self.last_difference_pp,
                 "last_time_h": float(self.data.t[-1]), "time_h": self.data.t,
                 "measured_csa_ratio": self.data.csa_ratio, "model_csa_ratio": self.model_csa_ratio}
 
 
-def compare(data: Measured, t: np.ndarray, csa_ratio: np.ndarray) -> Comparison:
-    """The run with series ``t`` (h, from 0) and ``csa_ratio`` against ``data`` (within the run)."""
+def compare(data: Measured, t: np.ndarray, csa_ratio: np.ndarray, sections=None) -> Comparison:
+    """The run with series ``t`` (h, from 0) and ``csa_ratio`` against ``data`` (within the run).
+
+    ``sections``: (fractions, ratios) of the run's regional CSA (`section_series`), which data
+    measured at a section are compared with; InputError for such data without them."""
+    if data.section is not None:
+        if sections is None:
+            raise InputError(f"{data.path}: measured at section {data.section:g} of the length; the run "
+                             f"records no regional sections")
+        csa_ratio = section_series(data, *sections)
     return Comparison(data, np.interp(data.t, np.asarray(t, dtype=float), np.asarray(csa_ratio, dtype=float)))
+
+
+def run_sections(series: dict, meta: dict):
+    """(fractions, ratios) of a run's regional CSA for `compare`, or None where it has none."""
+    if "csa_ratio_sections" not in series:
+        return None
+    return meta["section_fractions"], series["csa_ratio_sections"]

@@ -40,7 +40,8 @@ NAMES = tuple(PRESETS)
 # the options that set each switch, for errors that name what the user typed
 OPTIONS = {"signaling_method": "--signaling-method", "growth_increment": "--growth-increment",
            "grow_during_sessions": "--skip-sessions", "consistent_stress": "--fe-stress",
-           "csa_method": "--csa-method", "growth_fields": "--growth-fields"}
+           "csa_method": "--csa-method", "growth_fields": "--growth-fields", "sections": "--sections",
+           "detraining": "--detraining"}
 SHAPE_DEFAULTS = {"ends": "disks", "fibers": "auto"}  # what every geometry but the idealized one runs
 
 
@@ -123,7 +124,8 @@ def shape(args: argparse.Namespace, geometries) -> dict:
 
 
 def chosen(args: argparse.Namespace) -> dict:
-    """The switches the command line set, by setting field (None: not given)."""
+    """The switches the command line set, by setting field (None: not given); --sections
+    and --detraining are `hyper.commands.grow.model_options`."""
     return {
         "signaling_method": args.signaling_method,
         "growth_increment": args.growth_increment,
@@ -131,4 +133,6 @@ def chosen(args: argparse.Namespace) -> dict:
         "consistent_stress": None if args.fe_stress is None else not args.fe_stress,
         "csa_method": args.csa_method,
         "growth_fields": args.growth_fields,
+        "sections": args.sections,
+        "detraining": args.detraining,
     }

@@ -75,6 +75,11 @@ def study_text(spec) -> str:
                 "linear_solver": spec.linear_solver, "max_halvings": settings["max_halvings"],
                 "feedback": settings["feedback"], "grow_during_sessions": settings["grow_during_sessions"],
                 "consistent_stress": settings["consistent_stress"]}
+    # beyond the paper (issue 35): written where set, so that default runs keep their study text
+    if settings["sections"] != type(spec.settings).sections:
+        numerics["sections"] = settings["sections"]
+    if settings["detraining"] is not None:
+        numerics["detraining"] = settings["detraining"]
     if spec.mesh is None and spec.quadrature_degree is not None:
         numerics["quadrature_degree"] = spec.quadrature_degree
     lines += table("numerics", numerics)

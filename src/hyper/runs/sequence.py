@@ -99,7 +99,8 @@ def carry_out(comm, work: Plan, stop, figure: bool = True) -> Outcome:
             groups = runspec.result_groups(spec, done.choice)
             data = data_of(work, spec)
             if data is not None:
-                errors[spec.protocol.name] = measured.compare(data, done.series["t"], done.series["csa_ratio"])
+                errors[spec.protocol.name] = measured.compare(data, done.series["t"], done.series["csa_ratio"],
+                                                              measured.run_sections(done.series, done.meta))
                 groups["data"] = errors[spec.protocol.name].attributes()
                 info(comm, f"{spec.protocol.name}: {errors[spec.protocol.name].describe()}")
             on_rank0(comm, lambda: out.store(done.series, done.meta, groups))
