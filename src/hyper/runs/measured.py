@@ -5,7 +5,17 @@ A data file is a CSV (data/README.md) with a time column named after its unit (`
 change from the baseline in percent. Its first row is time 0, the baseline every later
 row is divided by, so what is compared is CSA / CSA at time 0 against the model's
 CSA/CSA0. The project's data sets (DeFreitas, Damas, Seynnes) were each measured under
-one protocol (`SHIPPED`); a run under that protocol is compared with them unasked.
+one protocol (`SHIPPED`) on one muscle.
+
+Metadata. Lines before the header of the form ``# muscle: NAME`` and ``# measure: TEXT``
+say which muscle was measured (one of `MUSCLES`) and how (e.g. "anatomical CSA, mid-thigh,
+pQCT"); other ``#`` lines are comments. The shipped files must name both. A run is compared
+with a shipped data set unasked (`of_protocol`) only where it ran under that data set's
+protocol and on a compatible geometry (`compatible`): an anatomical mesh of a muscle the
+measured one contains (the thigh holds the quadriceps and the hamstrings, the quadriceps its
+four heads), or a generic shape (idealized, cylinder), which stands for no particular muscle,
+as the paper's idealized muscle stood for the DeFreitas thigh. Any other comparison is
+asked for with --data.
 
 The error of a run against a data set (`compare`): the root-mean-square difference of
 the CSA change over the measured times after time 0, in percentage points, and the
@@ -30,6 +40,18 @@ from hyper.model.protocols import Protocol
 from hyper.runs.checkpoint import file_digest
 
 DATA_DIR = resources.folder("data")
+# muscle a data set may name -> the anatomical geometries' muscle codes (the prefix of their
+# ids, hyper.fem.geometry.MUSCLES and NEW_MUSCLES) of what it contains
+QUADRICEPS = ("RF", "VL", "VM", "VI")
+MUSCLES = {
+    "thigh": QUADRICEPS + ("BFLH", "ST"),
+    "quadriceps": QUADRICEPS,
+    "rectus femoris": ("RF",), "vastus lateralis": ("VL",), "vastus medialis": ("VM",),
+    "vastus intermedius": ("VI",), "biceps femoris long head": ("BFLH",), "semitendinosus": ("ST",),
+    "tibialis anterior": ("TA",), "gastrocnemius medialis": ("GM",),
+}
+GENERIC = ("idealized", "cylinder")  # shapes of no particular muscle
+METADATA = ("muscle", "measure")
 TIME_UNITS = {"week": protocols.WEEK, "day": 24.0, "hour": 1.0}  # h per unit
 CSA_COLUMNS = ("csa", "csa_change_percent")
 # file -> (its label, the protocol it was measured under: a built-in name or a file in DATA_DIR)
@@ -48,12 +70,35 @@ class Measured:
     label: str
     t: np.ndarray  # h, the measurement times after time 0, increasing
     csa_ratio: np.ndarray  # CSA / CSA at time 0, at t
+    muscle: str | None = None  # the muscle measured (a key of MUSCLES), where the file says
+    measure: str | None = None  # how its CSA was measured, where the file says
 
 
-def _table(path: Path) -> tuple[str, str, np.ndarray]:
-    """(time unit, CSA column, rows of [time, csa]) of a data file; InputError naming what is wrong."""
+def _metadata(path: Path, text: str) -> tuple[dict[str, str], str, int]:
+    """({muscle, measure} as given, the text from the header on, the lines before it) of a data file."""
+    lines = text.splitlines(keepends=True)
+    meta, k = {}, 0
+    while k < len(lines) and (lines[k].lstrip().startswith("#") or not lines[k].strip()):
+        key, colon, value = lines[k].lstrip()[1:].partition(":")
+        key = key.strip().lower()
+        if colon and key in METADATA:
+            if key in meta:
+                raise InputError(f"{path}: line {k + 1}: '{key}' given twice")
+            meta[key] = value.strip()
+        k += 1
+    muscle = meta.get("muscle")
+    if muscle is not None and muscle.lower() not in MUSCLES:
+        raise InputError(f"{path}: unknown muscle {muscle!r}; known: {', '.join(MUSCLES)}")
+    if muscle is not None:
+        meta["muscle"] = muscle.lower()
+    return meta, "".join(lines[k:]), k
+
+
+def _table(path: Path) -> tuple[str, str, np.ndarray, dict[str, str]]:
+    """(time unit, CSA column, rows of [time, csa], metadata) of a data file; InputError naming what is wrong."""
+    meta, text, skipped = _metadata(path, read_text(path, "CSV file"))
     # newline="": the csv module's own reading of line ends, as with open(path, newline="")
-    rows = list(csv.reader(io.StringIO(read_text(path, "CSV file"), newline="")))
+    rows = list(csv.reader(io.StringIO(text, newline="")))
     if not rows:
         raise InputError(f"{path}: empty file")
     header = [h.strip().lower() for h in rows[0]]
@@ -71,7 +116,7 @@ def _table(path: Path) -> tuple[str, str, np.ndarray]:
         raise InputError(f"{path}: unknown time unit {units[0]!r}; known: {', '.join(TIME_UNITS)}")
     it, ic = header.index(units[0]), header.index(csa[0])
     values, lines = [], []
-    for k, row in enumerate(rows[1:], start=2):
+    for k, row in enumerate(rows[1:], start=2 + skipped):
         if not any(cell.strip() for cell in row):
             continue
         if len(row) != len(header):
@@ -92,18 +137,24 @@ def _table(path: Path) -> tuple[str, str, np.ndarray]:
         raise InputError(f"{path}: line {lines[int(np.flatnonzero(back)[0]) + 1]}: time must increase strictly")
     if data[0, 0] != 0.0:
         raise InputError(f"{path}: the first row must be time 0 (the baseline CSA), got {data[0, 0]:g}")
-    return units[0], csa[0], data
+    return units[0], csa[0], data, meta
 
 
 def read(path: str | Path) -> Measured:
     """The CSA time course of a data file (hours, CSA / CSA at time 0)."""
     path = Path(path)
-    unit, column, data = _table(path)
+    unit, column, data, meta = _table(path)
     csa = data[:, 1] if column == "csa" else 1.0 + data[:, 1] / 100.0
     if np.any(csa <= 0):
         raise InputError(f"{path}: CSA must be > 0" if column == "csa" else f"{path}: a CSA change must be > -100 %")
+    if is_shipped(path):
+        missing = [key for key in METADATA if key not in meta]
+        if missing:  # the compatibility check rests on it: no shipped file without it
+            raise InputError(f"{path}: a shipped data file must say its {' and '.join(missing)} "
+                             f"('# {missing[0]}: …' above the header)")
     label = SHIPPED[path.name][0] if is_shipped(path) else path.stem
-    return Measured(path, label, data[1:, 0] * TIME_UNITS[unit], csa[1:] / csa[0])
+    return Measured(path, label, data[1:, 0] * TIME_UNITS[unit], csa[1:] / csa[0], meta.get("muscle"),
+                    meta.get("measure"))
 
 
 def is_shipped(path: Path) -> bool:
@@ -115,8 +166,19 @@ def same_schedule(a: Protocol, b: Protocol) -> bool:
     return a.sessions == b.sessions and a.end == b.end
 
 
-def of_protocol(protocol: Protocol) -> Measured | None:
-    """The project's data set measured under ``protocol`` (by schedule), if any."""
+def compatible(data: Measured, geometry: str) -> bool:
+    """Whether a run on ``geometry`` may be compared with ``data`` unasked: a generic shape,
+    or an anatomical mesh (id MUSCLE_SUBJECT_SIDE) of a muscle the measured one contains."""
+    if data.muscle is None:
+        return False
+    if geometry in GENERIC:
+        return True
+    return geometry.split("_")[0] in MUSCLES[data.muscle]
+
+
+def of_protocol(protocol: Protocol, geometry: str) -> Measured | None:
+    """The project's data set measured under ``protocol`` (by schedule) on a muscle
+    ``geometry`` is compatible with (`compatible`), if any."""
     for name, (_, measured_under) in SHIPPED.items():
         path = DATA_DIR / name
         if not path.is_file():
@@ -126,7 +188,9 @@ def of_protocol(protocol: Protocol) -> Measured | None:
         else:
             theirs = protocols.load(DATA_DIR / measured_under)
         if same_schedule(protocol, theirs):
-            return read(path)
+            data = read(path)
+            if compatible(data, geometry):
+                return data
     return None
 
 
@@ -157,13 +221,15 @@ class Comparison:
         return float(self.difference_pp[-1])
 
     def describe(self) -> str:
-        return (f"against {self.data.label} ({self.data.path.name}, {len(self.data.t)} points): RMSE "
+        return (f"against {self.data.label} ({self.data.path.name}, {self.data.muscle or 'muscle not given'}, "
+                f"{len(self.data.t)} points): RMSE "
                 f"{self.rmse_pp:.2f} percentage points of CSA change, model − data at "
                 f"{self.data.t[-1]:g} h {self.last_difference_pp:+.2f} points")
 
     def attributes(self) -> dict:
         """The result's ``data`` group."""
         return {"file": str(self.data.path), "file_sha256": file_digest(self.data.path), "label": self.data.label,
+                "muscle": self.data.muscle or "not given", "measure": self.data.measure or "not given",
                 "rmse_pp": self.rmse_pp, "last_difference_pp": self.last_difference_pp,
                 "last_time_h": float(self.data.t[-1]), "time_h": self.data.t,
                 "measured_csa_ratio": self.data.csa_ratio, "model_csa_ratio": self.model_csa_ratio}
