@@ -78,6 +78,13 @@ STUDY_FILES = {  # name -> (text, the message); the study job's rows below
     "sobol_num_vars": (STUDY + f'[sobol]\nnames = ["kM"]\nnum_vars = {HUGE}\n',
                        r"sobol: num_vars: expected an integer"),
 }
+PRIOR_FILES = {  # name -> (a --priors file, the message); the calibrate job's rows below
+    "unknown": ("[kX]\nlow = 0.001\nhigh = 0.1\n", r"priors_unknown.toml: unknown parameter 'kX'"),
+    "reversed": ("[kM]\nlow = 0.1\nhigh = 0.01\n", r"prior kM: need low < high, got \[0.1, 0.01\]"),
+    "nan": ("[kM]\nlow = nan\n", r"\[kM\] low: expected a finite number, got nan"),
+    "inf": ("[noise]\nhigh = inf\n", r"\[noise\] high: expected a finite number, got inf"),
+    "huge": (f"[kM]\nhigh = {HUGE}\n", r"\[kM\] high: expected a finite number, got an integer of 401 digits"),
+}
 PROTOCOL_CASES = {
     "unknown": (["{p}", "daily"], r"unknown protocol 'daily'"),
     "absent_file": (["{p}", "{d}/absent.toml"], r"absent.toml: no such file"),
@@ -219,6 +226,18 @@ JOBS = {
         **FOLDER_OUTPUT,
         "bounds_negative": (["--fit", "kF=-1:-0.5"], r"--fit kF=-1:-0.5: kF must be >= 0, got -1"),
         "too_few_points": (["--exclude-until", "8"], r"1 data point\(s\) for 1 parameter\(s\)"),
+        **{f"priors_{k}": (["--method", "bayes", "--priors", f"{{d}}/priors_{k}.toml"], message)
+           for k, (_, message) in PRIOR_FILES.items()},
+        "priors_without_bayes": (["--priors", "{d}/priors_reversed.toml"], r"--priors: only with --method bayes"),
+        "noise_without_bayes": (["--noise", "0.01"], r"--noise: only with --method bayes"),
+        "noise_zero": (["--method", "bayes", "--noise", "0"], r"argument --noise: expected a number > 0, got 0"),
+        "noise_count": (["--method", "bayes", "--noise", "0.01", "--noise", "0.02"], r"2 --noise for 1 --data"),
+        "grid_of_two": (["--method", "bayes", "--sampler", "grid", "--fit", "kF"],
+                        r"--sampler grid: the grid posterior is for one parameter, got 2"),
+        "walkers_too_few": (["--method", "bayes", "--sampler", "emcee", "--walkers", "3", "--fit", "kF"],
+                            r"--walkers 3: emcee needs at least 2 per sampled quantity \(6\)"),
+        "bayes_on_the_coupled_model": (["--method", "bayes", "--geometry", "TA_VHF_Left"],
+                                       r"--method bayes samples the ODE growth model only"),
     }),
     "dose": (["--output", "{out}"], "dose", {
         **FOLDER_OUTPUT,
@@ -269,6 +288,8 @@ def inputs(tmp_path_factory):
     for name, (text, _) in STUDY_FILES.items():
         (d / f"study_{name}.toml").write_text(text)
     (d / "study_good.toml").write_text(STUDY)
+    for name, (text, _) in PRIOR_FILES.items():
+        (d / f"priors_{name}.toml").write_text(text)
     (d / "a_file").write_text("not a folder\n")
     (d / "a_folder.toml").mkdir()
     (d / "surface").mkdir()

@@ -163,16 +163,64 @@ def test_comparison_numbers():
 
 
 def test_each_shipped_data_set_belongs_to_its_protocol():
-    mwf = measured.of_protocol(protocols.from_option("mwf")[0])
+    mwf = measured.of_protocol(protocols.from_option("mwf")[0], "idealized")
     assert mwf.label == "DeFreitas et al. 2011" and len(mwf.t) == 9 and mwf.t[-1] == 9 * 168.0
-    damas = measured.of_protocol(protocols.load(ROOT / "data" / "damas.toml"))
+    damas = measured.of_protocol(protocols.load(ROOT / "data" / "damas.toml"), "idealized")
     assert damas.label == "Damas et al. 2016" and list(damas.t) == [3 * 168.0, 10 * 168.0]
-    seynnes = measured.of_protocol(protocols.load(ROOT / "data" / "seynnes.toml"))
+    seynnes = measured.of_protocol(protocols.load(ROOT / "data" / "seynnes.toml"), "idealized")
     assert seynnes.label == "Seynnes et al. 2007" and seynnes.csa_ratio[-1] == pytest.approx(70.65 / 65.81)
-    assert measured.of_protocol(protocols.from_option("weekly")[0]) is None
+    assert measured.of_protocol(protocols.from_option("weekly")[0], "idealized") is None
     # the schedule decides, not the name
     renamed = protocols.Protocol(protocols.from_option("mwf")[0].sessions, protocols.from_option("mwf")[0].end, "x")
-    assert measured.of_protocol(renamed).label == "DeFreitas et al. 2011"
+    assert measured.of_protocol(renamed, "idealized").label == "DeFreitas et al. 2011"
+
+
+def test_the_shipped_data_say_their_muscle_and_measure():
+    muscles = {name: measured.read(ROOT / "data" / name).muscle for name in measured.SHIPPED}
+    assert muscles == {"defreitas.csv": "thigh", "damas.csv": "vastus lateralis", "seynnes.csv": "quadriceps"}
+    assert all(measured.read(ROOT / "data" / name).measure for name in measured.SHIPPED)
+
+
+@pytest.mark.parametrize("geometry, compared", [
+    ("idealized", True), ("cylinder", True),  # generic shapes, as the paper's idealized muscle
+    ("BFLH_VHF_Left", True), ("RF_VHM_Right", True),  # thigh muscles
+    ("TA_VHF_Left", False), ("GM_VHM_Left", False), ("my_mesh", False),  # below the knee, or unknown
+])
+def test_an_mwf_run_is_compared_with_defreitas_only_on_a_thigh_muscle(geometry, compared):
+    from types import SimpleNamespace
+
+    from hyper.runs import sequence
+
+    mwf = protocols.from_option("mwf")[0]
+    spec = SimpleNamespace(geometry=geometry, protocol=mwf)
+    found = sequence.data_of(SimpleNamespace(data=None), spec)
+    assert (found is not None and found.label == "DeFreitas et al. 2011") == compared
+    asked = measured.read(ROOT / "data" / "defreitas.csv")  # --data: compared whatever the muscle
+    assert sequence.data_of(SimpleNamespace(data=asked), spec) is asked
+
+
+def test_a_quadriceps_head_is_not_compared_with_another():
+    damas = protocols.load(ROOT / "data" / "damas.toml")  # vastus lateralis
+    assert measured.of_protocol(damas, "VL_VHF_Left") is not None and measured.of_protocol(damas, "RF_VHF_Left") is None
+    seynnes = protocols.load(ROOT / "data" / "seynnes.toml")  # quadriceps
+    assert measured.of_protocol(seynnes, "VI_VHM_Left") is not None
+    assert measured.of_protocol(seynnes, "ST_VHM_Left") is None
+
+
+def test_data_metadata_are_read_and_checked(tmp_path, monkeypatch):
+    (tmp_path / "m.csv").write_text("# digitized by hand\n# muscle: Quadriceps\n# measure: MRI\nweek,csa\n0,1\n1,x\n")
+    with pytest.raises(InputError, match="line 6: not a number"):  # line numbers count the metadata
+        measured.read(tmp_path / "m.csv")
+    (tmp_path / "m.csv").write_text("# muscle: Quadriceps\n# measure: MRI\nweek,csa\n0,1\n1,1.1\n")
+    read = measured.read(tmp_path / "m.csv")
+    assert (read.muscle, read.measure) == ("quadriceps", "MRI")
+    (tmp_path / "m.csv").write_text("# muscle: biceps\nweek,csa\n0,1\n1,1.1\n")
+    with pytest.raises(InputError, match="unknown muscle 'biceps'"):
+        measured.read(tmp_path / "m.csv")
+    monkeypatch.setattr(measured, "DATA_DIR", tmp_path)  # a shipped file must say both
+    (tmp_path / "damas.csv").write_text("# muscle: vastus lateralis\nweek,csa\n0,1\n3,1.03\n")
+    with pytest.raises(InputError, match="must say its measure"):
+        measured.read(tmp_path / "damas.csv")
 
 
 @pytest.mark.parametrize("text, message", [

@@ -156,7 +156,7 @@ BAD_OPTIONS = {
     "data_section_bad": (["--data", "{d}/bad_section.csv"],
                          r"bad_section.csv: line 1: section: expected a number in \(0, 1\), got 1.5"),
     "data_setting_unknown": (["--data", "{d}/bad_setting.csv"],
-                             r"bad_setting.csv: line 1: unknown setting 'sectoin'; known: section"),
+                             r"bad_setting.csv: line 1: unknown setting 'sectoin'; known: muscle, measure, section"),
 }
 
 

@@ -49,6 +49,7 @@ class Dataset:
     t: np.ndarray  # h, the measurement times after time 0
     csa_ratio: np.ndarray  # measured CSA / CSA at time 0, at t
     protocol: Protocol
+    path: Path | None = None  # the data file, where the data came from one (its SHA-256 goes in the results)
 
 
 def dataset(path: str | Path, protocol: Protocol, exclude_until: float = 0.0) -> Dataset:
@@ -64,7 +65,7 @@ def dataset(path: str | Path, protocol: Protocol, exclude_until: float = 0.0) ->
     if t[-1] > protocol.end:
         raise InputError(f"{path}: data up to {t[-1]:g} h, beyond the end of protocol {protocol.name} "
                          f"({protocol.end:g} h)")
-    return Dataset(Path(path).stem, t[keep], ratio[keep], protocol)
+    return Dataset(Path(path).stem, t[keep], ratio[keep], protocol, Path(path))
 
 
 

@@ -180,7 +180,7 @@ def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: Gr
             if subcomm.rank != 0:
                 return None
             groups = runspec.result_groups(specs[entry.key], done.choice)
-            against = data if data is not None else measured.of_protocol(entry.protocol)
+            against = data if data is not None else measured.of_protocol(entry.protocol, entry.geometry)
             if against is not None:
                 groups["data"] = measured.compare(against, done.series["t"], done.series["csa_ratio"],
                                                   measured.run_sections(done.series, done.meta)).attributes()

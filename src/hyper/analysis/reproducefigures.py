@@ -73,5 +73,6 @@ def idealized_figure(output: Path, path: Path, quick: bool) -> Path | None:
         "original": series_path(output, f"idealized_mwf_original_dt{dt:g}"),
     }
     results = {name: io.read_series(p) for name, p in files.items() if io.is_complete(p)}
-    data = measured.of_protocol(protocols.named("mwf"))
-    return plot.growth_series(results, path, [data] if data else []) if results else None
+    data = measured.of_protocol(protocols.named("mwf"), "idealized")
+    title = "idealized, fibres auto, mwf (default and the original's switches); CSA of its tagged mid-section"
+    return plot.growth_series(results, path, [data] if data else [], title=title) if results else None

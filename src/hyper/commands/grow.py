@@ -15,9 +15,11 @@ anatomical ones) both CSA measures are recorded, csa_ratio_cut (the exact plane 
 csa_ratio_box (the original code's box staircase, MODEL.md §9); csa_ratio is the one
 --csa-method feeds back. --plot-box draws the box's inner and rim facets at the end of
 each run, with the exact cut. Against measured CSA (--data, or the protocol's own
-data set: DeFreitas for mwf) the run's RMSE in percentage points of CSA change and its
-difference at the last measured time are printed, stored (the result's `data` group)
-and the data drawn on the figure.
+data set where it was measured on a muscle the geometry is compatible with: DeFreitas,
+the thigh, for mwf on idealized, cylinder or a thigh muscle; `hyper.runs.measured`) the
+run's RMSE in percentage points of CSA change and its difference at the last measured
+time are printed, stored (the result's `data` group) and the data drawn on the figure,
+whose title names the geometry, fibres, protocols and CSA measure.
 
 --accuracy A (hyper.runs.fidelity): the cheapest model, the longest steps whose tabulated
 error stays within A of the growth, and the linear solver that fits the memory; the

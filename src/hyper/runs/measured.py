@@ -5,7 +5,17 @@ A data file is a CSV (data/README.md) with a time column named after its unit (`
 change from the baseline in percent. Its first row is time 0, the baseline every later
 row is divided by, so what is compared is CSA / CSA at time 0 against the model's
 CSA/CSA0. The project's data sets (DeFreitas, Damas, Seynnes) were each measured under
-one protocol (`SHIPPED`); a run under that protocol is compared with them unasked.
+one protocol (`SHIPPED`) on one muscle.
+
+Metadata. Lines before the header of the form ``# muscle: NAME`` and ``# measure: TEXT``
+say which muscle was measured (one of `MUSCLES`) and how (e.g. "anatomical CSA, mid-thigh,
+pQCT"); other ``#`` lines are comments. The shipped files must name both. A run is compared
+with a shipped data set unasked (`of_protocol`) only where it ran under that data set's
+protocol and on a compatible geometry (`compatible`): an anatomical mesh of a muscle the
+measured one contains (the thigh holds the quadriceps and the hamstrings, the quadriceps its
+four heads), or a generic shape (idealized, cylinder), which stands for no particular muscle,
+as the paper's idealized muscle stood for the DeFreitas thigh. Any other comparison is
+asked for with --data.
 
 The error of a run against a data set (`compare`): the root-mean-square difference of
 the CSA change over the measured times after time 0, in percentage points, and the
@@ -39,10 +49,21 @@ from hyper.model.protocols import Protocol
 from hyper.runs.checkpoint import file_digest
 
 DATA_DIR = resources.folder("data")
+# muscle a data set may name -> the anatomical geometries' muscle codes (the prefix of their
+# ids, hyper.fem.geometry.MUSCLES and NEW_MUSCLES) of what it contains
+QUADRICEPS = ("RF", "VL", "VM", "VI")
+MUSCLES = {
+    "thigh": QUADRICEPS + ("BFLH", "ST"),
+    "quadriceps": QUADRICEPS,
+    "rectus femoris": ("RF",), "vastus lateralis": ("VL",), "vastus medialis": ("VM",),
+    "vastus intermedius": ("VI",), "biceps femoris long head": ("BFLH",), "semitendinosus": ("ST",),
+    "tibialis anterior": ("TA",), "gastrocnemius medialis": ("GM",),
+}
+GENERIC = ("idealized", "cylinder")  # shapes of no particular muscle
 TIME_UNITS = {"week": protocols.WEEK, "day": 24.0, "hour": 1.0}  # h per unit
 CSA_COLUMNS = ("csa", "csa_change_percent")
-METADATA = ("section",)  # the names lines before the header may set
-SETTING = re.compile(r"([A-Za-z_]\w*)\s*=\s*(.*?)")
+METADATA = ("muscle", "measure", "section")  # what the lines before the header may say
+SETTING = re.compile(r"([A-Za-z_]\w*)\s*[:=]\s*(.*?)")
 # file -> (its label, the protocol it was measured under: a built-in name or a file in DATA_DIR)
 SHIPPED = {
     "defreitas.csv": ("DeFreitas et al. 2011", "mwf"),
@@ -60,12 +81,29 @@ class Measured:
     t: np.ndarray  # h, the measurement times after time 0, increasing
     csa_ratio: np.ndarray  # CSA / CSA at time 0, at t
     section: float | None = None  # the fraction of the muscle's length it was measured at; None: mid-belly
+    muscle: str | None = None  # the muscle measured (a key of MUSCLES), where the file says
+    measure: str | None = None  # how its CSA was measured, where the file says
+
+
+def _setting(path: Path, k: int, name: str, value: str):
+    """The value of metadata ``name`` given on line ``k``, checked."""
+    if name == "section":
+        try:
+            return float_text(value, "", above=0.0, below=1.0)
+        except InputError as err:
+            raise InputError(f"{path}: line {k}: section: {err.reason}, a fraction of the muscle's length") from None
+    if name == "muscle" and value.lower() not in MUSCLES:
+        raise InputError(f"{path}: line {k}: unknown muscle {value!r}; known: {', '.join(MUSCLES)}")
+    return value.lower() if name == "muscle" else value
 
 
 def _metadata(path: Path, lines: list[str]) -> tuple[dict, int]:
     """(metadata by name, the number of lines before the header): the leading lines that
-    are blank, comments (``#``) or settings ``name = value`` (after a ``#`` or not; a name
-    not in `METADATA` is an error, not a comment, so that a misspelt one is not lost)."""
+    are blank, comments (``#``) or settings of `METADATA`, ``name: value`` or
+    ``name = value``: the first after a ``#``, the second after a ``#`` or not. The header
+    is the first other line. An ``=`` setting must name a known setting (a misspelt one is
+    an error, not lost); a ``#`` line with a colon naming none is a comment (``# source: …``),
+    and so is any other."""
     found, count = {}, 0
     for k, line in enumerate(lines, start=1):
         text = line.strip()
@@ -73,21 +111,19 @@ def _metadata(path: Path, lines: list[str]) -> tuple[dict, int]:
         if text and not comment and "=" not in text:
             break  # the header
         count = k
-        setting = SETTING.fullmatch(text.lstrip("#").strip())
-        if setting is None:
+        body = text.lstrip("#").strip()
+        setting = SETTING.fullmatch(body)
+        if setting is None or (comment and "=" not in body and setting.group(1).lower() not in METADATA):
             if text and not comment:
                 raise InputError(f"{path}: line {k}: expected a setting 'name = value' before the header, "
                                  f"got {text!r}")
             continue  # a blank line or a comment
-        name, value = setting.groups()
+        name, value = setting.group(1).lower(), setting.group(2).strip()
         if name not in METADATA:
             raise InputError(f"{path}: line {k}: unknown setting {name!r}; known: {', '.join(METADATA)}")
         if name in found:
             raise InputError(f"{path}: line {k}: {name} given twice")
-        try:
-            found[name] = float_text(value, "", above=0.0, below=1.0)
-        except InputError as err:
-            raise InputError(f"{path}: line {k}: {name}: {err.reason}, a fraction of the muscle's length") from None
+        found[name] = _setting(path, k, name, value)
     return found, count
 
 
@@ -142,12 +178,18 @@ def _table(path: Path) -> tuple[str, str, np.ndarray, dict]:
 def read(path: str | Path) -> Measured:
     """The CSA time course of a data file (hours, CSA / CSA at time 0)."""
     path = Path(path)
-    unit, column, data, metadata = _table(path)
+    unit, column, data, meta = _table(path)
     csa = data[:, 1] if column == "csa" else 1.0 + data[:, 1] / 100.0
     if np.any(csa <= 0):
         raise InputError(f"{path}: CSA must be > 0" if column == "csa" else f"{path}: a CSA change must be > -100 %")
+    if is_shipped(path):
+        missing = [key for key in ("muscle", "measure") if key not in meta]
+        if missing:  # the compatibility check rests on it: no shipped file without it
+            raise InputError(f"{path}: a shipped data file must say its {' and '.join(missing)} "
+                             f"('# {missing[0]}: …' above the header)")
     label = SHIPPED[path.name][0] if is_shipped(path) else path.stem
-    return Measured(path, label, data[1:, 0] * TIME_UNITS[unit], csa[1:] / csa[0], metadata.get("section"))
+    return Measured(path, label, data[1:, 0] * TIME_UNITS[unit], csa[1:] / csa[0], meta.get("section"),
+                    meta.get("muscle"), meta.get("measure"))
 
 
 def is_shipped(path: Path) -> bool:
@@ -159,8 +201,19 @@ def same_schedule(a: Protocol, b: Protocol) -> bool:
     return a.sessions == b.sessions and a.end == b.end
 
 
-def of_protocol(protocol: Protocol) -> Measured | None:
-    """The project's data set measured under ``protocol`` (by schedule), if any."""
+def compatible(data: Measured, geometry: str) -> bool:
+    """Whether a run on ``geometry`` may be compared with ``data`` unasked: a generic shape,
+    or an anatomical mesh (id MUSCLE_SUBJECT_SIDE) of a muscle the measured one contains."""
+    if data.muscle is None:
+        return False
+    if geometry in GENERIC:
+        return True
+    return geometry.split("_")[0] in MUSCLES[data.muscle]
+
+
+def of_protocol(protocol: Protocol, geometry: str) -> Measured | None:
+    """The project's data set measured under ``protocol`` (by schedule) on a muscle
+    ``geometry`` is compatible with (`compatible`), if any."""
     for name, (_, measured_under) in SHIPPED.items():
         path = DATA_DIR / name
         if not path.is_file():
@@ -170,7 +223,9 @@ def of_protocol(protocol: Protocol) -> Measured | None:
         else:
             theirs = protocols.load(DATA_DIR / measured_under)
         if same_schedule(protocol, theirs):
-            return read(path)
+            data = read(path)
+            if compatible(data, geometry):
+                return data
     return None
 
 
@@ -235,7 +290,8 @@ class Comparison:
         return float(self.difference_pp[-1])
 
     def describe(self) -> str:
-        return (f"against {self.data.label} ({self.data.path.name}, {len(self.data.t)} points): RMSE "
+        return (f"against {self.data.label} ({self.data.path.name}, {self.data.muscle or 'muscle not given'}, "
+                f"{len(self.data.t)} points): RMSE "
                 f"{self.rmse_pp:.2f} percentage points of CSA change, model − data at "
                 f"{self.data.t[-1]:g} h {self.last_difference_pp:+.2f} points")
 
@@ -243,7 +299,7 @@ class Comparison:
         """The result's ``data`` group."""
         where = {} if self.data.section is None else {"section": self.data.section}
         return {"file": str(self.data.path), "file_sha256": file_digest(self.data.path), "label": self.data.label,
-                **where,
+                **where, "muscle": self.data.muscle or "not given", "measure": self.data.measure or "not given",
                 "rmse_pp": self.rmse_pp, "last_difference_pp": self.last_difference_pp,
                 "last_time_h": float(self.data.t[-1]), "time_h": self.data.t,
                 "measured_csa_ratio": self.data.csa_ratio, "model_csa_ratio": self.model_csa_ratio}

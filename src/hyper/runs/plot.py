@@ -45,10 +45,11 @@ def save(fig, path: str | Path, *, dpi: int = 150) -> Path:
     return path
 
 
-def growth_series(results: dict[str, dict], path: str | Path, data=(), errors=None) -> Path:
+def growth_series(results: dict[str, dict], path: str | Path, data=(), errors=None, title: str = "") -> Path:
     """CSA, volume and kM against time for several protocols (the paper's Fig. 4C–E),
     with measured CSA courses (``data``: `hyper.runs.measured.Measured`) and each protocol's
-    RMSE against them (``errors``: protocol -> `hyper.runs.measured.Comparison`) where given."""
+    RMSE against them (``errors``: protocol -> `hyper.runs.measured.Comparison`) where given;
+    ``title`` says what ran (geometry, fibres, protocols, CSA measure)."""
     plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), constrained_layout=True)
     end = 0.0
@@ -62,8 +63,9 @@ def growth_series(results: dict[str, dict], path: str | Path, data=(), errors=No
         axes[1].plot(weeks, 100 * (s["volume_ratio"] - 1), label=name, color=colour)
         axes[2].plot(weeks, s["kM"], label=name, color=colour)
     for i, measured in enumerate(data):
+        muscle = getattr(measured, "muscle", None)
         axes[0].plot(measured.t / 168.0, 100 * (measured.csa_ratio - 1), "k" + "osD^v"[i % 5], ms=4, mfc="none",
-                     label=measured.label)
+                     label=measured.label if muscle is None else f"{measured.label} ({muscle})")
         end = max(end, float(max(measured.t)) / 168.0)
     for ax in axes:  # one time range in the three panels, with room for the end points
         ax.set_xlim(-0.02 * end, 1.02 * end)
@@ -74,6 +76,8 @@ def growth_series(results: dict[str, dict], path: str | Path, data=(), errors=No
         ax.set_xlabel("time (weeks)")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=9)
     return save(fig, path)
 
 

@@ -71,9 +71,19 @@ def draw_box(comm, model, path: Path, title: str) -> None:
         info(comm, f"box figure: {box_section(picture, path, title)}")
 
 
+def title(work: Plan) -> str:
+    """What a figure shows: the geometry, the fibres, the protocols and the CSA measure."""
+    spec = work.specs[0]
+    section = ("its tagged mid-section" if spec.geometry in measured.GENERIC
+               else f"the mid-belly section ({work.settings.csa_method})")
+    return (f"{spec.geometry}, fibres {spec.fibers}, {', '.join(s.protocol.name for s in work.specs)}; "
+            f"CSA of {section}")
+
+
 def data_of(work: Plan, spec: runspec.RunSpec) -> measured.Measured | None:
-    """What a run is compared with: the plan's data, else its protocol's (`measured.of_protocol`)."""
-    return work.data if work.data is not None else measured.of_protocol(spec.protocol)
+    """What a run is compared with: the plan's data, else its protocol's on a compatible muscle
+    (`measured.of_protocol`)."""
+    return work.data if work.data is not None else measured.of_protocol(spec.protocol, spec.geometry)
 
 
 def carry_out(comm, work: Plan, stop, figure: bool = True) -> Outcome:
@@ -113,5 +123,5 @@ def carry_out(comm, work: Plan, stop, figure: bool = True) -> Outcome:
             done = None  # the model goes before the next run builds its own
         if comm.rank == 0 and figure:
             shown = list({id(e.data): e.data for e in errors.values()}.values())
-            info(comm, f"figure: {growth_series(results, work.plot, shown, errors)}")
+            info(comm, f"figure: {growth_series(results, work.plot, shown, errors, title(work))}")
     return Outcome(Ending.DONE)
