@@ -230,7 +230,11 @@ def contraction_done(path: Path, ends: str, fibers: str) -> bool:
         return False
     with h5py.File(path, "r") as f:
         a = f.attrs
-        return (str(a["ends"]), str(a["fibers"]), int(a["steps"])) == (ends, fibers, CONTRACTION_STEPS)
+        # "fibers" is the kind used (auto is the idealized shape's analytic field); the
+        # asked one is in the settings group
+        asked = f["settings"].attrs["fibers"] if "settings" in f else a["fibers"]
+        return (str(a["ends"]), str(asked), int(a["steps"]), int(a.get("refine", 0))) == \
+            (ends, fibers, CONTRACTION_STEPS, 0)
 
 
 def plan(args) -> tuple[list[farm.Job], dict[str, Case]]:
@@ -286,6 +290,7 @@ def work_on(output: Path, runs: dict[str, Case], stop, progress_every: float):
                 output=contraction_path(output, job.payload[1]),
                 material=mat.MaterialParams(),
                 quadrature_degree=4,
+                refine=0,
                 max_halvings=6,
                 petsc=[],
             )
