@@ -42,6 +42,8 @@ STUDY_FILES = {  # name -> (text, the message); the study job's rows below
     "accuracy": (STUDY + f"[numerics]\naccuracy = {HUGE}\n", r"numerics.accuracy: .* got an integer of 401 digits"),
     "max_halvings": (STUDY + f"[numerics]\nmax_halvings = {HUGE}\n", r"numerics.max_halvings: .*401 digits"),
     "quadrature_degree": (STUDY + f"[numerics]\nquadrature_degree = -{HUGE}\n", r"quadrature_degree: .*401 digits"),
+    "refine": (STUDY + "[numerics]\nrefine = 7\n", r"numerics.refine: expected an integer in \[0, 3\], got 7"),
+    "refine_fraction": (STUDY + "[numerics]\nrefine = 1.5\n", r"numerics.refine: expected an integer in \[0, 3\]"),
     "snapshot_every": (STUDY + f"[output]\nsnapshot_every = {HUGE}\n", r"output.snapshot_every: .*401 digits"),
     "signaling": (STUDY + f"[signaling]\nkM = {HUGE}\n", r"signaling: kM: expected a finite number, got an integer"),
     "material": (STUDY + f"[material]\nsigma_act = -{HUGE}\n", r"material: sigma_act: expected a finite number"),
@@ -162,6 +164,7 @@ JOBS = {
         **{f"protocol_{k}": (["--protocols", v[0][1]], v[1]) for k, v in PROTOCOL_CASES.items()},
         **FOLDER_OUTPUT,
         **integer_cases("--ranks-per-job", 1),
+        **integer_cases("--refine", 0, 3),
         "snapshot_every": (["--snapshot-every", "-3"],
                            r"--snapshot-every: expected a finite number of hours > 0, got -3"),
         "snapshot_every_inf": (["--snapshot-every", "inf"], r"--snapshot-every: expected a finite number of hours > 0"),
@@ -193,6 +196,7 @@ JOBS = {
         **integer_cases("--steps", 1, 10**4),
         **integer_cases("--quadrature-degree", 1, 12),
         **integer_cases("--max-halvings", 0, 12),
+        **integer_cases("--refine", 0, 3),
         "output_suffix": (["--output", "{out}/c.txt"], r"c.txt: expected a .h5 file"),
         "geometry": (["--geometry", "nowhere"], r"unknown geometry 'nowhere'"),
         "fibers": (["--fibers", "helical"], r"unknown fibre kind 'helical'"),
@@ -220,6 +224,7 @@ JOBS = {
         **{k: (["{d}/study_good.toml", *v[0]], v[1]) for k, v in integer_cases("--quadrature-degree", 1, 12).items()},
         **{k: (["{d}/study_good.toml", *v[0]], v[1]) for k, v in integer_cases("--sections", 0, 99).items()},
         **{k: (["{d}/study_good.toml", *v[0]], v[1]) for k, v in DETRAINING_CASES.items()},
+        **{k: (["{d}/study_good.toml", *v[0]], v[1]) for k, v in integer_cases("--refine", 0, 3).items()},
     }),
     "calibrate": (["--data", str(ROOT / "data" / "defreitas.csv"), "--protocol", "mwf", "--fit", "kM", "--no-check",
                    "--output", "{out}"], "calibration", {
@@ -713,7 +718,7 @@ def toml_value(value) -> str:
 # (the section's text before the key, the key, whether a negative value is bad too)
 STUDY_KEYS = [
     ("[numerics]", "growth_dt", True), ("[numerics]", "signaling_dt", True), ("[numerics]", "accuracy", True),
-    ("[numerics]", "max_halvings", True), ("[numerics]", "quadrature_degree", True),
+    ("[numerics]", "max_halvings", True), ("[numerics]", "quadrature_degree", True), ("[numerics]", "refine", True),
     ("[output]", "snapshot_every", True), ("[signaling]", "a10", True), ("[material]", "c1", True),
     ("[heterogeneity]\nseed = 1", "epsilon", True), ("[heterogeneity]", "seed", True),
     ('[heterogeneity]\nmodel = "matern"\nseed = 1', "length", True),
@@ -749,14 +754,14 @@ def test_any_malformed_number_in_a_study_file_is_refused(tmp_path, capsys, where
 # (job, its command, the option, whether a negative value is bad too); {out} its output
 OPTIONS = [
     *[("study", ["{study}"], o, True) for o in ("--growth-dt", "--signaling-dt", "--accuracy", "--max-halvings",
-                                                "--snapshot-every", "--quadrature-degree")],
+                                                "--snapshot-every", "--quadrature-degree", "--refine")],
     *[("signaling", ["--protocol", "mwf"], o, True) for o in ("--signaling-dt", "--sample-every")],
     *[("sobol", [], o, True) for o in ("--samples", "--at", "--seed", "--chunk", "--resamples", "--signaling-dt")],
     *[("ensemble", ["--geometry", "cylinder"], o, True) for o in ("--epsilon", "--samples", "--first-seed", "--nu",
                                                                   "--growth-dt")],
-    *[("cohort", ["--geometries", "cylinder"], o, True) for o in ("--growth-dt", "--max-halvings")],
+    *[("cohort", ["--geometries", "cylinder"], o, True) for o in ("--growth-dt", "--max-halvings", "--refine")],
     ("dose", [], "--seed", True), ("dose", [], "--accuracy", False), ("dose", [], "--budgets", True),
-    ("contraction", ["--geometry", "cylinder"], "--steps", True),
+    *[("contraction", ["--geometry", "cylinder"], o, True) for o in ("--steps", "--refine")],
     ("mesh", ["{surface}"], "--end-band", True), ("mesh", ["{surface}"], "--cells", True),
 ]
 

@@ -4,7 +4,7 @@ import json
 
 from mpi4py import MPI
 
-from hyper.analysis import reproduce, reproducefigures
+from hyper.analysis import reproduce, reproducefigures, reproducereport
 from hyper.commands.reproduce import main
 
 
@@ -83,5 +83,21 @@ def test_the_idealized_figure_shows_both_runs_and_the_mwf_data(tmp_path, monkeyp
     for quick in (True, False):
         path = reproducefigures.idealized_figure(tmp_path, tmp_path / f"fig{quick}.png", quick)
         assert path.stat().st_size > 10_000
-    assert read == ["idealized_mwf_default.h5", f"idealized_mwf_original_dt{reproduce.QUICK_GROWTH_DT:g}.h5",
-                    "idealized_mwf_default.h5", f"idealized_mwf_original_dt{reproduce.ORIGINAL_GROWTH_DT:g}.h5"]
+    # the original column at its own step, 1 h, in --quick too
+    assert read == ["idealized_mwf_default.h5", f"idealized_mwf_original_dt{reproduce.ORIGINAL_GROWTH_DT:g}.h5"] * 2
+
+
+def test_quick_runs_the_idealized_original_at_its_own_step():
+    """--quick runs the idealized original column at the original's Δtg = 1 h, and the
+    left-point switch (whose effect is its step's error) against the default at 1 h too:
+    no number of the idealized section comes from a 24-h step."""
+    cases = {c.key: c for c in reproduce.idealized_cases(quick=True)}
+    originals = [c for k, c in cases.items() if "_original" in k]
+    assert len(originals) == 2 and all(dict(c.settings)["growth_dt"] == 1.0 for c in originals)
+    left_point = [c for k, c in cases.items() if "left-point" in k]
+    assert [dict(c.settings)["growth_dt"] for c in left_point] == [1.0]
+    assert "idealized_mwf_default_dt1" in cases and not any("dt24" in k for k in cases)
+    runs = {k: {"csa": 8.0, "volume": 8.0, "kM": 0.01} for k in cases}
+    text = "\n".join(reproducereport.idealized_section({"runs": runs}, quick=True))
+    assert "hyper, original (Δtg = 1 h) | hyper, default (Δtg = 168 h)" in text
+    assert "`--growth-increment left-point` alone (Δtg = 1 h)" in text

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper.analysis.reproduce import BOX_FIGURE_GEOMETRY, ORIGINAL_GROWTH_DT, PAPER_MWF, QUICK_GROWTH_DT, series_path
+from hyper.analysis.reproduce import BOX_FIGURE_GEOMETRY, ORIGINAL_GROWTH_DT, PAPER_MWF, series_path
 from hyper.analysis.reproducereport import cohort_rows, get
 from hyper.core import io
 from hyper.model import protocols
@@ -67,10 +67,11 @@ def box_figure(output: Path, path: Path) -> Path | None:
 
 
 def idealized_figure(output: Path, path: Path, quick: bool) -> Path | None:
-    dt = QUICK_GROWTH_DT if quick else ORIGINAL_GROWTH_DT
+    dt = ORIGINAL_GROWTH_DT  # the original column's step, in --quick too
+    # each curve says its growth step: the original's own 1 h, the default's one per period
     files = {
-        "default": series_path(output, "idealized_mwf_default"),
-        "original": series_path(output, f"idealized_mwf_original_dt{dt:g}"),
+        "default (Δtg = 168 h)": series_path(output, "idealized_mwf_default"),
+        f"original (Δtg = {dt:g} h)": series_path(output, f"idealized_mwf_original_dt{dt:g}"),
     }
     results = {name: io.read_series(p) for name, p in files.items() if io.is_complete(p)}
     data = measured.of_protocol(protocols.named("mwf"), "idealized")

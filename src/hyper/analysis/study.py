@@ -51,6 +51,7 @@ class Numerics:
     accuracy: float | None = None  # fraction of the growth (hyper.runs.fidelity), in (0, 0.5)
     signaling_dt: float | None = None  # h, the RK4 step
     quadrature_degree: int | None = None  # of the built-in geometries; None: theirs (4)
+    refine: int = 0  # uniform refinements of every mesh (hyper.fem.geometry.refine)
     linear_solver: str | None = None  # lu, iterative or auto; None: lu, or auto with accuracy
     max_halvings: int = GrowthSettings.max_halvings  # cuts of a failing growth step
     feedback: str = GrowthSettings.feedback  # hill, linear or none
@@ -74,6 +75,9 @@ class Numerics:
         q = self.quadrature_degree
         if q is not None and (isinstance(q, bool) or not isinstance(q, int) or not 1 <= q <= 12):
             raise InputError(f"expected an integer in [1, 12], got {shown(q)}", field="quadrature_degree")
+        r = self.refine
+        if isinstance(r, bool) or not isinstance(r, int) or not 0 <= r <= runspec.MAX_REFINE:
+            raise InputError(f"expected an integer in [0, {runspec.MAX_REFINE}], got {shown(r)}", field="refine")
         if self.linear_solver is not None and self.linear_solver not in runspec.LINEAR_SOLVERS:
             raise InputError(f"expected one of {', '.join(runspec.LINEAR_SOLVERS)}, got {self.linear_solver!r}",
                              field="linear_solver")
@@ -312,7 +316,8 @@ def spec_options(study: Study, choice) -> dict:
     """The `RunSpec` fields a study sets beyond geometry, protocol, parameters and settings."""
     solver = study.numerics.linear_solver or ("auto" if choice is not None else "lu")
     return {"heterogeneity": study.heterogeneity, "seed": study.seed, "linear_solver": solver, "choice": choice,
-            "quadrature_degree": study.numerics.quadrature_degree, "material": study.material}
+            "quadrature_degree": study.numerics.quadrature_degree, "refine": study.numerics.refine,
+            "material": study.material}
 
 
 def check_inputs(comm, study: Study) -> None:
@@ -321,6 +326,9 @@ def check_inputs(comm, study: Study) -> None:
         runspec.check_geometry(comm, name, "geometries")
     for mesh in study.meshes:
         mesh.load(comm)
+    # the Stokes fibres of the meshes without a fibre file, computed and kept once before
+    # any run (their digests name the file)
+    driver.prepare_fibres(comm, study.meshes)
 
 
 def first_spec(study: Study, settings, choice) -> runspec.RunSpec:

@@ -32,6 +32,7 @@ from hyper.core import io, term
 from hyper.core.log import PROGRESS_EVERY, error
 from hyper.core.params import SEED_MAX, InputError, as_float, as_vector, float_text, int_text, shown
 from hyper.runs.locks import Busy, hold
+from hyper.runs.runspec import MAX_REFINE
 
 EXIT_OK = 0
 EXIT_SOME_FAILED = 1
@@ -176,6 +177,15 @@ def progress_option(p: Parser) -> None:
 
     p.add_argument("--progress-every", type=positive("seconds"), default=PROGRESS_EVERY, metavar="SECONDS",
                    help="seconds of wall time between progress lines (the first and last always come)")
+
+
+def refine_option(p: Parser, default: int | None = 0) -> None:
+    """--refine K, the same in every job that runs a mesh (grow, cohort, study, contraction)."""
+    p.add_argument("--refine", type=integer(0, MAX_REFINE), default=default, metavar="K",
+                   help=f"refine the mesh uniformly K times (0 to {MAX_REFINE}; each splits every tetrahedron "
+                        "into 8 on the same polyhedron); fibres from a formula are evaluated on the refined "
+                        "mesh, those of a fibre file or a principal axis carried over from the loaded one"
+                        + ("; 0 by default" if default == 0 else ""))
 
 
 def output(*, folder: bool | None = None, suffixes: tuple[str, ...] = (), replaces: bool = False

@@ -80,6 +80,7 @@ def parser() -> cli.Parser:
                    help="MPI ranks per run; must divide the number of ranks")
     p.add_argument("--growth-dt", type=cli.positive("hours"),
                    help=f"growth step Δtg (h); {GrowthSettings.growth_dt:g} unless --settings sets it")
+    cli.refine_option(p)
     p.add_argument("--material", type=Path, metavar="F.toml", reads=True,
                    help="TOML file overriding the muscle law's parameters (hyper.model.material.MaterialParams)")
     presets.add_options(p)
@@ -144,7 +145,7 @@ def cohort(comm, args) -> int:
             results = run_cohort(comm, runs, args.output, settings=settings, snapshot_every=args.snapshot_every,
                                  ranks_per_job=args.ranks_per_job, stop=stop, progress_every=args.progress_every,
                                  data=None if args.data is None else measured.read(args.data),
-                                 options={**args.shape, "material": muscle})
+                                 options={**args.shape, "material": muscle, "refine": args.refine})
         code = 0
         if comm.rank == 0:
             try:

@@ -66,6 +66,7 @@ def parser() -> cli.Parser:
     p.add_argument("--material", type=Path, metavar="F.toml", reads=True,
                    help="TOML file overriding the muscle law's parameters (hyper.model.material.MaterialParams)")
     p.add_argument("--quadrature-degree", type=cli.integer(1, 12), default=4, help="quadrature degree of the forms")
+    cli.refine_option(p)
     p.add_argument("--max-halvings", type=cli.integer(0, 12), default=6, help="step cuts allowed per step")
     return p
 

@@ -99,6 +99,7 @@ def parser(ask: str = "growth") -> cli.Parser:
         return p
 
     # here, not at the top: they load DOLFINx and UFL, which --ask signaling never needs
+    from hyper.fem import fibers
     from hyper.fem.coupled import GrowthSettings
     from hyper.model.growth import FEEDBACK_LAWS
 
@@ -106,8 +107,11 @@ def parser(ask: str = "growth") -> cli.Parser:
     p.add_argument("--geometry", help="geometry id (idealized, cylinder, BFLH_VHF_Left, …); idealized by default")
     p.add_argument("--mesh", type=Path, reads=True,
                    help="your own tetrahedral XDMF mesh instead of --geometry (facet tags "
-                   "'ft_small': 1, 2 the ends, 3 the side; fibres along its principal axis)")
+                   f"'ft_small': 1, 2 the ends, 3 the side); its Stokes fibres: the {fibers.FILE_NAME} beside it "
+                   "(what hyper mesh writes), else computed and kept there if the folder is writable "
+                   "(--fibers chooses others)")
     p.add_argument("--mesh-unit", help=f"length unit of --mesh ({' or '.join(runspec.MESH_UNITS)}); m by default")
+    cli.refine_option(p)
     scene_options(p)
     p.add_argument("--output", type=cli.output(), default="results/grow", help="an .h5 file (one protocol) or a folder")
     p.add_argument("--material", type=Path, metavar="F.toml", reads=True,
@@ -235,9 +239,9 @@ def plan_from(comm, args) -> sequence.Plan:
     if mesh is not None:
         mesh.load(comm)  # units and tags, before anything is written
     solver = args.linear_solver or ("auto" if args.accuracy is not None else "lu")
-    shape = presets.shape(args, [name])
+    shape = presets.shape(args, [name], mesh=mesh is not None)
     specs = [runspec.RunSpec(name, p, params, settings, petsc_options, mesh=mesh, linear_solver=solver, choice=choice,
-                         **shape, material=muscle) for p in runs]
+                         **shape, material=muscle, refine=args.refine) for p in runs]
     if not args.restart:
         sequence.refuse_foreign_checkpoints(comm, specs, [runspec.Outputs(h5) for h5 in results])
     outputs = [runspec.Outputs(h5) for h5 in results]

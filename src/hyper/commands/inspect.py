@@ -2,8 +2,9 @@
 
     hyper inspect results/grow/idealized_mwf.h5
 
-Prints the provenance (command, versions, git commit, run digest, mesh hash, ranks,
-quadrature degree, linear solver), the attribute groups (signaling, material, protocol,
+Prints the fibres a run used (their kind, how they were made and their file's SHA-256),
+the provenance (command, versions, git commit, run digest, mesh hash, ranks,
+quadrature degree, refinements, linear solver), the attribute groups (signaling, material, protocol,
 settings, heterogeneity, fidelity: the names every job uses), the study file that reruns
 a growth result, and each series with its unit, length and first and last values.
 Works on every HDF5 result the jobs write.
@@ -45,6 +46,10 @@ def describe(path: Path) -> list[str]:
     with io.reading_h5(path) as f:
         lines = [f"{path}: {'complete' if f.attrs.get('complete') else 'INCOMPLETE (its writer did not finish)'}"]
         provenance = {k: v for k, v in f.attrs.items() if k not in ("complete", "study")}
+        if "fibers" in f.attrs:  # the fibres a run used: kind, how they were made, their file
+            sha = shown(f.attrs.get("fibers_sha256", "")) or "none (from a formula)"
+            lines.append(f"fibres: {shown(f.attrs['fibers'])}, {shown(f.attrs.get('fibers_method', '?'))}; "
+                         f"file SHA-256 {sha}")
         lines.append("provenance:")
         lines += [f"  {k} = {shown(v)}" for k, v in sorted(provenance.items())]
         groups = sorted((name for name, item in f.items() if isinstance(item, h5py.Group)),

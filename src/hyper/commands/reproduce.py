@@ -1,6 +1,6 @@
 """hyper reproduce: the paper's claims and the original code's numbers beside hyper's, switch by switch.
 
-    mpirun -n 2 python -m hyper.reproduce --quick        # 29 runs, about 4 min on 2 cores
+    mpirun -n 2 python -m hyper.reproduce --quick        # 28 runs, about 5 min on 2 cores
     mpirun -n 2 python -m hyper.reproduce                # full: 12 muscles at Δtg = 1 h, heterogeneity
     python -m hyper.reproduce --cases signaling          # one family of cases (no mesh)
 
@@ -19,8 +19,10 @@ and turns on one switch at a time. Cases (families, --cases):
 
 --quick: the cohort on BFLH_VHF_Left, ST_VHF_Left and TA_VHF_Left, the original column
 there at one step per period (168 h) with the exact increment (the left-point rule needs
-short steps), the idealized original column at QUICK_GROWTH_DT (its effect measured on
-the 15-day demo against Δtg = 1 h), no heterogeneity. Full: the 12 muscles, Δtg = 1 h.
+short steps); the idealized original column at the original's Δtg = 1 h as in full mode
+(the 9-week run takes about a minute), the switches' attribution at one step per period
+but the left-point rule's at 1 h; no heterogeneity. Full: the 12 muscles, Δtg = 1 h.
+Every column and curve names its growth step.
 
 Every coupled run is a job of `hyper.runs.farm` (longest first) and is stored under
 OUTPUT/runs/KEY.h5; a rerun skips every run whose result exists with the same digest
@@ -50,7 +52,8 @@ def parser() -> cli.Parser:
     p = cli.Parser("reproduce", __doc__)
     p.add_argument("--output", type=cli.output(folder=True), default="results/reproduce", help="output folder")
     p.add_argument(
-        "--quick", action="store_true", help="3 muscles, coarser steps, no heterogeneity (about 4 min on 2 ranks)"
+        "--quick", action="store_true",
+        help="3 muscles, coarser steps (the idealized original at its 1 h), no heterogeneity (about 5 min, 2 ranks)",
     )
     p.add_argument(
         "--cases",

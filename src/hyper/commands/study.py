@@ -44,6 +44,7 @@ of inputs are relative to the study file's folder (the output folder to the curr
     growth_dt = 168.0          # h; or accuracy = 1e-3, the steps hyper.runs.fidelity chooses
     signaling_dt = 0.05        # h, the RK4 step
     quadrature_degree = 4      # built-in geometries only
+    refine = 0                 # uniform refinements of every mesh (0 to 3; --refine)
     linear_solver = "lu"       # lu, iterative or auto (lu; auto with accuracy)
     max_halvings = 4
     feedback = "hill"          # of CSA on protein synthesis: hill, linear or none
@@ -101,6 +102,7 @@ def parser() -> cli.Parser:
     p.add_argument("--accuracy", type=cli.number(), help="fidelity choice of the steps; overrides [numerics] accuracy")
     p.add_argument("--signaling-dt", type=cli.positive("hours"), help="RK4 step (h); overrides [numerics] signaling_dt")
     p.add_argument("--quadrature-degree", type=cli.integer(1, 12), help="overrides [numerics] quadrature_degree")
+    cli.refine_option(p, default=None)
     p.add_argument("--linear-solver", choices=runspec.LINEAR_SOLVERS, help="overrides [numerics] linear_solver")
     p.add_argument("--max-halvings", type=cli.integer(0, GrowthSettings.MAX_HALVINGS),
                    help="overrides [numerics] max_halvings")
@@ -116,7 +118,7 @@ def parser() -> cli.Parser:
 
 
 OVERRIDES = {"output": "folder", "figures": "figures", "growth_dt": "growth_dt", "accuracy": "accuracy",
-             "signaling_dt": "signaling_dt", "quadrature_degree": "quadrature_degree",
+             "signaling_dt": "signaling_dt", "quadrature_degree": "quadrature_degree", "refine": "refine",
              "linear_solver": "linear_solver", "max_halvings": "max_halvings", "snapshot_every": "snapshot_every",
              "sections": "sections", "detraining": "detraining"}
 

@@ -75,8 +75,8 @@ from dolfinx import fem, la
 from dolfinx.fem.petsc import LinearProblem
 from mpi4py import MPI
 
-from hyper.core.io import is_complete, reading_h5
-from hyper.core.params import InputError, check_positive
+from hyper.core.io import is_complete, reading_h5, write_series
+from hyper.core.params import InputError, as_attributes, check_positive
 from hyper.fem import geometry as geo
 
 FILE_NAME = "fibers.h5"
@@ -400,16 +400,91 @@ FIBER_KINDS = ("auto", "idealized", "axial", "principal", "stokes", "original")
 # The kinds whose field the mechanics and the growth field must use as it is, not
 # normalised at their points.
 UNNORMALISED_KINDS = ("original",)
+# How each kind is made, as a result records it (`method`)
+METHODS = {
+    "idealized": "analytic (MODEL.md §5), interpolated at the nodes of the mesh run (P1)",
+    "axial": "uniform e_z (P1)",
+    "principal": "uniform along the first principal axis of the loaded mesh's vertices, from ends[0] "
+                 "to ends[1] (P1)",
+    "stokes": METHOD,
+    "original": "the original code's analytic field interpolated into P2, used as it is (MODEL.md §9)",
+}
+# what a refined mesh takes from the mesh it refines, by kind (the others are evaluated on it)
+CARRIED = ("principal", "stokes")
+CARRIED_METHOD = "; made on the loaded mesh and interpolated onto its {n} uniform refinement(s), unit at the nodes"
 
 
-def fiber_field(geometry: geo.Geometry, kind: str = "auto") -> fem.Function:
+def resolved(geometry: geo.Geometry, kind: str) -> str:
+    """The kind "auto" stands for on ``geometry`` (the kind itself otherwise)."""
+    if kind not in FIBER_KINDS:
+        raise InputError(f"unknown fibre kind {kind!r}; expected one of {', '.join(FIBER_KINDS)}")
+    if kind == "auto":
+        return {"idealized": "idealized", "cylinder": "axial"}.get(geometry.name, "stokes")
+    return kind
+
+
+def method(geometry: geo.Geometry, kind: str) -> str:
+    """How the fibres of ``kind`` on ``geometry`` are made, refinements included."""
+    kind = resolved(geometry, kind)
+    carried_over = CARRIED_METHOD.format(n=geometry.refinements) if kind in CARRIED and geometry.refinements else ""
+    return METHODS[kind] + carried_over
+
+
+def carried(a0: fem.Function, geometry: geo.Geometry) -> fem.Function:
+    """A vector P1 field ``a0`` of an unrefined ancestor of ``geometry`` (`geo.refine`) on
+    ``geometry``'s mesh, unit at its nodes.
+
+    Level by level: each refinement's P1 space contains the coarser one, so the
+    interpolant is the same function; the nodes it shares with the coarser mesh keep
+    their values (to round-off), the new ones (edge midpoints) take the mean of the
+    edge's two, normalised.
+    """
+    chain = []
+    level = geometry
+    while level.mesh is not a0.function_space.mesh:
+        if level.parent is None:
+            raise ValueError(f"{geometry.name}: the fibre field is not on a mesh this one refines")
+        chain.append(level)
+        level = level.parent
+    for level in reversed(chain):
+        mesh = level.mesh
+        space = fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+        fine = fem.Function(space, name="a0")
+        cell_map = mesh.topology.index_map(mesh.topology.dim)
+        cells = np.arange(cell_map.size_local + cell_map.num_ghosts, dtype=np.int32)
+        fine.interpolate_nonmatching(a0, cells, fem.create_interpolation_data(space, a0.function_space, cells))
+        fine.x.scatter_forward()
+        a0 = fine
+    values = a0.x.array.reshape(-1, 3)
+    values /= np.linalg.norm(values, axis=1)[:, None]
+    return a0
+
+
+def store(path: str | Path, geometry: geo.Geometry, a0: fem.Function, speed: fem.Function,
+          params: StokesParams = StokesParams(), **attrs) -> None:
+    """Write the Stokes fibres of ``geometry`` to ``path`` as a fibre file (module
+    docstring), atomically, on rank 0, with the method, the statistics and ``attrs``.
+    Collective."""
+    stats = statistics(geometry, a0, speed)
+    data = gather_nodal(a0, speed)
+    if geometry.comm.rank == 0:
+        write_series(path, data,
+                     attrs={"geometry": geometry.name, "method": METHOD, "element": ELEMENT,
+                            "reference": "Varvik et al. 2021; MODEL.md §5", "inflow_tag": geometry.ends[0],
+                            "outflow_tag": geometry.ends[1], "lateral_tag": geometry.lateral, "coordinates": "m",
+                            "ranks": geometry.comm.size, **stats, **attrs},
+                     groups={"parameters": as_attributes(params)})
+    geometry.comm.barrier()
+
+
+def fiber_field(geometry: geo.Geometry, kind: str = "auto", path: str | Path | None = None) -> fem.Function:
     """The reference fibre direction a0 as a vector P1 function, unit length at the nodes.
 
     kind: "idealized" the analytic spline fibres of MODEL.md §5; "axial" e_z (the axis of
     the cylinder and the idealized shape); "principal" the first principal axis of the
     vertex coordinates, oriented from end Γ1 to Γ2 (a stand-in for tests); "stokes" the
-    Stokes-flow fibres stored next to an anatomical mesh (`load`, MODEL.md §5);
-    "auto" picks the first for `idealized`, the second for `cylinder` and "stokes"
+    Stokes-flow fibres stored next to an anatomical mesh (`load`, MODEL.md §5), or in
+    ``path``; "auto" picks the first for `idealized`, the second for `cylinder` and "stokes"
     otherwise. "original" (idealized shape only): the original code's field
     (`original_idealized_fiber`) interpolated into vector P2, which the original used as
     it is, unit at the nodes only (MODEL.md §9; see `UNNORMALISED_KINDS`).
@@ -419,13 +494,16 @@ def fiber_field(geometry: geo.Geometry, kind: str = "auto") -> fem.Function:
     growth tensors use interpolates it. Between the nodes |a0| dips below 1 where the
     fibres turn (by up to 4 % next to the idealized shape's axis, where the formula
     jumps); `MechanicsProblem` and the growth field normalise at their points.
+
+    A refined geometry (`geo.refine`) evaluates the analytic kinds at its own nodes; the
+    kinds of `CARRIED` belong to the loaded mesh (a fibre file's nodes, its vertices'
+    axis) and are made there, then `carried` onto the refined mesh.
     """
-    if kind not in FIBER_KINDS:
-        raise InputError(f"unknown fibre kind {kind!r}; expected one of {', '.join(FIBER_KINDS)}")
-    if kind == "auto":
-        kind = {"idealized": "idealized", "cylinder": "axial"}.get(geometry.name, "stokes")
+    kind = resolved(geometry, kind)
+    if kind in CARRIED and geometry.parent is not None:
+        return carried(fiber_field(geometry.base, kind, path), geometry)
     if kind == "stokes":
-        return load(geometry)
+        return load(geometry, path)
     if kind == "original":
         if geometry.name != "idealized":
             raise InputError(f"the original fibres are those of the idealized shape, not of {geometry.name!r}")

@@ -130,6 +130,19 @@ class Geometry:
     # Surface integrals (ds, dS) at the degree UFL estimates for each integrand instead
     # of quadrature_degree: the original code's choice (MODEL.md §9), slow to compile.
     estimated_surface_degree: bool = False
+    # the geometry this one is a uniform refinement of (`refine`), None for a loaded one:
+    # fibres that belong to the loaded mesh (a fibre file, its principal axis) are made
+    # there and carried onto the refined mesh (hyper.fem.fibers.carried)
+    parent: Geometry | None = dataclasses.field(default=None, repr=False, compare=False)
+
+    @property
+    def base(self) -> Geometry:
+        """The loaded geometry this one refines (itself if it is not refined)."""
+        return self if self.parent is None else self.parent.base
+
+    @property
+    def refinements(self) -> int:
+        return 0 if self.parent is None else 1 + self.parent.refinements
 
     @property
     def comm(self):
@@ -473,7 +486,7 @@ def refine(geometry: Geometry) -> Geometry:
     facets = np.flatnonzero(count.array > 0).astype(np.int32)
     tag_values = np.rint(total.array[facets] / count.array[facets]).astype(np.int32)
     tags = dmesh.meshtags(fine, tdim - 1, facets, tag_values)
-    return dataclasses.replace(geometry, mesh=fine, facet_tags=tags)
+    return dataclasses.replace(geometry, mesh=fine, facet_tags=tags, parent=geometry)
 
 
 # ----------------------------------------------------------------------------- shape

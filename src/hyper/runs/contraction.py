@@ -106,7 +106,11 @@ def contract(comm, args) -> dict:
     original = args.fibers in fibers.UNNORMALISED_KINDS
     geometry = geo.load(args.geometry, comm, quadrature_degree=args.quadrature_degree, ends=args.ends,
                         estimated_surface_degree=original)
+    for _ in range(args.refine):
+        geometry = geo.refine(geometry)
     a0 = fibers.fiber_field(geometry, args.fibers)
+    kind = fibers.resolved(geometry, args.fibers)
+    fibre_file = fibers.fiber_path(args.geometry) if kind == "stokes" else None
     material = args.material
     problem = MechanicsProblem(geometry, a0, material, normalize_fibres=not original)
     info(comm, f"{args.geometry}: {geometry.num_cells()} cells, {problem.num_dofs} unknowns, "
@@ -136,8 +140,11 @@ def contract(comm, args) -> dict:
     attrs = {
         "geometry": args.geometry,
         "steps": args.steps,
-        "fibers": args.fibers,
+        "fibers": kind,  # the kind used (auto resolved); settings/fibers the one asked
+        "fibers_method": fibers.method(geometry, kind) + (f"; read from {fibre_file}" if fibre_file else ""),
+        "fibers_sha256": on_rank0(comm, lambda: ckpt.file_digest(fibre_file)) if fibre_file else "",
         "fibres_normalised": not original,
+        "refine": args.refine,
         "ends": args.ends,
         "end_areas_m2": [geometry.area(tag) for tag in geometry.ends],
         "end_axis": problem.end_axis,
@@ -152,7 +159,7 @@ def contract(comm, args) -> dict:
         "rigid_motions": problem.rigid.description,
         "fields_xdmf": xdmf_path.name,
     }
-    settings = {"steps": args.steps, "fibers": args.fibers, "ends": args.ends,
+    settings = {"steps": args.steps, "fibers": args.fibers, "ends": args.ends, "refine": args.refine,
                 "quadrature_degree": geometry.quadrature_degree,
                 "max_halvings": args.max_halvings, "petsc_prefix": problem.snes.getOptionsPrefix(),
                 "petsc_options": " ".join(args.petsc),

@@ -43,8 +43,8 @@ from hyper.core.params import InputError, as_attributes
 from hyper.model import signaling
 from hyper.model.failure import GrowthFailure
 from hyper.runs import checkpoint as ckpt
-from hyper.runs import fidelity, provenance
-from hyper.runs.runspec import Outputs, RunSpec
+from hyper.runs import fidelity, presets, provenance
+from hyper.runs.runspec import MESH_FIBERS_STOKES, MeshFile, Outputs, RunSpec
 from hyper.runs.status import write_status
 
 # growth steps. A checkpoint with the Newton state of BFLH_VHF_Left (8512 cells) takes longer
@@ -288,26 +288,76 @@ class Result:
 
 def load_geometry(comm, spec: RunSpec):
     """The geometry of ``spec``: a user's mesh file, or a built-in one with its
-    refinements, quadrature degree and end tags."""
+    quadrature degree and end tags; either refined ``spec.refine`` times."""
     from hyper.fem import geometry as geo  # DOLFINx (see `build`)
 
     if spec.mesh is not None:
-        if spec.refine or spec.quadrature_degree is not None or (spec.ends, spec.fibers) != ("disks", "auto"):
-            raise InputError("refinement, quadrature degree, ends and fibres apply to the built-in geometries only")
-        return spec.mesh.load(comm)
-    kwargs = {} if spec.quadrature_degree is None else {"quadrature_degree": spec.quadrature_degree}
-    geometry = geo.load(spec.geometry, comm, ends=spec.ends, estimated_surface_degree=not spec.unit_fibres,
-                        **kwargs)
+        if spec.quadrature_degree is not None or spec.ends != "disks":
+            raise InputError("quadrature degree and ends apply to the built-in geometries only")
+        if spec.fibers not in presets.MESH_FIBERS:
+            raise InputError(f"--fibers {spec.fibers}: a mesh file's fibres are one of "
+                             f"{', '.join(presets.MESH_FIBERS)}")
+        geometry = spec.mesh.load(comm)
+    else:
+        kwargs = {} if spec.quadrature_degree is None else {"quadrature_degree": spec.quadrature_degree}
+        geometry = geo.load(spec.geometry, comm, ends=spec.ends, estimated_surface_degree=not spec.unit_fibres,
+                            **kwargs)
     for _ in range(spec.refine):
         geometry = geo.refine(geometry)
     return geometry
 
 
-def fiber_field(spec: RunSpec, geometry):
-    """The fibres of ``spec`` on ``geometry`` (a user's mesh: its principal axis)."""
+def mesh_stokes_fibres(comm, mesh: MeshFile, geometry=None) -> tuple:
+    """The Stokes fibres of a mesh file on its loaded (unrefined) ``geometry`` (loaded
+    here if None): (a0, the fibre file read or written or None, how they were had).
+
+    The fibre file beside the mesh if it has one; else computed, and kept beside the
+    mesh where `MeshFile.fibre_cache` allows it (else computed by every run). Collective."""
     from hyper.fem import fibers  # DOLFINx (see `build`)
 
-    return fibers.fiber_field(geometry, "principal" if spec.mesh is not None else spec.fibers)
+    geometry = mesh.load(comm) if geometry is None else geometry
+    if on_rank0(comm, lambda: io.is_complete(mesh.fibres)):
+        return fibers.load(geometry, mesh.fibres), mesh.fibres, f"read from {mesh.fibres}"
+    cache, why = mesh.fibre_cache()
+    info(comm, f"{mesh.path}: no fibre file beside it; computing its Stokes fibres"
+               + (f", kept in {cache}" if cache is not None else f" (not kept: {why})"))
+    a0, speed = fibers.compute(geometry)
+    if cache is None:
+        return a0, None, f"computed for this run (not kept: {why})"
+    fibers.store(cache, geometry, a0, speed, mesh=str(mesh.path), mesh_sha256=mesh.identity()["mesh_sha256"])
+    return a0, cache, f"computed and kept in {cache}"
+
+
+def prepare_fibres(comm, meshes) -> None:
+    """Before runs on the mesh files ``meshes`` with their Stokes fibres: compute (once)
+    and keep the fibres of those without a fibre file where `MeshFile.fibre_cache` allows,
+    so that the runs read them and their digests name the file (a rerun finds its result
+    current). `execute` does it for its run, a farm's caller for all its runs at once.
+    Collective."""
+    for mesh in meshes:
+        if not on_rank0(comm, lambda m=mesh: io.is_complete(m.fibres)) and mesh.fibre_cache()[0] is not None:
+            mesh_stokes_fibres(comm, mesh)
+
+
+def fiber_field(spec: RunSpec, geometry) -> tuple:
+    """The fibres of ``spec`` on ``geometry`` and their record: ``fibers`` the kind used
+    (never auto), ``fibers_method`` how they were made, ``fibers_sha256`` the SHA-256 of
+    the fibre file they come from ("" for a field made from a formula). Collective."""
+    from hyper.fem import fibers  # DOLFINx (see `build`)
+
+    base = geometry.base
+    kind = fibers.resolved(geometry, spec.fibers)
+    if spec.mesh is not None and kind == "stokes":
+        a0, path, how = mesh_stokes_fibres(geometry.comm, spec.mesh, base)
+        if geometry.refinements:
+            a0 = fibers.carried(a0, geometry)
+        method = fibers.method(geometry, kind) + f"; {how}"
+    else:
+        path = fibers.fiber_path(spec.geometry) if kind == "stokes" else None
+        a0 = fibers.fiber_field(geometry, kind)
+        method = fibers.method(geometry, kind) + (f"; read from {path}" if path is not None else "")
+    sha = on_rank0(geometry.comm, lambda: ckpt.file_digest(path)) if path is not None else ""
+    return a0, {"fibers": kind, "fibers_method": method, "fibers_sha256": sha}
 
 
 def cell_params(spec: RunSpec, geometry):
@@ -320,7 +370,8 @@ def cell_params(spec: RunSpec, geometry):
 
 
 def build(comm, spec: RunSpec, *, monitor=None, integrator=None):
-    """The coupled model of ``spec``, its fibre field, the linear solver's attributes and
+    """The coupled model of ``spec``, its fibre field, the linear solver's and the fibres'
+    attributes (`fiber_field`'s record) and
     the fidelity choice completed with it (``auto``: by `fidelity.linear_solver` from the
     unknowns and the memory available). ``monitor`` and ``integrator`` go to the model
     (`hyper.fem.coupled.build_model`): a timing monitor, another ODE integrator."""
@@ -329,7 +380,7 @@ def build(comm, spec: RunSpec, *, monitor=None, integrator=None):
     from hyper.fem.mechanics import taylor_hood_unknowns
 
     geometry = load_geometry(comm, spec)
-    a0 = fiber_field(spec, geometry)
+    a0, fibres = fiber_field(spec, geometry)
     choice = spec.choice
     solver, reason = spec.linear_solver, "asked for (--linear-solver)"
     if solver == "auto":
@@ -344,7 +395,7 @@ def build(comm, spec: RunSpec, *, monitor=None, integrator=None):
     model = build_model(geometry, a0, spec.protocol, params=cell_params(spec, geometry), material=spec.material,
                         settings=spec.settings, petsc_options=dict(spec.petsc_options), linear_solver=solver,
                         normalize_fibres=spec.unit_fibres, **kwargs)
-    return model, a0, {"linear_solver": solver, "linear_solver_reason": reason}, choice
+    return model, a0, {"linear_solver": solver, "linear_solver_reason": reason, **fibres}, choice
 
 
 def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: float = SNAPSHOT_EVERY,
@@ -364,6 +415,8 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: float = SN
     checkpoint. The status file of a failed run records the command (`hyper.core.io.command`).
     Collective over ``comm``.
     """
+    if spec.mesh is not None and spec.fibers in MESH_FIBERS_STOKES:
+        prepare_fibres(comm, [spec.mesh])  # before the digest, which names the fibre file
     run_digest = spec.digest()
     model, a0, solver, choice = build(comm, spec, monitor=monitor)
     snaps = Snapshots(model, a0)
@@ -449,7 +502,7 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: float = SN
         "mesh_sha256": on_rank0(comm, lambda: ckpt.file_digest(*spec.mesh_files())),
         "quadrature_degree": model.geometry.quadrature_degree,
         "ends": spec.ends,
-        "fibers": spec.fibers,
+        "refine": spec.refine,
         "surface_quadrature_degree": "estimated" if model.geometry.estimated_surface_degree
         else model.geometry.quadrature_degree,
         "csa0_m2": model.csa0,

@@ -43,6 +43,10 @@ OPTIONS = {"signaling_method": "--signaling-method", "growth_increment": "--grow
            "csa_method": "--csa-method", "growth_fields": "--growth-fields", "sections": "--sections",
            "detraining": "--detraining"}
 SHAPE_DEFAULTS = {"ends": "disks", "fibers": "auto"}  # what every geometry but the idealized one runs
+# --fibers: auto and original for the built-in geometries, these too for a mesh file
+MESH_FIBERS = ("auto", "stokes", "axial", "principal")
+MESH_ONLY_FIBERS = MESH_FIBERS[1:]
+FIBER_CHOICES = ("auto", "original", *MESH_ONLY_FIBERS)
 
 
 def settings(cls, name: str, chosen: Mapping, options: Mapping[str, str] | None = None):
@@ -105,15 +109,27 @@ def add_options(p: argparse.ArgumentParser, *, signaling_method: bool = True) ->
     p.add_argument("--ends", choices=IDEALIZED_ENDS,
                    help="the idealized shape's spring ends: the flat end disks, or the XDMF's end tags with "
                         "their lateral band (the original code); disks unless --settings sets it")
-    p.add_argument("--fibers", choices=("auto", "original"),
-                   help="the geometry's fibres, or on the idealized shape the original code's (P2 used as they "
-                        "are, surface integrals at UFL's estimated degree); auto unless --settings sets it")
+    p.add_argument("--fibers", choices=FIBER_CHOICES,
+                   help="the geometry's fibres (auto), or on the idealized shape the original code's (P2 used as "
+                        "they are, surface integrals at UFL's estimated degree); a --mesh file's: auto or stokes "
+                        "(the fibre file beside it, else computed), axial (e_z) or principal (its principal "
+                        "axis); auto unless --settings sets it")
 
 
-def shape(args: argparse.Namespace, geometries) -> dict:
+def shape(args: argparse.Namespace, geometries, mesh: bool = False) -> dict:
     """The RunSpec fields ends and fibers: explicit options, else the preset's on the
-    idealized shape (the only one the original's end tags and fibres exist for)."""
+    idealized shape (the only one the original's end tags and fibres exist for); a mesh
+    file (``mesh``) takes the fibres of `runspec.MESH_FIBERS`."""
     explicit = {"ends": args.ends, "fibers": args.fibers}
+    if mesh:
+        if args.ends not in (None, SHAPE_DEFAULTS["ends"]):
+            raise InputError("--ends applies to the idealized shape only, not to a --mesh file")
+        if args.fibers not in (None, *MESH_FIBERS):
+            raise InputError(f"--fibers {args.fibers}: a --mesh file's fibres are one of {', '.join(MESH_FIBERS)}")
+        return {**SHAPE_DEFAULTS, **({"fibers": args.fibers} if args.fibers is not None else {})}
+    if args.fibers in MESH_ONLY_FIBERS:
+        raise InputError(f"--fibers {args.fibers} applies to a --mesh file; a built-in geometry has its own "
+                         "fibres (auto), and the idealized shape the original's (original)")
     if any(v not in (None, SHAPE_DEFAULTS[k]) for k, v in explicit.items()) and set(geometries) != {"idealized"}:
         raise InputError("--ends and --fibers original apply to the idealized shape only")
     out = dict(SHAPE_DEFAULTS)

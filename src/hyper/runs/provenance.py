@@ -82,9 +82,12 @@ def study_text(spec) -> str:
         numerics["detraining"] = settings["detraining"]
     if spec.mesh is None and spec.quadrature_degree is not None:
         numerics["quadrature_degree"] = spec.quadrature_degree
+    if spec.refine:
+        numerics["refine"] = spec.refine
     lines += table("numerics", numerics)
     if spec.petsc_options:
         lines.append(f"# PETSc options of the mechanics solver (no study key sets them): {dict(spec.petsc_options)}")
-    if spec.refine:
-        lines.append(f"# the mesh refined uniformly {spec.refine} time(s) (no study key sets it)")
+    if spec.mesh is not None and spec.fibers != "auto":
+        lines.append(f"# the mesh's fibres: --fibers {spec.fibers} (no study key sets them; a study's meshes "
+                     "run their Stokes fibres)")
     return "\n".join(lines).rstrip() + "\n"

@@ -4,6 +4,7 @@ SHA-256 `digest` names the result) and where it writes (`Outputs`)."""
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -20,6 +21,12 @@ from hyper.runs import checkpoint as ckpt
 from hyper.runs import fidelity
 
 LINEAR_SOLVERS = ("lu", "iterative", "auto")
+# the fibre kinds of a mesh file (--fibers, hyper.runs.presets.MESH_FIBERS) that are its
+# Stokes fibres: the file beside it, else computed
+MESH_FIBERS_STOKES = ("auto", "stokes")
+# uniform refinements a run takes (--refine, [numerics] refine): each multiplies the cells
+# by 8, and 3 puts the idealized shape past what one LU factorisation holds on a workstation
+MAX_REFINE = 3
 MESH_UNITS = {"m": 1.0, "mm": 1.0e-3}
 
 # A muscle's longest side: the paper's are 0.1-0.45 m. Outside this, the declared unit
@@ -71,6 +78,30 @@ class MeshFile:
 
     def identity(self) -> dict:
         return {"mesh_sha256": ckpt.file_digest(*mesh_files(self.path)), "unit": self.unit, "tags": self.tags}
+
+    @property
+    def fibres(self) -> Path:
+        """Where this mesh's Stokes fibres are, if it has them: beside it, as `hyper mesh` writes them."""
+        from hyper.fem import fibers
+
+        return Path(self.path).parent / fibers.FILE_NAME
+
+    def fibre_cache(self) -> tuple[Path | None, str]:
+        """(where Stokes fibres computed for this mesh are kept, or None; why not there).
+
+        Beside the mesh, where `hyper mesh` puts them and every later run (any job, any
+        output folder) finds them; never in a shipped mesh folder (the package's data,
+        which only `hyper fibers` and `hyper mesh` write) or a folder this process cannot
+        write: there every run computes them again (a few seconds on a mesh of 10k cells).
+        """
+        from hyper.fem import geometry as geo
+
+        folder = Path(self.path).resolve().parent
+        if folder.is_relative_to(Path(geo.MESHES_DIR).resolve()):
+            return None, "a shipped mesh folder, which runs never write"
+        if not os.access(folder, os.W_OK):
+            return None, "its folder is not writable"
+        return self.fibres, ""
 
 
 def check_geometry(comm, name: str, option: str = "--geometry") -> None:
@@ -130,8 +161,8 @@ class RunSpec:
             raise InputError("per-cell parameters need both a heterogeneity model and a seed")
         if self.seed is not None:
             as_seed(self.seed, "seed")  # every job's seed, however given: it is stored as an attribute
-        if isinstance(self.refine, bool) or not isinstance(self.refine, int) or self.refine < 0:
-            raise InputError(f"expected an integer >= 0, got {self.refine!r}", field="refine")
+        if isinstance(self.refine, bool) or not isinstance(self.refine, int) or not 0 <= self.refine <= MAX_REFINE:
+            raise InputError(f"expected an integer in [0, {MAX_REFINE}], got {self.refine!r}", field="refine")
         if self.quadrature_degree is not None and not (isinstance(self.quadrature_degree, int)
                                                        and 1 <= self.quadrature_degree <= 12):
             raise InputError(f"expected an integer in [1, 12], got {self.quadrature_degree!r}",
@@ -147,7 +178,7 @@ class RunSpec:
         # the files' bytes, not only the name: a mesh remade in place (`hyper mesh --force`,
         # `make new-meshes`) is another run, not one whose result is already there
         geometry = ({"name": self.geometry, "sha256": ckpt.file_digest(*self.input_files())}
-                    if self.mesh is None else self.mesh.identity())
+                    if self.mesh is None else {**self.mesh.identity(), "fibers": self.mesh_fibres()})
         out = {
             "geometry": geometry,
             "protocol": self.protocol.to_attributes(),
@@ -172,6 +203,13 @@ class RunSpec:
 
     def digest(self) -> str:
         return ckpt.digest(self.describe())
+
+    def mesh_fibres(self) -> str:
+        """A mesh file's Stokes fibres, as the digest names them: the SHA-256 of the fibre
+        file beside it, or "computed" (each run computes them); "" for another kind."""
+        if self.fibers not in MESH_FIBERS_STOKES:
+            return ""
+        return ckpt.file_digest(self.mesh.fibres) if io.is_complete(self.mesh.fibres) else "computed"
 
     def mesh_files(self) -> list[Path]:
         """The files of this run's mesh (`mesh_files`)."""
