@@ -155,6 +155,8 @@ BAD_OPTIONS = {
     "detraining_negative": (["--detraining", "-1"],
                             r"argument --detraining: expected a finite number of hours > 0, got -1"),
     "detraining_inf": (["--detraining", "inf"], r"argument --detraining: expected a finite number of hours > 0"),
+    # issue 35 item 3: along-fibre growth
+    "fiber_growth_unknown": (["--fiber-growth", "along"], r"argument --fiber-growth: invalid choice: 'along'"),
     "data_section_without_sections": (["--data", "{d}/at_section.csv", "--sections", "0"],
                                       r"at_section.csv: measured at section 0.45 of the length; the runs record no "
                                       r"regional sections \(--sections 0\)"),

@@ -76,7 +76,7 @@ def scene_options(p: cli.Parser) -> None:
 
 
 def model_options(p: cli.Parser) -> None:
-    """--sections and --detraining, the switches beyond the paper (issue 35) that grow,
+    """--sections, --detraining and --fiber-growth, the switches beyond the paper (issue 35) that grow,
     cohort and study share; left out (None): the defaults."""
     from hyper.fem.section import MAX_SECTIONS, SECTIONS  # DOLFINx, as in parser()
 
@@ -89,6 +89,11 @@ def model_options(p: cli.Parser) -> None:
                    help="turnover of the gain with time constant TAU hours, dN/dt = f − (N − 1)/TAU "
                         "(hyper.model.growth.detrained): the gain decays when training stops. Off by default "
                         "(the paper's model keeps every gain)")
+    p.add_argument("--fiber-growth", choices=("none", "stretch"),
+                   help="along-fibre growth: 'stretch' lengthens the fibres during the sessions that carry a "
+                        "stretch (a protocol's [[session]] stretch = …), dϑ_f/dt = ⟨λ/ϑ_f − λ_crit⟩/τ_f "
+                        "(hyper.model.growth.fibre_stretch_step), recorded as the fiber_stretch series; "
+                        "'none' (the default): the paper's transverse growth")
 
 
 def parser(ask: str = "growth") -> cli.Parser:

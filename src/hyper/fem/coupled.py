@@ -24,7 +24,7 @@ from dolfinx import fem
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from hyper.core.params import InputError, as_int, positive_hours
+from hyper.core.params import InputError, as_float, as_int, positive_hours
 from hyper.fem import boxsection as box
 from hyper.fem import growthfield, section
 from hyper.fem.mechanics import MechanicsProblem, SolverError
@@ -68,6 +68,12 @@ class GrowthSettings:
     # h, the time constant of the turnover of the gain (`hyper.model.growth.detrained`); None:
     # none, the paper's model, where a gain is kept for ever
     detraining: float | None = None
+    # along-fibre growth (growth.FIBER_GROWTH): "none", the paper's transverse growth; "stretch",
+    # ϑ_f of `hyper.model.growth.fibre_stretch_step` during the sessions that carry a stretch, with
+    # its time constant (h) and homeostatic elastic fibre stretch. Illustrative values, not calibrated.
+    fiber_growth: str = "none"
+    fiber_tau: float = 168.0
+    fiber_crit: float = 1.0
     preset: str = "default"  # the --settings preset these came from (hyper.runs.presets): a label
 
     # A step cut k times is 2^k solves: beyond this a run is better stopped and looked at.
@@ -75,7 +81,7 @@ class GrowthSettings:
     # Settings added after results existed: in the digest only where they differ from their
     # defaults, so that the digests (and checkpoints) of default runs stay valid.
     DIGEST_IF_CHANGED = ("signaling_method", "growth_increment", "growth_fields", "csa_method", "sections",
-                         "detraining")
+                         "detraining", "fiber_growth", "fiber_tau", "fiber_crit")
 
     def __post_init__(self):
         positive_hours(self.growth_dt, "growth_dt", signaling.SMALLEST_DT)
@@ -106,6 +112,11 @@ class GrowthSettings:
         as_int(self.sections, "sections", 0, section.MAX_SECTIONS)
         if self.detraining is not None:
             positive_hours(self.detraining, "detraining")
+        if self.fiber_growth not in growth.FIBER_GROWTH:
+            raise InputError(f"must be one of {', '.join(growth.FIBER_GROWTH)}, got {self.fiber_growth!r}",
+                             field="fiber_growth")
+        positive_hours(self.fiber_tau, "fiber_tau")
+        as_float(self.fiber_crit, "fiber_crit", 1.0)
 
     def model_attributes(self) -> dict:
         """The settings that define the solution; max_halvings only decides how hard a
@@ -279,6 +290,8 @@ class CoupledModel:
             )
         self.kM0 = self.params.kM
         self.kM = self.kM0
+        # ϑ_f, the along-fibre growth so far (settings.fiber_growth "stretch"; 1: none)
+        self.fiber_growth = 1.0
         self.csa_ratio = 1.0
         self.volume_ratio = 1.0
         self.step = 0
@@ -315,14 +328,23 @@ class CoupledModel:
             states=self._mean_states(self.y),
             newton_iterations=iterations,
             halvings=halvings,
-            extra={f"csa_ratio_{name}": value for name, value in self.csa_ratios.items()},
+            extra=self._extra(),
             sections=None if self.section_ratios is None else self.section_ratios.copy(),
         )
 
+    def _extra(self) -> dict:
+        extra = {f"csa_ratio_{name}": value for name, value in self.csa_ratios.items()}
+        if self.settings.fiber_growth != "none":
+            extra["fiber_stretch"] = self.growth.mean_fibre_stretch()
+        return extra
+
     @property
     def measures(self) -> tuple[str, ...]:
-        """The names of the measures each `StepReport.extra` carries."""
-        return tuple(f"csa_ratio_{name}" for name in self.csa_ratios)
+        """The names of the measures each `StepReport.extra` carries: the CSA by each method
+        of a plane section, and with along-fibre growth ``fiber_stretch``, the fascicle length
+        change a0·Ḡ a0 (`growthfield.GrowthField.mean_fibre_stretch`)."""
+        names = tuple(f"csa_ratio_{name}" for name in self.csa_ratios)
+        return (*names, "fiber_stretch") if self.settings.fiber_growth != "none" else names
 
     def _measure_csa(self) -> None:
         if self.csa_ratios:
@@ -352,10 +374,11 @@ class CoupledModel:
             with self.monitor.track("mechanics"):
                 return self.problem.solve()
 
-    def _grow(self, theta, halvings: int = 0) -> tuple[int, int]:
-        """Grow by ϑ and solve; on a failed solve, retry as two half increments √ϑ."""
+    def _grow(self, theta, halvings: int = 0, fibre: float | None = None) -> tuple[int, int]:
+        """Grow by ϑ (and ϑ_f along the fibres, where given) and solve; on a failed solve,
+        retry as two half increments √ϑ (√ϑ_f)."""
         with self.monitor.track("growth update"):
-            self.growth.grow(theta)
+            self.growth.grow(theta, fibre)
         try:
             iterations = self._solve()
         except SolverError:
@@ -363,19 +386,20 @@ class CoupledModel:
             if halvings >= self.settings.max_halvings:
                 raise
             root = np.sqrt(theta)
-            its1, h1 = self._grow(root, halvings + 1)
-            its2, h2 = self._grow(root, halvings + 1)
+            half = None if fibre is None else math.sqrt(fibre)
+            its1, h1 = self._grow(root, halvings + 1, half)
+            its2, h2 = self._grow(root, halvings + 1, half)
             return its1 + its2, max(h1, h2)
         with self.monitor.track("growth update"):
             self.growth.accept()
         return iterations, halvings
 
-    def _step(self, theta, t0: float, t1: float) -> tuple[int, int]:
+    def _step(self, theta, t0: float, t1: float, fibre: float | None = None) -> tuple[int, int]:
         """One growth step; if it cannot be solved, the state before it comes back."""
         w, mult = self.problem.w.x.array.copy(), self.problem.multipliers.copy()
         Gbar = self.growth.Gbar  # replaced, never changed in place
         try:
-            return self._grow(theta)
+            return self._grow(theta, fibre=fibre)
         except SolverError as err:
             self.problem.w.x.array[:] = w
             self.problem.multipliers = mult
@@ -397,6 +421,8 @@ class CoupledModel:
         periods = self.protocol.periods()
         while self.period < len(periods):
             t0, t1, in_session = periods[self.period]
+            # the session's stretch, where along-fibre growth responds to it (None: no fibre growth)
+            stretch = (self.protocol.stretch_at(t0, t1) if in_session and s.fiber_growth == "stretch" else None)
             if self.period_states is None:
                 times = growth.step_times(t0, t1, s.growth_dt)
                 error = ys = None
@@ -427,10 +453,17 @@ class CoupledModel:
                     N1 = growth.detrained(self.y[4], dN, times[k] - times[k - 1], s.detraining)
                     dN = N1 - self.y[4]
                 theta = growth.area_multiplier(dN, self.csa_ratio)
+                fibre = fiber_growth = None  # the step's along-fibre increment ϑ_f,k/ϑ_f,k-1, and ϑ_f,k
+                if stretch is not None:
+                    fiber_growth = growth.fibre_stretch_step(self.fiber_growth, stretch, times[k] - times[k - 1],
+                                                             s.fiber_tau, s.fiber_crit)
+                    fibre = fiber_growth / self.fiber_growth if fiber_growth != self.fiber_growth else None
                 # f vanishes below the thresholds (the rest week, early recovery):
                 # nothing grows, so the previous equilibrium stands.
-                if self.comm.allreduce(bool(np.any(theta != 1.0)), op=MPI.LOR):
-                    iterations, halvings = self._step(theta, float(times[k - 1]), float(times[k]))
+                if fibre is not None or self.comm.allreduce(bool(np.any(theta != 1.0)), op=MPI.LOR):
+                    iterations, halvings = self._step(theta, float(times[k - 1]), float(times[k]), fibre)
+                    if fibre is not None:
+                        self.fiber_growth = fiber_growth
                     with self.monitor.track("measures"):
                         self._measure_csa()
                         self.volume_ratio = self.problem.volume() / self.volume0
@@ -479,6 +512,8 @@ class CoupledModel:
         }
         if self.section_ratios is not None:
             glob["csa_ratio_sections"] = self.section_ratios
+        if self.settings.fiber_growth != "none":
+            glob["fiber_growth"] = self.fiber_growth
         if jacobian["point"] is not None:
             w_j, g_j = jacobian["point"]
             per_cell["jacobian_w"] = w_j[wdofs]
@@ -545,6 +580,8 @@ class CoupledModel:
         kM = rows("kM")
         self.kM = np.array(kM[:nowned]) if kM is not None else float(glob["kM"])
         self.csa_ratio = float(glob["csa_ratio"])
+        if self.settings.fiber_growth != "none":
+            self.fiber_growth = float(glob["fiber_growth"])  # the digest names the switch: a state of it has ϑ_f
         self.volume_ratio = float(glob["volume_ratio"])
         # a checkpoint from before both CSA measures were kept has neither: unknown until measured
         self.csa_ratios = {method: float(glob[name]) if name in glob else float("nan")

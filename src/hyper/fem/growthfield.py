@@ -126,13 +126,15 @@ class GrowthField:
         nq = self.points.shape[0]
         return elastic_part(self._F_expr.eval(self.mesh, self.cells).reshape(-1, nq, 3, 3), self.Gbar)
 
-    def grow(self, theta) -> None:
-        """Apply one increment with area multiplier ϑ (scalar, or one value per owned cell)."""
+    def grow(self, theta, fibre: float | None = None) -> None:
+        """Apply one increment with area multiplier ϑ (scalar, or one value per owned cell)
+        and, where ``fibre`` is given, the along-fibre stretch ϑ_f of the increment (a scalar:
+        G = ϑ_f a0⊗a0 + √ϑ (I − a0⊗a0), `hyper.model.growth.fibre_growth`)."""
         theta = np.asarray(theta, dtype=float)
         if theta.ndim == 1:
             theta = theta[:, None]
         self._previous = self.Gbar
-        self.Gbar = transverse_update(self.Gbar, *self.directions, theta)
+        self.Gbar = transverse_update(self.Gbar, *self.directions, theta, fibre)
         self._write(self.Gbar)
 
     def revert(self) -> None:
@@ -144,6 +146,14 @@ class GrowthField:
         """Take the new equilibrium: its fibre directions at every quadrature point."""
         self.directions = self._fibre_directions()
         self._previous = self.Gbar
+
+    def mean_fibre_stretch(self) -> float:
+        """a0·Ḡ a0 averaged over the points of every cell and then the cells (collective):
+        the fascicle length change the growth tensor carries (1: none), ϑ_f where the
+        fibres grew uniformly."""
+        stretch = np.einsum("...i,...ij,...j->...", self.a0, self.Gbar, self.a0) @ self.weights / self.weights.sum()
+        comm = self.mesh.comm
+        return comm.allreduce(float(stretch.sum()), op=MPI.SUM) / comm.allreduce(len(self.cells), op=MPI.SUM)
 
     def cell_det(self) -> np.ndarray:
         """det Ḡ averaged over each owned cell (the volume growth per cell; with DG1

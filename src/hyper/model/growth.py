@@ -1,4 +1,4 @@
-"""Transverse volumetric growth: growth tensors, the cumulative update, feedback laws.
+"""Transverse (and along-fibre) volumetric growth: growth tensors, the cumulative update, feedback laws.
 
 Kinematics (MODEL.md §4). Over a growth step the signaling model adds dN to the
 myofibril population; with N = CSA/CSA0 the cross-section must grow by the area
@@ -21,6 +21,7 @@ import math
 
 import numpy as np
 import ufl
+from scipy.special import lambertw
 
 from hyper.model.signaling import net_balance
 from hyper.model.tensors import inverse, solve
@@ -115,14 +116,35 @@ def cumulative_update(Gbar, A, G):
     return inverse(A) @ (G @ A @ Gbar)
 
 
-def transverse_update(Gbar, pulled, pushed, theta):
+def fibre_growth(theta, fibre, a0):
+    """G = ϑ_f a0⊗a0 + √ϑ (I − a0⊗a0): `transverse_growth` with the fibres lengthened by
+    ϑ_f as well (``fibre``, the increment's along-fibre stretch; 1: `transverse_growth`)."""
+    a0 = np.asarray(a0, dtype=float)
+    s = np.sqrt(np.asarray(theta, dtype=float))[..., None, None]
+    f = np.asarray(fibre, dtype=float)[..., None, None]
+    eye = np.broadcast_to(np.eye(3), a0.shape[:-1] + (3, 3))
+    return s * eye + (f - s) * a0[..., :, None] * a0[..., None, :]
+
+
+def fibre_growth_ufl(theta, fibre, a0):
+    """The UFL form of `fibre_growth`, for expressions and tests."""
+    s = ufl.sqrt(theta)
+    return s * ufl.Identity(3) + (fibre - s) * ufl.outer(a0, a0)
+
+
+def transverse_update(Gbar, pulled, pushed, theta, fibre=None):
     """`cumulative_update` for G = `transverse_growth`(ϑ, a0), from the fibre directions
     F⁻¹a0 (``pulled``) and Fᵀa0 (``pushed``) of the last equilibrium F = A Ḡ:
     A⁻¹ G A Ḡ = Ḡ F⁻¹ G F = √ϑ Ḡ + (1 - √ϑ) (Ḡ F⁻¹a0) ⊗ (Fᵀa0), a few array
-    operations per point where A⁻¹ G A Ḡ takes two inverses and three products."""
+    operations per point where A⁻¹ G A Ḡ takes two inverses and three products.
+
+    ``fibre`` (None: 1, today's transverse growth, the same operations): the increment's
+    along-fibre stretch ϑ_f of G = `fibre_growth`(ϑ, ϑ_f, a0), whose update is the same with
+    (ϑ_f - √ϑ) in place of (1 - √ϑ)."""
     s = np.sqrt(np.asarray(theta, dtype=float))[..., None, None]
     left = np.einsum("...ij,...j->...i", Gbar, pulled)
-    out = np.multiply((1.0 - s) * left[..., :, None], pushed[..., None, :])
+    along = 1.0 if fibre is None else np.asarray(fibre, dtype=float)[..., None, None]
+    out = np.multiply((along - s) * left[..., :, None], pushed[..., None, :])
     out += s * Gbar
     return out
 
@@ -140,6 +162,45 @@ def fibre_directions_ufl(F, a0):
     return ufl.as_vector([pulled[i] for i in range(3)] + [pushed[i] for i in range(3)])
 
 
+
+
+FIBER_GROWTH = ("none", "stretch")
+
+
+def fibre_stretch_step(theta_f, stretch: float, dt: float, tau: float, crit: float):
+    """ϑ_f after dt (h) of a uniform passive stretch λ = ``stretch`` from ϑ_f = ``theta_f``:
+    the along-fibre growth (sarcomerogenesis) law of Zöllner, Abilez, Böl & Kuhl 2012
+    ("Stretching skeletal muscle: chronic muscle lengthening through sarcomerogenesis",
+    PLoS ONE 7:e45661), without their saturation factor,
+
+        dϑ_f/dt = (1/τ_f) ⟨λ_e − λ_crit⟩,   λ_e = λ/ϑ_f,
+
+    with ⟨·⟩ the Macaulay bracket: the fibres grow while their elastic stretch λ_e exceeds
+    the homeostatic λ_crit, and ϑ_f approaches λ/λ_crit, where λ_e is back at λ_crit (the
+    law's own bound: no ϑ_max is needed). The elastic stretch is the kinematic estimate
+    λ_e = λ/ϑ_f of a muscle stretched uniformly along its fibres by λ with F = λ a0⊗a0 + …
+    and growth ϑ_f a0⊗a0 + …: F_e = F G⁻¹ has the fibre stretch λ/ϑ_f, exactly for the
+    cylinder with axial fibres (a uniform stretch), and the fibre-mean for a muscle. It is
+    not solved as a mechanics problem: a prescribed end displacement of the cylinder gives
+    that same uniform stretch, and a session's passive stretch is a stimulus, not a load
+    the growth equilibrium between sessions carries.
+
+    Integrated exactly over the step: with s = λ − λ_crit ϑ_f the law reads
+    ds/dt = −(λ_crit/τ_f) s/ϑ_f = −(λ_crit²/τ_f) s/(λ − s), whose solution keeps
+    s − λ ln s − λ_crit² t/τ_f constant, so that s(t) = −λ W₀(−e^(−C/λ)/λ) with
+    C = s₀ − λ ln s₀ + λ_crit² dt/τ_f (W₀ Lambert's principal branch: 0 < s < λ).
+    Where λ_e ≤ λ_crit (no stretch, or ϑ_f at its bound) nothing grows.
+
+    The cylinder's ends sit on tendon springs (`hyper.fem.mechanics`): the lengthened fibres
+    push on them, so a grown length is partly compressed elastically and the body bulges.
+    """
+    theta_f = float(theta_f)
+    s0 = stretch - crit * theta_f
+    if s0 <= 0.0:
+        return theta_f
+    C = s0 - stretch * math.log(s0) + crit**2 * dt / tau
+    s = -stretch * float(lambertw(-math.exp(-C / stretch) / stretch, 0).real)
+    return (stretch - s) / crit
 
 
 def elastic_part(F, Gbar):

@@ -29,6 +29,10 @@ class Session:
     start: float  # h
     duration: float  # h
     intensity: float  # fraction of the maximal force capacity, in [0, 1]
+    # a passive (or eccentric) stretch the session imposes along the fibres, as the stretched
+    # length over the rest length (>= 1; 1.1: 10 % longer): what along-fibre growth
+    # (`hyper.model.growth.fibre_stretch_step`) responds to. None: none, the paper's sessions.
+    stretch: float | None = None
 
     @property
     def end(self) -> float:
@@ -69,6 +73,10 @@ class Protocol:
                 raise InputError(f"{where}: duration must be > 0 h, got {s.duration:g}")
             if not 0.0 <= s.intensity <= 1.0:
                 raise InputError(f"{where}: intensity must lie in [0, 1], got {s.intensity:g}")
+            if s.stretch is not None and (isinstance(s.stretch, bool) or not isinstance(s.stretch, numbers.Real)
+                                          or not finite(s.stretch) or s.stretch < 1.0):
+                raise InputError(f"{where}: stretch must be a finite number >= 1 (the stretched length over the "
+                                 f"rest length), got {shown(s.stretch)}")
             if i > 0:
                 prev = self.sessions[i - 1]
                 if s.start < prev.start:
@@ -84,7 +92,8 @@ class Protocol:
         # plain floats from here on: ints and numpy scalars would leak into attributes and sums
         object.__setattr__(
             self, "sessions",
-            tuple(Session(float(s.start), float(s.duration), float(s.intensity)) for s in self.sessions)
+            tuple(Session(float(s.start), float(s.duration), float(s.intensity),
+                          None if s.stretch is None else float(s.stretch)) for s in self.sessions)
         )
         end = self.end
         if isinstance(end, bool) or not isinstance(end, numbers.Real) or not finite(end) or end <= 0:
@@ -109,6 +118,19 @@ class Protocol:
     def intensities(self) -> np.ndarray:
         return np.array([s.intensity for s in self.sessions], dtype=float)
 
+    @cached_property
+    def stretched(self) -> bool:
+        """Whether any session carries a stretch."""
+        return any(s.stretch is not None for s in self.sessions)
+
+    def stretch_at(self, t0: float, t1: float) -> float | None:
+        """The stretch of the session that is the period [t0, t1] of `periods` (None: a rest,
+        or a session without one)."""
+        for s in self.sessions:
+            if s.start == t0 and s.end == t1:
+                return s.stretch
+        return None
+
     def periods(self) -> list[tuple[float, float, bool]]:
         """Consecutive (start, end, in_session) intervals covering [0, end].
 
@@ -127,14 +149,19 @@ class Protocol:
         return out
 
     def to_attributes(self) -> dict:
-        """The protocol as HDF5 attributes (arrays of session fields; empty for rest)."""
-        return {
+        """The protocol as HDF5 attributes (arrays of session fields; empty for rest), and
+        the sessions' stretches (1 where a session has none) only where one has a stretch,
+        so that the attributes (and digests) of the paper's protocols stay as they were."""
+        out = {
             "name": self.name,
             "end": float(self.end),
             "starts": self.starts,
             "durations": self.ends - self.starts,
             "intensities": self.intensities,
         }
+        if self.stretched:
+            out["stretches"] = np.array([1.0 if s.stretch is None else s.stretch for s in self.sessions])
+        return out
 
 
 def _regular(name: str, first: float, every: float, count: int, duration: float, intensity: float,
@@ -161,6 +188,7 @@ def named(name: str) -> Protocol:
 
 
 SESSION_KEYS = ("start", "duration", "intensity")
+SESSION_OPTIONAL = ("stretch",)  # a session's passive stretch (`Session.stretch`), none if left out
 # The training weeks begin on a Monday (after the rest lead-in): day 0 of a week is "mon".
 WEEKDAYS = ("mon", "tue", "wed", "thu", "fri", "sat", "sun")
 REPEAT_KEYS = ("weekdays", "every_days", "duration", "intensity", "weeks", "lead_in_days")
@@ -285,13 +313,15 @@ def from_table(data: dict, where: str, name: str) -> Protocol:
     sessions = []
     for i, table in enumerate(tables):
         at = f"{where}: session {i}"
-        unknown = sorted(set(table) - set(SESSION_KEYS))
+        known = SESSION_KEYS + SESSION_OPTIONAL
+        unknown = sorted(set(table) - set(known))
         if unknown:
-            raise InputError(f"{at}: unknown key(s) {', '.join(unknown)}; known: {', '.join(SESSION_KEYS)}")
+            raise InputError(f"{at}: unknown key(s) {', '.join(unknown)}; known: {', '.join(known)}")
         missing = [k for k in SESSION_KEYS if k not in table]
         if missing:
             raise InputError(f"{at}: missing {', '.join(missing)}")
-        sessions.append(Session(*(as_float(table[k], f"{at}: {k}") for k in SESSION_KEYS)))
+        stretch = as_float(table["stretch"], f"{at}: stretch", least=1.0) if "stretch" in table else None
+        sessions.append(Session(*(as_float(table[k], f"{at}: {k}") for k in SESSION_KEYS), stretch))
     try:
         return Protocol(tuple(sessions), end, name)
     except InputError as err:

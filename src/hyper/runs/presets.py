@@ -41,7 +41,7 @@ NAMES = tuple(PRESETS)
 OPTIONS = {"signaling_method": "--signaling-method", "growth_increment": "--growth-increment",
            "grow_during_sessions": "--skip-sessions", "consistent_stress": "--fe-stress",
            "csa_method": "--csa-method", "growth_fields": "--growth-fields", "sections": "--sections",
-           "detraining": "--detraining"}
+           "detraining": "--detraining", "fiber_growth": "--fiber-growth"}
 SHAPE_DEFAULTS = {"ends": "disks", "fibers": "auto"}  # what every geometry but the idealized one runs
 # --fibers: auto and original for the built-in geometries, these too for a mesh file
 MESH_FIBERS = ("auto", "stokes", "axial", "principal")
@@ -151,4 +151,5 @@ def chosen(args: argparse.Namespace) -> dict:
         "growth_fields": args.growth_fields,
         "sections": args.sections,
         "detraining": args.detraining,
+        "fiber_growth": args.fiber_growth,
     }

@@ -48,12 +48,13 @@ def protocol_lines(protocol) -> tuple[list[str], list[str]]:
     where it is the built-in protocol of that name, else its sessions."""
     if protocol.name in protocols.NAMES:
         mine, builtin = protocol.to_attributes(), protocols.named(protocol.name).to_attributes()
-        if all(np.array_equal(mine[k], builtin[k]) for k in mine):
+        if mine.keys() == builtin.keys() and all(np.array_equal(mine[k], builtin[k]) for k in mine):
             return [protocol.name], []
     lines = ["[[protocol]]", f"name = {value(protocol.name)}", f"end = {value(float(protocol.end))}", ""]
     for s in protocol.sessions:
         lines += ["[[protocol.session]]", f"start = {value(float(s.start))}",
-                  f"duration = {value(float(s.duration))}", f"intensity = {value(float(s.intensity))}", ""]
+                  f"duration = {value(float(s.duration))}", f"intensity = {value(float(s.intensity))}",
+                  *([] if s.stretch is None else [f"stretch = {value(float(s.stretch))}"]), ""]
     return [], lines
 
 
@@ -80,6 +81,9 @@ def study_text(spec) -> str:
         numerics["sections"] = settings["sections"]
     if settings["detraining"] is not None:
         numerics["detraining"] = settings["detraining"]
+    for name in ("fiber_growth", "fiber_tau", "fiber_crit"):
+        if settings[name] != getattr(type(spec.settings), name):
+            numerics[name] = settings[name]
     if spec.mesh is None and spec.quadrature_degree is not None:
         numerics["quadrature_degree"] = spec.quadrature_degree
     if spec.refine:
