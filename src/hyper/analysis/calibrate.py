@@ -7,14 +7,9 @@ accuracy (`choose`, as in `hyper.runs.fidelity`), the fit (`fit`) with its inter
 band of a fitted curve (`band`) and the figure (`figure`). The job, with the CLI and the
 check of the optimum by coupled runs, is `hyper.commands.calibrate` (``hyper calibrate``).
 
-Intervals: the Jacobian covariance scaled by the residual variance,
-s² (JᵀJ)⁻¹ with s² = RSS/(n - p), and Student's t with n - p degrees of freedom. Why: the
-model is smooth and close to linear in the rates over their intervals (the CSA gain grows
-with kM, bent only by the feedback), every evaluation is an ODE batch, and the Jacobian is
-one batch of p + 1 members; a profile likelihood would need a full fit per profile point
-for the same answer on a near-linear model. The band of the figure propagates the same
-covariance through the curve's own Jacobian. Where a fitted value sits on its bound the
-interval is clipped to the bounds and says so.
+Intervals: the Jacobian covariance s² (JᵀJ)⁻¹, s² = RSS/(n - p), with Student's t on
+n - p degrees of freedom, clipped to the bounds where a value sits on one; `hyper calibrate
+--help` says why a linearised interval suffices for this near-linear model.
 """
 
 from __future__ import annotations

@@ -28,7 +28,7 @@ import numpy as np
 
 import hyper
 from hyper.core import resources
-from hyper.core.params import InputError, read_text
+from hyper.core.params import InputError, input_file, read_text
 
 PARTIAL = ".partial"
 
@@ -281,11 +281,7 @@ def reading_h5(path: str | Path, what: str = "HDF5 result file") -> Iterator[Any
     file is bad input, not a traceback."""
     import h5py
 
-    path = Path(path)
-    if path.is_dir():
-        raise InputError(f"{path}: is a folder, not an {what}")
-    if not path.is_file():
-        raise InputError(f"{path}: no such file")
+    path = input_file(path, f"an {what}")
     try:
         with h5py.File(path, "r") as f:
             yield f

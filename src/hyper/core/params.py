@@ -57,6 +57,17 @@ OTHER_ENCODINGS = ((b"\xff\xfe\x00\x00", "UTF-32"), (b"\x00\x00\xfe\xff", "UTF-3
                    (b"\xff\xfe", "UTF-16"), (b"\xfe\xff", "UTF-16"))
 
 
+def input_file(path: str | Path, what: str) -> Path:
+    """``path`` as a Path where it is a file; an InputError where it is a folder (not
+    ``what``, e.g. "a CSV file") or missing."""
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not {what}")
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    return path
+
+
 def read_text(path: str | Path, what: str = "text file") -> str:
     """The text of a user's input file (CSV, TOML, XDMF, template), decoded as UTF-8.
 
@@ -65,11 +76,7 @@ def read_text(path: str | Path, what: str = "text file") -> str:
     UnicodeDecodeError deep in a parser. A UTF-8 byte order mark is dropped (spreadsheets
     write one); a NUL byte means a binary file, which no text format here allows.
     """
-    path = Path(path)
-    if path.is_dir():
-        raise InputError(f"{path}: is a folder, not a {what}")
-    if not path.is_file():
-        raise InputError(f"{path}: no such file")
+    path = input_file(path, f"a {what}")
     try:
         data = path.read_bytes()
     except OSError as err:
