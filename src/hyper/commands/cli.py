@@ -180,12 +180,13 @@ def progress_option(p: Parser) -> None:
 
 
 def refine_option(p: Parser, default: int | None = 0) -> None:
-    """--refine K, the same in every job that runs a mesh (grow, cohort, study, contraction)."""
+    """--refine K, the same in every job that runs a mesh (grow, cohort, study, contraction);
+    ``default`` None where a study file may set it."""
     p.add_argument("--refine", type=integer(0, MAX_REFINE), default=default, metavar="K",
                    help=f"refine the mesh uniformly K times (0 to {MAX_REFINE}; each splits every tetrahedron "
                         "into 8 on the same polyhedron); fibres from a formula are evaluated on the refined "
                         "mesh, those of a fibre file or a principal axis carried over from the loaded one"
-                        + ("; 0 by default" if default == 0 else ""))
+                        + ("" if default is not None else "; overrides [numerics] refine"))
 
 
 def output(*, folder: bool | None = None, suffixes: tuple[str, ...] = (), replaces: bool = False
