@@ -55,6 +55,25 @@ def test_inspect_prints_the_provenance_and_the_series(grown, capsys):
     assert "csa_ratio [1]: shape (4,)" in text and "t [h]: shape (4,), first 0, last 48" in text  # 0, 1, 24, 48 h
 
 
+def test_inspect_against_another_result_compares_every_series_bit_for_bit(grown, tmp_path, capsys):
+    out, argv = grown
+    again = tmp_path / "again.h5"  # the same run once more: the same bits, but its own wall time
+    assert cli.main([*argv[:argv.index("--output")], "--output", str(again), "--quiet"]) == 0
+    capsys.readouterr()
+    assert cli.main(["inspect", str(out), "--against", str(again)]) == cli.EXIT_OK
+    text = capsys.readouterr().out
+    assert "csa_ratio: identical (4 values)" in text and "wall_s" not in text and "differs" not in text
+    series = io.read_series(again)
+    series["csa_ratio"] = series["csa_ratio"] + [0, 0, 0, 2.5e-12]
+    series.pop("kM")
+    io.write_series(tmp_path / "other.h5", series)
+    assert cli.main(["inspect", str(out), "--against", str(tmp_path / "other.h5")]) == cli.EXIT_SOME_FAILED
+    text = capsys.readouterr().out
+    assert "csa_ratio: differs, largest |difference| 2.5e-12" in text and f"kM: only in {out}" in text
+    assert cli.main(["inspect", str(out), "--against", str(tmp_path / "absent.h5")]) == cli.EXIT_INPUT
+    assert "absent.h5: missing or incomplete" in capsys.readouterr().err
+
+
 def test_inspect_refuses_what_is_not_a_result(tmp_path, capsys):
     (tmp_path / "x.h5").write_text("not HDF5")
     for path in (tmp_path / "x.h5", tmp_path / "absent.h5"):

@@ -8,17 +8,22 @@ quadrature degree, refinements, linear solver), the attribute groups (signaling,
 settings, heterogeneity, fidelity: the names every job uses), the study file that reruns
 a growth result, and each series with its unit, length and first and last values.
 Works on every HDF5 result the jobs write.
+
+    hyper inspect results/a/idealized_mwf.h5 --against results/b/idealized_mwf.h5
+
+compares every series of the two results instead (but wall_s, a run's own timing): bit for
+bit, or by its largest difference; exit status 1 where any differs.
 """
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 
 from hyper.commands import cli
 from hyper.core import io
+from hyper.core.params import InputError
 
 # the groups every job names alike, shown first
 GROUPS = ("signaling", "material", "protocol", "settings", "heterogeneity", "fidelity")
@@ -27,6 +32,7 @@ GROUPS = ("signaling", "material", "protocol", "settings", "heterogeneity", "fid
 def parser() -> cli.Parser:
     p = cli.Parser("inspect", __doc__)
     p.add_argument("result", type=Path, help="an HDF5 result file")
+    p.add_argument("--against", type=Path, metavar="OTHER.h5", help="another result: compare their series")
     return p
 
 
@@ -70,12 +76,39 @@ def describe(path: Path) -> list[str]:
     return lines
 
 
+def compare(path: Path, other: Path) -> tuple[list[str], bool]:
+    """(a line per series of either result, whether every one is the same bits)."""
+    for result in (path, other):
+        if not io.is_complete(result):
+            raise InputError(f"{result}: missing or incomplete (no 'complete' mark): not a result to compare")
+    series, others = io.read_series(path), io.read_series(other)
+    lines, same = [], True
+    for name in sorted(set(series) | set(others)):
+        if name == "wall_s":
+            continue
+        a, b = series.get(name), others.get(name)
+        if a is None or b is None:
+            lines.append(f"  {name}: only in {path if b is None else other}")
+            same = False
+        elif a.shape != b.shape:
+            lines.append(f"  {name}: shapes {a.shape} and {b.shape}")
+            same = False
+        elif np.array_equal(a, b, equal_nan=a.dtype.kind == "f"):
+            lines.append(f"  {name}: identical ({a.size} values)")
+        else:
+            difference = np.max(np.abs(a.astype(float) - b.astype(float)))
+            lines.append(f"  {name}: differs, largest |difference| {difference:.3g}")
+            same = False
+    return [f"{path} against {other}:", *lines], same
+
+
 def run(comm, args) -> int:
-    print("\n".join(describe(args.result)))
-    return cli.EXIT_OK
+    if args.against is None:
+        print("\n".join(describe(args.result)))
+        return cli.EXIT_OK
+    lines, same = compare(args.result, args.against)
+    print("\n".join(lines))
+    return cli.EXIT_OK if same else cli.EXIT_SOME_FAILED
 
 
 main = cli.entry(parser, run, world=False)
-
-if __name__ == "__main__":
-    sys.exit(main())
