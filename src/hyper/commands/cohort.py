@@ -141,7 +141,7 @@ def cohort(comm, args) -> int:
         info(comm, f"cohort: {len(runs)} runs ({len(args.geometries)} geometries × {len(args.protocols)} "
                    f"protocols) on {comm.size} rank(s) in groups of {args.ranks_per_job}, growth step "
                    f"{settings.growth_dt:g} h, output {args.output}")
-        with driver.StopOnTerm() as stop:
+        with driver.StopOnTerm(comm) as stop:
             results = run_cohort(comm, runs, args.output, settings=settings, snapshot_every=args.snapshot_every,
                                  ranks_per_job=args.ranks_per_job, stop=stop, progress_every=args.progress_every,
                                  data=None if args.data is None else measured.read(args.data),

@@ -126,7 +126,7 @@ def ensemble(comm, args) -> int:
         except driver.Interrupted:
             return {"interrupted": True}
 
-    with locks.hold(comm, [folder]), driver.StopOnTerm() as stop:
+    with locks.hold(comm, [folder]), driver.StopOnTerm(comm) as stop:
         results = farm.run(
             comm, jobs, lambda sub, job: work(sub, job, stop), ranks_per_job=args.ranks_per_job,
             is_done=lambda job: job.payload.outputs.is_current(digests[job.key]),

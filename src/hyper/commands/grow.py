@@ -285,7 +285,7 @@ def exit_status(comm, outcome: sequence.Outcome) -> int:
 
 
 def grow(comm, args) -> int:
-    with driver.StopOnTerm() as stop:
+    with driver.StopOnTerm(comm) as stop:
         return exit_status(comm, sequence.carry_out(comm, plan_from(comm, args), stop))
 
 

@@ -88,7 +88,7 @@ def reproduce(comm, args) -> int:
             f"reproduce: {len(jobs)} jobs ({', '.join(args.cases)}), {'quick' if args.quick else 'full'} "
             f"mode, on {comm.size} rank(s), output {output}",
         )
-        with driver.StopOnTerm() as stop:
+        with driver.StopOnTerm(comm) as stop:
             results = farm.run(
                 comm,
                 jobs,

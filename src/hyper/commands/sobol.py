@@ -162,7 +162,7 @@ def analyse(comm, args, protocol, prob) -> int:
                f"{args.chunk} on {comm.size} rank(s), dt = {args.signaling_dt} h, backend {args.backend}, "
                f"digest {key}")
     t_eval, c_eval = time.perf_counter(), time.process_time()
-    with StopOnTerm() as stop:
+    with StopOnTerm(comm) as stop:
         Y, results = run_chunks(comm, X, evaluate, chunks, key, args.chunk, label="sobol", stop=stop,
                                 progress_every=args.progress_every)
     if comm.allreduce(stop(), op=MPI.LOR):

@@ -164,7 +164,7 @@ def carry_out(comm, args) -> int:
     study = from_args(args)
     settings, choice = steps(study)
     check_inputs(comm, study)
-    with driver.StopOnTerm() as stop:
+    with driver.StopOnTerm(comm) as stop:
         if len(study.names) * len(study.protocols) == 1:
             return one_run(comm, study, settings, choice, stop, args.progress_every)
         return many_runs(comm, study, settings, choice, stop, args.ranks_per_job, args.progress_every)

@@ -78,11 +78,19 @@ class Interrupted(RuntimeError):
 
 
 class StopOnTerm:
-    """SIGTERM sets a flag that the run reads at its step boundaries (main thread only)."""
+    """SIGTERM sets a flag that the run reads at its step boundaries (main thread only).
 
-    def __init__(self):
+    With ``comm``, entering is collective: every rank has taken over SIGTERM before any
+    goes on. Otherwise a rank still under `term.stop_at_once` could abort on a TERM while
+    another, already past its switch, works inside a collective solve (MUMPS's
+    factorisation), which then crashes (SIGSEGV, exit 11, not requeued) instead of all
+    ranks ending with 143 or stopping at the next step boundary.
+    """
+
+    def __init__(self, comm=None):
         self.received = False
         self._previous = None
+        self._comm = comm
 
     def _handler(self, signum, frame):
         self.received = True
@@ -99,6 +107,8 @@ class StopOnTerm:
             from petsc4py import PETSc  # noqa: F401
         with contextlib.suppress(ValueError):  # not the main thread: no handler, no stop
             self._previous = signal.signal(signal.SIGTERM, self._handler)
+        if self._comm is not None:
+            self._comm.Barrier()
         return self
 
     def __exit__(self, *exc):
