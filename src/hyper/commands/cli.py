@@ -28,11 +28,16 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from hyper.core import io, term
-from hyper.core.log import PROGRESS_EVERY, error
-from hyper.core.params import SEED_MAX, InputError, as_float, as_vector, float_text, int_text, shown
-from hyper.runs.locks import Busy, hold
-from hyper.runs.runspec import MAX_REFINE
+from hyper.core import term
+
+# The `hyper` script's module (and every job's): before the imports below start numpy and
+# MPI, whose threads must inherit term's block of SIGTERM. A shim has installed it already.
+term.install()
+from hyper.core import io  # noqa: E402
+from hyper.core.log import PROGRESS_EVERY, error  # noqa: E402
+from hyper.core.params import SEED_MAX, InputError, as_float, as_vector, float_text, int_text, shown  # noqa: E402
+from hyper.runs.locks import Busy, hold  # noqa: E402
+from hyper.runs.runspec import MAX_REFINE  # noqa: E402
 
 EXIT_OK = 0
 EXIT_SOME_FAILED = 1
@@ -364,7 +369,6 @@ def entry(parser: Callable[[], Parser], run: Callable[..., int], *, world: bool 
 
 def main(argv=None) -> int:
     """``hyper JOB [options]``: the job's own ``main`` with the rest of the command line."""
-    term.install()  # before the job's imports (PETSc): from here on a TERM ends in exit status 143
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] in JOBS:
         return importlib.import_module(f"hyper.commands.{argv[0]}").main(argv[1:]) or 0

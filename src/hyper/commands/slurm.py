@@ -26,7 +26,7 @@ from typing import Any
 
 from hyper.analysis import sobol
 from hyper.commands import cli
-from hyper.core import io, log, resources
+from hyper.core import io, log, resources, term
 from hyper.core.params import InputError, read_text
 from hyper.fem import geometry as geo
 from hyper.model import protocols
@@ -106,7 +106,8 @@ def _folder(path: Path, option: str) -> str:
 
 def check_syntax(script: str, source: str) -> None:
     """``bash -n`` on a rendered script: what an --args value or a --prelude can still break."""
-    done = subprocess.run(["bash", "-n"], input=script, capture_output=True, text=True, timeout=30)
+    with term.spawning():
+        done = subprocess.run(["bash", "-n"], input=script, capture_output=True, text=True, timeout=30)
     if done.returncode != 0:
         last = (done.stderr.strip().splitlines() or ["no message"])[-1]
         raise InputError(f"{source}: the rendered script is not valid bash ({last}); check --args and --prelude")

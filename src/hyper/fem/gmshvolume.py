@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hyper.core import term
 from hyper.core.params import InputError
 
 PARENT_CHECK_S = 0.5  # how often the child looks whether its parent is still there
@@ -41,9 +42,10 @@ def tetrahedra(points: np.ndarray, triangles: np.ndarray, *, size: float, tip_si
         np.savez(given, points=points, triangles=triangles, size=size, tip_size=tip_size, tips=tips, reach=reach,
                  feature_deg=feature_deg)
         try:
-            done = subprocess.run([sys.executable, "-m", "hyper.fem.gmshvolume", str(given), str(made),
-                                   str(os.getpid())],
-                                  capture_output=True, text=True, timeout=seconds, env=child_environment())
+            with term.spawning():
+                done = subprocess.run([sys.executable, "-m", "hyper.fem.gmshvolume", str(given), str(made),
+                                       str(os.getpid())],
+                                      capture_output=True, text=True, timeout=seconds, env=child_environment())
         except subprocess.TimeoutExpired:  # subprocess.run has killed it
             raise OverBudget(f"gmsh still running after {seconds:g} s") from None
         if done.returncode != 0 or not made.is_file():

@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hyper.core import term
+
 
 def machine() -> dict:
     """The host, its cores and its load now: a shared machine's absolute times vary, so
@@ -64,7 +66,8 @@ def run_worker(bench: str, case: dict, ranks: int, timeout: float, extra: tuple[
         load = os.getloadavg()
         start = time.perf_counter()
         try:
-            subprocess.run(cmd, check=True, timeout=timeout, env=env, stderr=subprocess.PIPE, text=True)
+            with term.spawning():
+                subprocess.run(cmd, check=True, timeout=timeout, env=env, stderr=subprocess.PIPE, text=True)
         except subprocess.TimeoutExpired:
             return {**case, "failed": f"no result within {timeout:g} s"}
         except subprocess.CalledProcessError as err:

@@ -28,7 +28,7 @@ from hyper.analysis import sobol
 from hyper.analysis import sobolmodels as models
 from hyper.commands import cli
 from hyper.commands.bench import common
-from hyper.core import io
+from hyper.core import io, term
 from hyper.model import signaling
 from hyper.model.protocols import named
 from hyper.runs import plot
@@ -43,7 +43,8 @@ def _cli(ranks: int, samples: int, chunk: int, folder: Path) -> dict:
            "--chunk", str(chunk), "--output", str(folder)]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     start = time.perf_counter()
-    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    with term.spawning():
+        done = subprocess.run(cmd, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - start
     if done.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{done.stdout}\n{done.stderr}")
