@@ -115,10 +115,114 @@ def test_a_term_after_petsc_started_ends_in_143_not_petscs_abort():
                           if k != "PETSC_OPTIONS"}, capture_output=True, text=True, timeout=120)
     assert_stopped(done, "after PETSc started")
     assert NOTE.fullmatch(done.stderr.strip()), done.stderr
-    kept = ("import os, signal\nsignal.signal(signal.SIGTERM, lambda *a: print('mine'))\n"
-            "from hyper.core import term\nterm.install()\nos.kill(os.getpid(), signal.SIGTERM)\n")
+    # the handler runs in the main thread once term's thread has taken the TERM: soon, not at once
+    kept = ("import os, signal, time\ntaken = []\n"
+            "signal.signal(signal.SIGTERM, lambda *a: taken.append(print('mine')))\n"
+            "from hyper.core import term\nterm.install()\nos.kill(os.getpid(), signal.SIGTERM)\n"
+            "while not taken:\n    time.sleep(0.01)\n")
     done = subprocess.run([sys.executable, "-c", kept], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=60)
     assert (done.returncode, done.stdout) == (0, "mine\n"), done.stderr
+
+
+def test_no_native_handler_sees_a_term_every_thread_blocks_it_but_terms_own():
+    """METIS (MUMPS's ordering) takes SIGTERM over with signal() for each call and longjmps
+    out of itself on one: the TERM was lost, or MUMPS crashed on an ordering never made.
+    Here a native library's SIG_IGN stands for METIS's handler: the TERM still ends the job
+    with 143, since term's thread takes it with sigwait (unblocked in it only while it
+    waits). A thread started after install (as MPI's, OpenMP's and BLAS's are) blocks
+    SIGTERM; a child started within term.spawning does not (one started outside would
+    ignore a TERM: mpirun does)."""
+    code = """import ctypes, os, signal, subprocess, threading, time
+from hyper.core import term
+term.install()
+later = threading.Thread(target=time.sleep, args=(30,), daemon=True)
+later.start()
+def blocks(tid):
+    status = open(f"/proc/self/task/{tid}/status").read()
+    return int(status.split("SigBlk:")[1].split()[0], 16) >> (signal.SIGTERM - 1) & 1
+def child_blocks():
+    status = subprocess.run(["cat", "/proc/self/status"], capture_output=True, text=True).stdout
+    return int(status.split("SigBlk:")[1].split()[0], 16) >> (signal.SIGTERM - 1) & 1
+outside = child_blocks()
+with term.spawning():
+    within = child_blocks()
+tids = sorted(int(t) for t in os.listdir("/proc/self/task"))
+print(len(tids), blocks(os.getpid()), blocks(later.native_id), blocks(term._taker.native_id), outside, within,
+      blocks(os.getpid()), flush=True)
+ctypes.CDLL(None).signal(signal.SIGTERM, ctypes.c_void_p(1))  # SIG_IGN, as a library sets its own
+os.kill(os.getpid(), signal.SIGTERM)
+time.sleep(30)
+"""
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=120)
+    # 3 threads: main and the later one block SIGTERM, term's waits for it (sigwait unblocks it
+    # meanwhile); a child started outside spawning blocks it, one within does not; main still does
+    assert done.stdout.split() == ["3", "1", "1", "0", "1", "0", "1"], done.stderr
+    assert_stopped(done, "a TERM with a library's own disposition for SIGTERM")
+    assert NOTE.fullmatch(done.stderr.strip()), done.stderr
+
+
+def test_terms_throughout_mumps_factorisations_with_metis_are_taken_not_crashes():
+    """The defect itself: TERMs sent throughout the symbolic factorisations of MUMPS with
+    METIS's ordering (as in the first solve of every run) reach the run's handler, and
+    every solve is right; before, one landing inside METIS ended it by SIGSEGV (exit -11)
+    or was lost. Whether one lands there depends on the timing; that none does harm, not."""
+    code = """import signal, sys
+from hyper.core import term
+term.install()
+import dolfinx_solver
+from petsc4py import PETSc
+
+taken = []
+signal.signal(signal.SIGTERM, lambda *a: taken.append(1))  # as driver.StopOnTerm's flag
+n = 22  # the 7-point Laplacian on an n³ grid
+A = PETSc.Mat().createAIJ([n**3, n**3], nnz=7)
+for i in range(n):
+    for j in range(n):
+        for k in range(n):
+            row = (i * n + j) * n + k
+            A.setValue(row, row, 6.0)
+            for di, dj, dk in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)):
+                if 0 <= i + di < n and 0 <= j + dj < n and 0 <= k + dk < n:
+                    A.setValue(row, ((i + di) * n + j + dj) * n + k + dk, -1.0)
+A.assemble()
+x, b = A.createVecs()
+b.set(1.0)
+PETSc.Options()["mat_mumps_icntl_7"] = 5  # METIS's ordering
+print("ready", flush=True)
+worst = 0.0
+for _ in range(30):
+    ksp = PETSc.KSP().create()
+    ksp.setOperators(A)
+    ksp.setType("preonly")
+    ksp.getPC().setType("lu")
+    ksp.getPC().setFactorSolverType("mumps")
+    ksp.getPC().setFromOptions()
+    ksp.setUp()
+    ksp.solve(b, x)
+    r = b.duplicate()
+    A.mult(x, r)
+    r.axpy(-1.0, b)
+    worst = max(worst, r.norm() / b.norm())
+    ksp.destroy()
+signal.signal(signal.SIGTERM, signal.SIG_IGN)  # the TERMs still on their way
+print("done", len(taken), worst, flush=True)
+"""
+    job = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, env=ENV, stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True)
+    try:
+        assert job.stdout.readline() == "ready\n", job.communicate()
+        end = time.monotonic() + 300  # some 5 s; before, a TERM could also leave it hanging
+        while job.poll() is None:
+            assert time.monotonic() < end, "still running after 300 s of TERMs"
+            job.send_signal(signal.SIGTERM)
+            time.sleep(0.002)
+        out, err = job.communicate(timeout=60)
+    finally:
+        job.kill()
+    assert job.returncode == 0, f"exit status {job.returncode}\n{err}"
+    word, taken, worst = out.split()
+    assert word == "done" and int(taken) > 0
+    assert float(worst) < 1e-12
 
 
 # ------------------------------------------------------------------------ the jobs
