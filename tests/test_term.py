@@ -1,11 +1,14 @@
 """A SIGTERM at any moment of a job ends it with exit status 143 (hyper.core.term).
 
 The mechanism: every entry point (the ``python -m hyper.JOB`` shims, test_layout.py
-checks each; `cli.main`, the ``hyper`` script) calls `term.install` first, which has PETSc
-start without its signal handler and ends a job TERMed outside a run at once with 143;
-a run's own handler (`driver.StopOnTerm`) stops it at a step boundary with 143. Here:
-the mechanism alone, then real jobs TERMed at moments of their start-up (imports, PETSc's
-start, the mesh, the first steps) through both entry points and on two ranks.
+checks each; `cli`, the ``hyper`` script's module, on import) calls `term.install` first,
+which has PETSc start without its signal handler, ends a job TERMed outside a run at once
+with 143, and has a thread of its own take every SIGTERM (blocked in all the others), out
+of the reach of METIS, which takes SIGTERM over while it orders MUMPS's factorisation; a
+run's own handler (`driver.StopOnTerm`) stops it at a step boundary with 143. Here: the
+mechanism alone, TERMs throughout METIS's orderings, then real jobs TERMed at moments of
+their start-up (imports, PETSc's start, the mesh, the first steps) through both entry
+points and on two ranks.
 
 The moments count from when the process catches SIGTERM (/proc/PID/status): before that
 the interpreter itself is starting (some 50 ms) and the TERM ends it as Python's default

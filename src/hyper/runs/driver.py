@@ -81,10 +81,10 @@ class StopOnTerm:
     """SIGTERM sets a flag that the run reads at its step boundaries (main thread only).
 
     With ``comm``, entering is collective: every rank has taken over SIGTERM before any
-    goes on. Otherwise a rank still under `term.stop_at_once` could abort on a TERM while
-    another, already past its switch, works inside a collective solve (MUMPS's
-    factorisation), which then crashes (SIGSEGV, exit 11, not requeued) instead of all
-    ranks ending with 143 or stopping at the next step boundary.
+    goes on, so a TERM (mpirun hands it to every rank) stops them all at the same step
+    boundary, or else finds one still under `term.stop_at_once`, whose abort ends them all
+    with 143 before any has computed a step. (A TERM inside MUMPS's factorisation, which
+    ended a rank by SIGSEGV, was METIS's to take: see hyper.core.term.)
     """
 
     def __init__(self, comm=None):
