@@ -17,12 +17,14 @@ for the length of each call: GKlib's ``gk_sigtrap`` makes it the signal of its e
 exit (SIGERR), whose handler longjmps out of METIS. A TERM then is lost, and MUMPS, which
 does not look at METIS's status, goes on with an ordering never computed and crashes
 (SIGSEGV in ``mumps_wrap_ginp94``, exit 11); one in the instant before METIS's setjmp
-crashes in longjmp itself. No handler of Python's can win against a library that calls
-``signal()``, so `install` has no thread take SIGTERM through a handler at all: SIGTERM is
-blocked in the main thread before anything heavy starts, so that every thread started
-later (MPI's, OpenMP's, BLAS's, Python's) inherits the block, and one thread of its own
-takes it with ``sigwait`` and hands it to the Python handler (`_take_terms`). A child
-process inherits the mask too: start one within `spawning`.
+crashes in longjmp itself; and the longjmp out of the handler leaves SIGTERM blocked in
+the main thread (once seen: a process hanging in a futex wait). No handler of Python's
+can win against a library that calls ``signal()``, so `install` has no thread take
+SIGTERM through a handler at all: SIGTERM is blocked in the main thread before anything
+heavy starts, so that every thread started later (MPI's, OpenMP's, BLAS's, Python's)
+inherits the block, and one thread of its own takes it with ``sigwait`` and hands it to
+the Python handler (`_take_terms`). A child process inherits the mask too: start one
+within `spawning`.
 
 The standard library only: the shims import this before anything heavy.
 """
