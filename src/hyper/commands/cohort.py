@@ -84,7 +84,7 @@ def parser() -> cli.Parser:
     cli.refine_option(p)
     p.add_argument("--material", type=Path, metavar="F.toml", reads=True,
                    help="TOML file overriding the muscle law's parameters (hyper.model.material.MaterialParams)")
-    presets.add_options(p)
+    presets.add_options(p, several=True)
     cli.fibre_data_options(p)
     grow.model_options(p)
     p.add_argument("--max-halvings", type=cli.integer(0, GrowthSettings.MAX_HALVINGS),

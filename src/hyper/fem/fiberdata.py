@@ -84,10 +84,11 @@ class Nodes:
 @dataclasses.dataclass(frozen=True)
 class Field:
     """Fibres from data at the nodes (rank 0): unit ``a0`` (n, 3), ``has`` (n,) bool
-    (the node had data), and what to record about them."""
+    (the node had data), the line of action (unit) and what to record about them."""
 
     a0: np.ndarray
     has: np.ndarray
+    line_of_action: np.ndarray
     reader: str
     report: dict
 
@@ -268,8 +269,8 @@ def from_data(nodes: Nodes, source: fr.Source, data) -> Field:
     a = oriented(principal(fill(tensor, has, edges)), edges, nodes.axis)
     report = {"coverage": coverage, "nodes": len(a), **params,
               "pennation": distribution(angles(a, nodes.axis)), "line_of_action": LINE_OF_ACTION}
-    return Field(a, has, reader + "; filled by a harmonic extension on the edge graph; signs along a minimum "
-                 "spanning tree", report)
+    return Field(a, has, nodes.axis, reader + "; filled by a harmonic extension on the edge graph; signs along a "
+                 "minimum spanning tree", report)
 
 
 # -------------------------------------------------------------------- mesh (DOLFINx)
@@ -339,7 +340,7 @@ def make(geometry: geo.Geometry, source: fr.Source, stokes: fem.Function | None 
     if comm.rank == 0:
         try:
             if source.format == ".h5":
-                field = Field(values, np.ones(len(values), dtype=bool), f"hyper fibre file {source.path}",
+                field = Field(values, np.ones(len(values), dtype=bool), nodes.axis, f"hyper fibre file {source.path}",
                               {"coverage": 1.0, "nodes": len(values), "line_of_action": LINE_OF_ACTION,
                                "pennation": distribution(angles(values, nodes.axis))})
             else:
@@ -349,7 +350,7 @@ def make(geometry: geo.Geometry, source: fr.Source, stokes: fem.Function | None 
                     reference, axis=1)[:, None]))
             else:
                 field.report["against_stokes"] = stokes_note or "no Stokes fibres to compare with"
-            result = Field(field.a0, field.has, field.reader, field.report)
+            result = field
         except InputError as err:
             result = str(err)
     result = comm.bcast(result, root=0)

@@ -350,15 +350,15 @@ def prepare_fibres(comm, meshes) -> None:
             mesh_stokes_fibres(comm, mesh)
 
 
-def stokes_file(spec: RunSpec) -> Path | None:
-    """Where the Stokes fibres of ``spec``'s geometry are kept, if it can have them: what
-    fibres from data are compared with."""
+def stokes_file(geometry: str, mesh: MeshFile | None = None) -> Path | None:
+    """Where the Stokes fibres of a built-in ``geometry`` or a ``mesh`` file are kept, if it
+    can have them: what fibres from data are compared with."""
     from hyper.fem import fibers  # DOLFINx (see `build`)
     from hyper.fem import geometry as geo
 
-    if spec.mesh is not None:
-        return spec.mesh.fibres
-    return fibers.fiber_path(spec.geometry) if spec.geometry in geo.ANATOMICAL + geo.MESHED else None
+    if mesh is not None:
+        return mesh.fibres
+    return fibers.fiber_path(geometry) if geometry in geo.ANATOMICAL + geo.MESHED else None
 
 
 def data_fibres(geometry, source, stokes: Path | None, label: str) -> tuple:
@@ -386,7 +386,7 @@ def fiber_field(spec: RunSpec, geometry) -> tuple:
     from hyper.fem import fiberdata, fibers  # DOLFINx (see `build`)
 
     if spec.fiber_data is not None:
-        return data_fibres(geometry, spec.fiber_data, stokes_file(spec), spec.label)
+        return data_fibres(geometry, spec.fiber_data, stokes_file(spec.geometry, spec.mesh), spec.label)
     base = geometry.base
     kind = fibers.resolved(geometry, spec.fibers)
     if spec.mesh is not None and kind == "stokes":

@@ -54,8 +54,8 @@ DATA = "data"  # the kind of the fibres of a data file (--fibers FILE, hyper.fem
 GEOMETRY_FIELD = "{geometry}"
 DATA_HELP = ("or a fibre data FILE (hyper.fem.fiberdata, docs/fibres-from-data.md): a DTI image (.nii, .nii.gz: "
              "eigenvector or tensor), streamlines (.vtk, .vtp, .npz), a point cloud (.csv, .npz: x,y,z,ax,ay,az) "
-             "or a fibre file (.h5), in the mesh's world frame, sampled at the loaded mesh's nodes (hyper cohort: "
-             "{geometry} in FILE stands for each geometry's id)")
+             "or a fibre file (.h5), in the mesh's world frame, sampled at the loaded mesh's nodes")
+PER_GEOMETRY_HELP = f" ({GEOMETRY_FIELD} in FILE stands for each geometry's id: one file per geometry)"
 
 
 def settings(cls, name: str, chosen: Mapping, options: Mapping[str, str] | None = None):
@@ -85,9 +85,9 @@ def method_option(p: argparse.ArgumentParser, default: str | None = "rk4") -> No
                    help=METHOD_HELP + ("" if default else "; rk4 unless --settings sets it"))
 
 
-def add_options(p: argparse.ArgumentParser, *, signaling_method: bool = True) -> None:
+def add_options(p: argparse.ArgumentParser, *, signaling_method: bool = True, several: bool = False) -> None:
     """--settings and the switches of a growth run; ``signaling_method`` False where the
-    parser has its --signaling-method already."""
+    parser has its --signaling-method already; ``several``: the job runs several geometries."""
     from hyper.fem.coupled import CSA_METHODS
     from hyper.fem.geometry import IDEALIZED_ENDS
     from hyper.fem.growthfield import GROWTH_FIELDS
@@ -122,7 +122,7 @@ def add_options(p: argparse.ArgumentParser, *, signaling_method: bool = True) ->
                    help="the geometry's fibres (auto), or on the idealized shape the original code's (P2 used as "
                         "they are, surface integrals at UFL's estimated degree); a --mesh file's: auto or stokes "
                         "(the fibre file beside it, else computed), axial (e_z) or principal (its principal "
-                        f"axis); {DATA_HELP}; auto unless --settings sets it")
+                        f"axis); {DATA_HELP}{PER_GEOMETRY_HELP if several else ''}; auto unless --settings sets it")
 
 
 def shape(args: argparse.Namespace, geometries, mesh: bool = False) -> dict:
