@@ -15,6 +15,7 @@ Gaussian noise of 0.02 on each component before normalising; stored as int16 sca
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import h5py
@@ -32,6 +33,7 @@ NOISE = 0.02
 SEED = 34
 
 
+@functools.cache
 def nodes_mm() -> np.ndarray:
     with h5py.File(MESH, "r") as f:
         return f["Mesh/Grid/geometry"][()]

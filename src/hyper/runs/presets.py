@@ -158,8 +158,8 @@ def is_data(value: str | None, kinds) -> bool:
     if value is None or value in kinds:
         return False
     if fr.suffix(Path(value)) not in fr.FORMATS:
-        raise InputError(f"--fibers {value}: expected one of {', '.join(kinds)} or a fibre data file "
-                         f"({', '.join(fr.FORMATS)})")
+        kinds = f"one of {', '.join(kinds)} or " if kinds else ""
+        raise InputError(f"--fibers {value}: expected {kinds}a fibre data file ({', '.join(fr.FORMATS)})")
     return True
 
 
