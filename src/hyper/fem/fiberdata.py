@@ -32,7 +32,8 @@ fibre and that axis (0-90°). Statistics are over the mesh's nodes, unweighted.
 Parallel: rank 0 gathers the mesh (nodes by file node index, cells by their nodes) and
 the data, does steps 1-4 and broadcasts the field, which each rank takes at its own
 nodes by file node index, so the field on any number of ranks equals the serial one
-bit for bit (every step orders by file node index, never by partition).
+bit for bit (the mesh's own node coordinates, every step ordered by file node index,
+never by partition).
 """
 
 from __future__ import annotations
@@ -276,6 +277,16 @@ def from_data(nodes: Nodes, source: fr.Source, data) -> Field:
 # -------------------------------------------------------------------- mesh (DOLFINx)
 
 
+def node_coordinates(space: fem.FunctionSpace) -> np.ndarray:
+    """The coordinates of each local node of a P1 space: the mesh's own, not
+    ``tabulate_dof_coordinates``' push-forward, whose last bit depends on the partition."""
+    mesh = space.mesh
+    index_map = space.dofmap.index_map
+    node = np.full(index_map.size_local + index_map.num_ghosts, -1, dtype=np.int64)
+    node[space.dofmap.list.ravel()] = mesh.geometry.dofmaps[0].ravel()
+    return mesh.geometry.x[node]
+
+
 def gather_nodes(geometry: geo.Geometry, space: fem.FunctionSpace, root: int = 0) -> Nodes | None:
     """The loaded mesh's nodes and cells on rank ``root`` (None elsewhere). Collective."""
     mesh = geometry.mesh
@@ -284,7 +295,7 @@ def gather_nodes(geometry: geo.Geometry, space: fem.FunctionSpace, root: int = 0
     keys = fibers.node_index(space)
     cells = mesh.topology.index_map(mesh.topology.dim).size_local
     ends = [geo.facet_centroid(geometry, tag) for tag in geometry.ends]
-    parts = comm.gather((keys[:n], space.tabulate_dof_coordinates()[:n], keys[space.dofmap.list[:cells]]), root=root)
+    parts = comm.gather((keys[:n], node_coordinates(space)[:n], keys[space.dofmap.list[:cells]]), root=root)
     if comm.rank != root:
         return None
     keys, x, tets = (np.concatenate(p) for p in zip(*parts))
