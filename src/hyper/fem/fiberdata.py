@@ -9,7 +9,7 @@ Method, at the nodes of the loaded mesh (docs/fibres-from-data.md):
    trilinearly at each node from its 8 surrounding voxels, each voxel's tensor v v^T (a
    vector image, v normalised) or its diffusion tensor D (a tensor image); a voxel counts
    only where it has tissue (not all zero) and, with an FA image or for tensors, FA >=
-   ``min_fa``; the node has data where the voxels that count carry at least half of the
+   ``min_fa``; the node has data where the voxels that count carry at least a quarter of the
    trilinear weight (the rest renormalised). Streamlines (each segment: midpoint, unit
    tangent, length) and point clouds are averaged as tensors over the samples within
    ``radius`` of the node, weighted by (1 - d/radius) and the segment length.
@@ -57,7 +57,8 @@ from hyper.fem import fibers
 from hyper.fem import geometry as geo
 
 ELEMENT = fibers.ELEMENT
-HAS_DATA = 0.5  # the share of a node's trilinear weight that must fall on voxels that count
+HAS_DATA = 0.25  # the share of a node's trilinear weight that must fall on voxels that count:
+# a node on a face of the tissue has about half, on an edge a quarter
 MIN_COVERAGE = 0.1  # below this share of nodes with data, the data hardly lies on the mesh
 RADIUS_EDGES = 1.5  # the default radius of streamline and cloud samples, in mean edge lengths
 LINE_OF_ACTION = "the first principal axis of the mesh's vertices, from ends[0] to ends[1]"
