@@ -7,7 +7,7 @@ tissue the voxels inside the box and one voxel beyond; a fanning field (the penn
 from -20° to 20° across the box's width) as the primary eigenvector (3 components) and as
 a diffusion tensor (6, eigenvalues 1.7e-3 and 0.4e-3 mm²/s), gzipped, written before the
 clock starts. Timed: `hyper.fem.fiberdata.make` whole (reading and decompressing the
-image, sampling the 5 625 nodes, filling, signs, the report), and the reading alone; the
+image, sampling the 6253 nodes, filling, signs, the report), and the reading alone; the
 recovered field against the exact one (mean and 95th percentile of the angle at the
 nodes) says the timed work is the real one. Writes results/bench/fiberdata.json and
 fiberdata.png.
