@@ -327,7 +327,7 @@ def mesh_stokes_fibres(comm, mesh: MeshFile, geometry=None) -> tuple:
 
     geometry = mesh.load(comm) if geometry is None else geometry
     if on_rank0(comm, lambda: io.is_complete(mesh.fibres)):
-        info(comm, f"{mesh.path}: its Stokes fibres read from {mesh.fibres}")
+        info(comm, f"{mesh.path}: its fibres read from {mesh.fibres}")
         return fibers.load(geometry, mesh.fibres), mesh.fibres, f"read from {mesh.fibres}"
     cache, why = mesh.fibre_cache()
     info(comm, f"{mesh.path}: no fibre file beside it; computing its Stokes fibres"
