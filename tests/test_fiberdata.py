@@ -21,6 +21,7 @@ from mpi4py import MPI
 
 from hyper.analysis import study
 from hyper.commands import cohort as cohort_job
+from hyper.commands import contraction as contraction_job
 from hyper.commands import fibers as fibers_job
 from hyper.commands import grow
 from hyper.commands import inspect as inspect_job
@@ -382,7 +383,9 @@ def test_the_jobs_refuse_bad_data_with_one_line_and_write_nothing(tmp_path, caps
     assert "--fibers-unit applies to --fibers FILE" in capsys.readouterr().err
     assert cohort_job.main(["--geometries", NAME, "TA_VHF_Left", "--fibers", str(bad), "--output", str(out)]) == 2
     assert "{geometry}" in capsys.readouterr().err
-    assert not (tmp_path / "g.h5").exists()
+    assert contraction_job.main(["--fibers", str(tmp_path / "f.txt"), "--output", str(tmp_path / "c.h5")]) == 2
+    assert "expected one of auto, idealized" in capsys.readouterr().err
+    assert not (tmp_path / "g.h5").exists() and not (tmp_path / "c.h5").exists()
 
 
 # ------------------------------------------------------------------- jobs and runs
