@@ -102,6 +102,7 @@ HEAVY = {
     "SALib": "the Sobol sampler and analysis only",
     "cffi": "compiling the C signaling kernel, only when it is asked for",
     "mpi4py": "MPI initialisation, only where a job needs a communicator",
+    "nibabel": "reading NIfTI DTI images (fibres from data, hyper.fem.fiberread) only",
     "emcee": "the ensemble sampler of `hyper calibrate --method bayes` only; least squares and the grid never need it",
 }
 

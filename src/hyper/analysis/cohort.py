@@ -30,7 +30,7 @@ from hyper.model import protocols, signaling
 from hyper.model.growth import step_times
 from hyper.model.protocols import Protocol
 from hyper.runs import checkpoint as ckpt
-from hyper.runs import driver, farm, locks, measured, runspec
+from hyper.runs import driver, farm, locks, measured, presets, runspec
 
 PAPER_PROTOCOLS = protocols.PAPER  # in the paper's order of growth: mwf > every3days > weekly
 
@@ -40,17 +40,20 @@ class Run:
     geometry: str  # a built-in geometry id, or the stem of ``mesh``
     protocol: Protocol
     mesh: runspec.MeshFile | None = None  # a user's mesh file (hyper study); None: the built-in geometry
+    fibres: object = None  # fibres from data (hyper.fem.fiberread.Source); None: the geometry's kind
 
     @property
     def key(self) -> str:
         return f"{self.geometry}_{self.protocol.name}"
 
 
-def plan(geometries, protocol_list, meshes: Mapping[str, runspec.MeshFile] | None = None) -> list[Run]:
+def plan(geometries, protocol_list, meshes: Mapping[str, runspec.MeshFile] | None = None,
+         fibres: Mapping | None = None) -> list[Run]:
     """Every geometry with every protocol; names must make unique run keys. ``meshes``
-    maps the geometries that are a user's mesh file to it."""
-    meshes = meshes or {}
-    runs = [Run(g, p, meshes.get(g)) for g in geometries for p in protocol_list]
+    maps the geometries that are a user's mesh file to it, ``fibres`` those with fibres
+    from data to their file (`hyper.fem.fiberread.Source`)."""
+    meshes, fibres = meshes or {}, fibres or {}
+    runs = [Run(g, p, meshes.get(g), fibres.get(g)) for g in geometries for p in protocol_list]
     keys = [r.key for r in runs]
     repeated = sorted({k for k in keys if keys.count(k) > 1})
     if repeated:
@@ -86,10 +89,17 @@ def growth_steps(protocol: Protocol, growth_dt: float) -> int:
     return sum(len(step_times(t0, t1, growth_dt)) - 1 for t0, t1, _ in protocol.periods())
 
 
+def data_fields(source) -> dict:
+    """The `RunSpec` fields of fibres from data ``source`` (none for None)."""
+    return {} if source is None else {"fibers": presets.DATA, "fiber_data": source}
+
+
 def spec(entry: Run, params, settings: GrowthSettings, options: Mapping | None = None) -> runspec.RunSpec:
     """The run of ``entry``; ``options`` more `RunSpec` fields (heterogeneity, seed,
-    linear_solver, choice, quadrature_degree: what a study file sets)."""
-    return runspec.RunSpec(entry.geometry, entry.protocol, params, settings, mesh=entry.mesh, **(options or {}))
+    linear_solver, choice, quadrature_degree: what a study file sets); the entry's fibres
+    from data win over a fibre kind there."""
+    return runspec.RunSpec(entry.geometry, entry.protocol, params, settings, mesh=entry.mesh,
+                           **{**(options or {}), **data_fields(entry.fibres)})
 
 
 def series_path(output: Path, entry: Run) -> Path:

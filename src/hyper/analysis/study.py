@@ -7,6 +7,7 @@ geometry × one protocol as `hyper grow` does, more as a cohort on the MPI farm
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from pathlib import Path
 
 from hyper.analysis import cohort, sobol
@@ -23,6 +24,7 @@ from hyper.core.params import (
     replace_from_mapping,
     shown,
 )
+from hyper.fem import fiberread as fr
 from hyper.fem import geometry as geo
 from hyper.fem.coupled import GrowthSettings
 from hyper.model import material as mat
@@ -34,7 +36,9 @@ from hyper.runs import driver, fidelity, measured, runspec, sequence
 
 KEYS = ("geometries", "protocols", "mesh", "protocol", "signaling", "material", "heterogeneity", "numerics",
         "output", "sobol", "data")
-MESH_KEYS = ("file", "unit")
+# fibres from data on a mesh (hyper.fem.fiberdata): the file and how it is read
+MESH_FIBRE_KEYS = ("fibers", "fibers_unit", "fibers_min_fa", "fibers_radius_mm", "fibers_fa")
+MESH_KEYS = ("file", "unit", *MESH_FIBRE_KEYS)
 DATA_KEYS = ("file",)
 HETEROGENEITY_KEYS = ("model", "epsilon", "length", "nu", "seed")
 DEFAULT_FOLDER = Path("results/study")
@@ -128,7 +132,8 @@ class Study:
     numerics: Numerics = Numerics()
     output: Output = Output()
     data: measured.Measured | None = None  # the measured CSA every run is compared with
-
+    # fibres from data of the mesh files, by their stems ([[mesh]] fibers = "FILE")
+    fibres: Mapping[str, fr.Source] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
         unknown = [g for g in self.geometries if g not in geo.GEOMETRIES]
@@ -219,6 +224,25 @@ def mesh_file(entry: dict, base: Path, where: str) -> runspec.MeshFile:
         raise InputError(f"{where}: {err}") from None
 
 
+def mesh_fibres(entry: dict, base: Path, where: str) -> fr.Source | None:
+    """The fibres from data of a [[mesh]] table (its paths relative to ``base``), if it names a file."""
+    if "fibers" not in entry:
+        given = [k for k in MESH_FIBRE_KEYS if k in entry]
+        if given:
+            raise InputError(f"{where}: {given[0]} applies to fibres from data: give fibers = \"FILE\" too")
+        return None
+    for key in ("fibers", "fibers_fa", "fibers_unit"):
+        if key in entry and not isinstance(entry[key], str):
+            raise InputError(f"{where}: {key}: expected a string, got {entry[key]!r}")
+    radius = entry.get("fibers_radius_mm")
+    try:
+        return fr.Source(base / entry["fibers"], entry.get("fibers_unit", "auto"),
+                         entry.get("fibers_min_fa", fr.MIN_FA), None if radius is None else radius * 1e-3,
+                         base / entry["fibers_fa"] if "fibers_fa" in entry else None)
+    except InputError as err:
+        raise InputError(f"{where}: fibers: {err}") from None
+
+
 def heterogeneity_of(values: dict, where: str) -> tuple[Heterogeneity | None, int | None]:
     if not values:
         return None, None
@@ -264,7 +288,10 @@ def load(path: str | Path, overrides: dict | None = None, data_path: Path | None
                      for p in named_protocol(text, base, f"{where}: protocols")]
     for i, entry in enumerate(tables(data, "protocol", where)):
         protocol_list.append(protocols.from_table(entry, f"{where}: protocol {i}", f"protocol{i}"))
-    meshes = tuple(mesh_file(entry, base, f"{where}: mesh {i}") for i, entry in enumerate(tables(data, "mesh", where)))
+    mesh_tables = tables(data, "mesh", where)
+    meshes = tuple(mesh_file(entry, base, f"{where}: mesh {i}") for i, entry in enumerate(mesh_tables))
+    fibres = {mesh.path.stem: source for i, (mesh, entry) in enumerate(zip(meshes, mesh_tables))
+              if (source := mesh_fibres(entry, base, f"{where}: mesh {i}")) is not None}
     params = replace_from_mapping(signaling.SignalingParams(), table(data, "signaling", where,
                                                                      tuple(as_attributes(signaling.SignalingParams()))),
                                   f"{where}: signaling")
@@ -289,7 +316,7 @@ def load(path: str | Path, overrides: dict | None = None, data_path: Path | None
         sections[name] = build(cls, sources, **values)
     try:
         return Study(tuple(strings(data, "geometries", where)), meshes, tuple(protocol_list), params, muscle, het,
-                     seed, **sections, data=against)
+                     seed, **sections, data=against, fibres=fibres)
     except InputError as err:
         raise InputError(f"{where}: {err}") from None
 
@@ -333,14 +360,16 @@ def check_inputs(comm, study: Study) -> None:
     for mesh in study.meshes:
         mesh.load(comm)
     # the Stokes fibres of the meshes without a fibre file, computed and kept once before
-    # any run (their digests name the file)
-    driver.prepare_fibres(comm, study.meshes)
+    # any run (their digests name the file); those with fibres from data need none
+    driver.prepare_fibres(comm, [m for m in study.meshes if m.path.stem not in study.fibres])
 
 
 def first_spec(study: Study, settings, choice) -> runspec.RunSpec:
     """The run of the first geometry with the first protocol."""
+    source = study.fibres.get(study.names[0])
     return runspec.RunSpec(study.names[0], study.protocols[0], study.signaling, settings, {},
-                           mesh=study.meshes[0] if study.meshes else None, **spec_options(study, choice))
+                           mesh=study.meshes[0] if study.meshes else None, **spec_options(study, choice),
+                           **cohort.data_fields(source))
 
 
 # ----------------------------------------------------------------------- running it
@@ -360,7 +389,7 @@ def one_plan(comm, study: Study, settings, choice, progress_every: float = PROGR
 
 def cohort_runs(study: Study) -> list[cohort.Run]:
     """More runs: every geometry (the mesh files by their stems) with every protocol."""
-    return cohort.plan(study.names, list(study.protocols), {m.path.stem: m for m in study.meshes})
+    return cohort.plan(study.names, list(study.protocols), {m.path.stem: m for m in study.meshes}, study.fibres)
 
 
 def run_many(comm, study: Study, runs: list[cohort.Run], settings, choice, stop, ranks_per_job: int,

@@ -36,6 +36,7 @@ term.install()
 from hyper.core import io  # noqa: E402
 from hyper.core.log import PROGRESS_EVERY, error  # noqa: E402
 from hyper.core.params import SEED_MAX, InputError, as_float, as_vector, float_text, int_text, shown  # noqa: E402
+from hyper.fem import fiberread as fr  # noqa: E402
 from hyper.runs.locks import Busy, hold  # noqa: E402
 from hyper.runs.runspec import MAX_REFINE  # noqa: E402
 
@@ -192,6 +193,22 @@ def refine_option(p: Parser, default: int | None = 0) -> None:
                         "into 8 on the same polyhedron); fibres from a formula are evaluated on the refined "
                         "mesh, those of a fibre file or a principal axis carried over from the loaded one"
                         + ("" if default is not None else "; overrides [numerics] refine"))
+
+
+def fibre_data_options(p: Parser) -> None:
+    """The options of --fibers FILE, fibres from data (`hyper.fem.fiberdata`), the same in
+    every job that takes one."""
+    p.add_argument("--fibers-unit", choices=tuple(fr.UNITS), default="auto",
+                   help="length unit of the fibre data's coordinates: auto is a NIfTI header's spatial unit, "
+                        "else mm (the world unit of imaging)")
+    p.add_argument("--fibers-min-fa", type=number(0, below=1), default=fr.MIN_FA, metavar="FA",
+                   help="fractional anisotropy below which an image voxel gives no direction and its nodes are "
+                        "filled from their neighbours (tensor images, or with --fibers-fa)")
+    p.add_argument("--fibers-radius", type=positive("mm"), metavar="MM",
+                   help="how far a streamline or point-cloud sample reaches a mesh node; 1.5 mean edge lengths "
+                        "of the mesh by default")
+    p.add_argument("--fibers-fa", type=Path, reads=True, metavar="FA.nii",
+                   help="an FA image on the grid of an eigenvector image (--fibers-min-fa applies to it)")
 
 
 def output(*, folder: bool | None = None, suffixes: tuple[str, ...] = (), replaces: bool = False

@@ -3,6 +3,7 @@
     mpirun -n 2 python -m hyper.cohort                      # 12 meshes × mwf, every3days, weekly
     mpirun -n 4 python -m hyper.cohort --ranks-per-job 2    # 2 groups of 2 ranks
     python -m hyper.cohort --geometries BFLH_VHF_Left --protocols mwf my_protocol.toml
+    python -m hyper.cohort --geometries TA_VHF_Left TA_VHF_Right --fibers dti/{geometry}.nii.gz
 
 Every (geometry, protocol) pair is one job of `hyper.runs.farm` (longest first, by the
 estimate mesh cells × growth steps), run by `hyper.runs.driver.execute` on its group's
@@ -83,7 +84,8 @@ def parser() -> cli.Parser:
     cli.refine_option(p)
     p.add_argument("--material", type=Path, metavar="F.toml", reads=True,
                    help="TOML file overriding the muscle law's parameters (hyper.model.material.MaterialParams)")
-    presets.add_options(p)
+    presets.add_options(p, several=True)
+    cli.fibre_data_options(p)
     grow.model_options(p)
     p.add_argument("--max-halvings", type=cli.integer(0, GrowthSettings.MAX_HALVINGS),
                    default=GrowthSettings.max_halvings,
@@ -117,10 +119,17 @@ def check(args, comm) -> tuple[list[Run], GrowthSettings, mat.MaterialParams]:
         raise InputError(f"--plot-geometry {args.plot_geometry}: not one of --geometries "
                          f"({', '.join(args.geometries)}); its shape could not be drawn")
     args.shape = presets.shape(args, args.geometries)
+    if (presets.is_data(args.fibers, presets.FIBER_CHOICES) and len(args.geometries) > 1
+            and presets.GEOMETRY_FIELD not in args.fibers):
+        raise InputError(f"--fibers {args.fibers}: a fibre data file belongs to one geometry; with several, name "
+                         f"one file per geometry with {presets.GEOMETRY_FIELD} in its path (e.g. "
+                         f"dti/{presets.GEOMETRY_FIELD}.nii.gz)")
+    fibres = {name: presets.data_source(args, geometry=name) for name in args.geometries}
     chosen = {"growth_dt": args.growth_dt, "max_halvings": args.max_halvings, **presets.chosen(args)}
     settings = presets.settings(GrowthSettings, args.settings, chosen,
                                 {"growth_dt": "--growth-dt", "max_halvings": "--max-halvings"})
-    runs = plan(args.geometries, [p for text in args.protocols for p in protocols.from_option(text, "--protocols")])
+    runs = plan(args.geometries, [p for text in args.protocols for p in protocols.from_option(text, "--protocols")],
+                fibres={name: source for name, source in fibres.items() if source is not None})
     if args.data is not None:
         data = measured.read(args.data)
         measured.check_section(data, settings.sections)

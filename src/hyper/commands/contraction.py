@@ -35,7 +35,7 @@ from hyper.fem import fibers
 from hyper.fem import geometry as geo
 from hyper.fem.mechanics import SolverError
 from hyper.model import material as mat
-from hyper.runs import locks
+from hyper.runs import locks, presets
 from hyper.runs.contraction import contract
 
 
@@ -60,9 +60,11 @@ def parser() -> cli.Parser:
     p.add_argument("--steps", type=cli.integer(1, 10**4), default=10, help="equal activation steps from 0 to 1")
     p.add_argument("--output", type=cli.output(folder=False, suffixes=(".h5",)),
                    help="HDF5 series file; results/contraction/GEOMETRY.h5 by default")
-    p.add_argument("--fibers", default="auto", metavar="KIND",
+    p.add_argument("--fibers", default="auto", metavar="KIND|FILE",
                    help=f"fibre field kind: {', '.join(fibers.FIBER_KINDS)} (see hyper.fem.fibers.fiber_field); "
-                        "original: the original code's idealized fibres, with its surface quadrature")
+                        f"original: the original code's idealized fibres, with its surface quadrature; "
+                        f"{presets.DATA_HELP}")
+    cli.fibre_data_options(p)
     p.add_argument("--material", type=Path, metavar="F.toml", reads=True,
                    help="TOML file overriding the muscle law's parameters (hyper.model.material.MaterialParams)")
     p.add_argument("--quadrature-degree", type=cli.integer(1, 12), default=4, help="quadrature degree of the forms")
@@ -72,6 +74,9 @@ def parser() -> cli.Parser:
 
 
 def run(comm, args) -> int:
+    args.fiber_data = presets.data_source(args, fibers.FIBER_KINDS)
+    if args.fiber_data is not None and args.ends != "disks":
+        raise InputError("--ends applies to the idealized shape with its own fibres, not with --fibers FILE")
     args.material = mat.load(args.material) if args.material is not None else mat.MaterialParams()
     if args.output is None:
         args.output = Path("results/contraction") / f"{Path(args.geometry).name}.h5"

@@ -1,16 +1,25 @@
 """``hyper fibers``: the Stokes-flow fibres (`hyper.fem.fibers`) of the anatomical meshes,
-stored next to each mesh, with a picture and a summary per mesh.
+stored next to each mesh, with a picture and a summary per mesh; or, with ``--fibers
+FILE``, fibres from data (`hyper.fem.fiberdata`) of the geometries given.
 
 ``mpirun -n 2 python -m hyper.fibers`` spreads the meshes over groups of
 ``--ranks-per-job`` ranks (hyper.runs.farm) and skips a mesh whose fibre file is complete
 and whose picture exists; a complete fibre file without its picture is read back, not
 recomputed (``--force`` recomputes). It writes ``results/fibers/<geometry>.png`` and
 ``results/fibers/summary.csv`` and prints the table.
+
+``hyper fibers --geometries ID --fibers FILE`` samples a DTI image, streamlines or a
+point cloud at the mesh's nodes and writes ``OUTPUT/ID_fibers.h5`` (a fibre file, which
+``hyper grow --geometry ID --fibers OUTPUT/ID_fibers.h5`` runs) and ``OUTPUT/ID_fibers.png``
+(the fibres coloured by pennation angle), and prints its coverage, pennation angle and
+angle against the Stokes fibres beside the mesh; the shipped Stokes fibres stay as they
+are. With several geometries FILE names one file per geometry with {geometry}.
 """
 
 from __future__ import annotations
 
 import csv
+import hashlib
 import sys
 import time
 from pathlib import Path
@@ -18,12 +27,13 @@ from pathlib import Path
 import numpy as np
 
 from hyper.commands import cli
+from hyper.core.collective import on_rank0
 from hyper.core.io import atomic_path, is_complete, write_series
 from hyper.core.log import info
 from hyper.core.params import InputError, as_attributes
-from hyper.fem import fibers
+from hyper.fem import fiberdata, fibers
 from hyper.fem import geometry as geo
-from hyper.runs import farm, plot
+from hyper.runs import farm, plot, presets
 
 SUMMARY_COLUMNS = ("geometry", "muscle", "subject", "side", "cells", "vertices", "share_within_30deg",
                    "max_norm_error", "min_speed", "max_speed", "solve_s", "status")
@@ -41,6 +51,9 @@ def parser() -> cli.Parser:
     p.add_argument("--meshes-dir", type=Path, default=geo.MESHES_DIR,
                    help="folder of the meshes, where the fibre files go")
     p.add_argument("--penalty", type=cli.number(), default=fibers.StokesParams.penalty, help="Nitsche penalty γ")
+    p.add_argument("--fibers", metavar="FILE", help=f"fibres from data instead of Stokes flow: {presets.DATA_HELP}"
+                   f"{presets.PER_GEOMETRY_HELP}; written to OUTPUT/ID_fibers.h5 with a picture")
+    cli.fibre_data_options(p)
     return p
 
 
@@ -107,7 +120,39 @@ def _write_summary(path: Path, names, fiber_paths, results) -> list[dict]:
     return rows
 
 
+def from_data(comm, args) -> int:
+    """--fibers FILE: fibres from data for each of --geometries, one after the other on all ranks."""
+    if args.geometries == list(geo.ANATOMICAL) and presets.GEOMETRY_FIELD not in args.fibers:
+        raise InputError("--fibers FILE: name the geometry it belongs to with --geometries ID")
+    if len(args.geometries) > 1 and presets.GEOMETRY_FIELD not in args.fibers:
+        raise InputError(f"--fibers {args.fibers}: a fibre data file belongs to one geometry; with several, name "
+                         f"one file per geometry with {presets.GEOMETRY_FIELD} in its path")
+    sources = {name: presets.data_source(args, (), name) for name in args.geometries}
+    for name, source in sources.items():
+        geometry = geo.load(name, comm, meshes_dir=args.meshes_dir)
+        stokes = fiberdata.stokes_beside(geometry, fibers.fiber_path(name, args.meshes_dir))
+        a0, field = fiberdata.make(geometry, source, *stokes)
+        path = args.output / f"{name}_fibers.h5"
+        sha = on_rank0(comm, lambda s=source: hashlib.sha256(s.path.read_bytes()).hexdigest())
+        fiberdata.store(path, geometry, a0, field, source, sha, mesh=geo.GEOMETRIES[name])
+        picture(geometry, a0, field, path.with_suffix(".png"), f"{name}: fibres from {source.path.name}")
+        info(comm, f"{name}: {fiberdata.summary(field)}")
+        info(comm, f"wrote {path} and {path.with_suffix('.png')}")
+    return cli.EXIT_OK
+
+
+def picture(geometry, a0, field, path: Path, title: str) -> None:
+    """The fibre glyphs of `figure` for fibres from data, beside their fibre file. Collective."""
+    stats = {"share_within_30deg": fibers.aligned_share(geometry, a0, field.line_of_action)}
+    cells = fibers.cell_fibers(geometry, a0)
+    if geometry.comm.rank == 0:
+        plot.save(figure(geometry.name, *cells, field.line_of_action, stats, title=title,
+                         angle_label="pennation angle"), path, dpi=110)
+
+
 def run(comm, args) -> int:
+    if args.fibers is not None:
+        return from_data(comm, args)
     unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
     if unknown:
         raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")
@@ -146,11 +191,13 @@ def run(comm, args) -> int:
     return comm.bcast(status, root=0)
 
 
-def figure(name: str, centroid, fiber, volume, axis, stats: dict):
+def figure(name: str, centroid, fiber, volume, axis, stats: dict, title: str | None = None,
+           angle_label: str = "angle to principal axis"):
     """Fibre glyphs on two orthogonal mid-slices through the muscle's long axis, coloured
     by the angle to the principal axis, and the volume-weighted histogram of that angle.
 
-    ``axis`` (unit) should point from the inflow end to the outflow end."""
+    ``axis`` (unit) should point from the inflow end to the outflow end; ``title`` says
+    what the fibres are (the Stokes-flow fibres by default)."""
     plt = plot.pyplot()
     from matplotlib.collections import LineCollection
 
@@ -183,16 +230,16 @@ def figure(name: str, centroid, fiber, volume, axis, stats: dict):
         ax.set_title(f"mid-slice across the {('', '3rd', '2nd')[shown]} axis: {slab.sum()} cells", fontsize=10)
     ax.set_xlabel("principal axis (mm), from the inflow end to the outflow end")
     fig.colorbar(plt.cm.ScalarMappable(cmap=cmap, norm=norm), ax=fig.axes, shrink=0.6, location="bottom",
-                 aspect=40, label="angle to principal axis (°, clipped at 45)")
+                 aspect=40, label=f"{angle_label} (°, clipped at 45)")
 
     ax2 = fig.add_subplot(grid[:, 1])
     ax2.hist(angle, bins=np.arange(0, 91, 2.5), weights=volume / volume.sum() * 100, color="0.4")
     ax2.axvline(fibers.ALIGNMENT_DEG, color="C3", ls="--")
-    ax2.set_xlabel("angle to principal axis (°)")
+    ax2.set_xlabel(f"{angle_label} (°)")
     ax2.set_ylabel("share of volume (%)")
     ax2.set_title(f"within {fibers.ALIGNMENT_DEG:g}°: {100 * stats['share_within_30deg']:.1f} % of the volume",
                   fontsize=10)
-    fig.suptitle(f"{name}: Stokes-flow fibres (cell means of the nodal field)")
+    fig.suptitle(f"{title or name + ': Stokes-flow fibres'} (cell means of the nodal field)")
     return fig
 
 

@@ -4,6 +4,7 @@
     hyper grow --geometry idealized --protocol all --output results/grow
     hyper grow --mesh my_muscle.xdmf --mesh-unit mm --protocol my_protocol.toml --output results/mine
     hyper grow --geometry idealized --protocol mwf --accuracy 1e-3
+    hyper grow --geometry TA_VHF_Right --fibers tests/data/synthetic_dti_TA_VHF_Right.nii.gz
     hyper grow --ask signaling --protocol mwf --accuracy 1e-3 --output results/signaling/mwf.h5
 
 Writes per run an HDF5 time series (t, CSA and volume ratios, kM, the signaling states,
@@ -125,6 +126,7 @@ def parser(ask: str = "growth") -> cli.Parser:
                    help=f"growth step Δtg (h); {GrowthSettings.growth_dt:g} unless --accuracy chooses one")
     p.add_argument("--feedback", choices=FEEDBACK_LAWS, default="hill", help="feedback of CSA on protein synthesis")
     presets.add_options(p, signaling_method=False)
+    cli.fibre_data_options(p)
     model_options(p)
     p.add_argument("--max-halvings", type=cli.integer(0, GrowthSettings.MAX_HALVINGS),
                    default=GrowthSettings.max_halvings,
@@ -245,8 +247,9 @@ def plan_from(comm, args) -> sequence.Plan:
         mesh.load(comm)  # units and tags, before anything is written
     solver = args.linear_solver or ("auto" if args.accuracy is not None else "lu")
     shape = presets.shape(args, [name], mesh=mesh is not None)
+    source = presets.data_source(args)
     specs = [runspec.RunSpec(name, p, params, settings, petsc_options, mesh=mesh, linear_solver=solver, choice=choice,
-                         **shape, material=muscle, refine=args.refine) for p in runs]
+                             **shape, material=muscle, refine=args.refine, fiber_data=source) for p in runs]
     if not args.restart:
         sequence.refuse_foreign_checkpoints(comm, specs, [runspec.Outputs(h5) for h5 in results])
     outputs = [runspec.Outputs(h5) for h5 in results]

@@ -16,13 +16,15 @@ from pathlib import Path
 import numpy as np
 
 from hyper.commands import cli
+from hyper.commands import fibers as fibers_job
+from hyper.core.collective import on_rank0
 from hyper.core.io import write_json, write_series
 from hyper.core.log import info
 from hyper.core.params import InputError, as_attributes
-from hyper.fem import fibers, meshstats
+from hyper.fem import fiberdata, fibers, meshstats
 from hyper.fem import geometry as geo
 from hyper.fem import meshing as hm
-from hyper.runs import plot
+from hyper.runs import plot, presets
 
 ARRAYS = ("x", "tets", "facets", "tags")  # what `build` returns besides numbers
 
@@ -46,6 +48,10 @@ def parser() -> cli.Parser:
     cli.vector_option(p, "--origin-toward", default=hm.ORIGIN_TOWARD,
                       help="the origin (tag 1) is the end further along this direction")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    p.add_argument("--fibers", metavar="FILE", help=f"the mesh's fibres from data instead of its Stokes fibres: "
+                   f"{presets.DATA_HELP} (the surface's frame); stored as the folder's {fibers.FILE_NAME}, which "
+                   "runs on the mesh then use, compared with the Stokes fibres, with a picture fibers.png")
+    cli.fibre_data_options(p)
     return p
 
 
@@ -82,6 +88,7 @@ def run(comm, args) -> int:
         raise InputError(f"--output {out}: expected a folder, meshes/NAME/")
     if out.exists() and not args.force:
         raise InputError(f"--output {out}: exists; give --force to replace it")
+    source = presets.data_source(args, ())
     built = error = None
     if comm.rank == 0:
         try:
@@ -108,25 +115,36 @@ def run(comm, args) -> int:
         stats = {**fibers.statistics(geometry, a0, speed), "solve_s": time.perf_counter() - start}
         data = fibers.gather_nodal(a0, speed)
         row = meshstats.statistics(geometry)
+        field = None
+        if source is not None:
+            a0, field = fiberdata.make(geometry, source, a0)
+            sha = on_rank0(comm, lambda: hashlib.sha256(source.path.read_bytes()).hexdigest())
+            fiberdata.store(stage / fibers.FILE_NAME, geometry, a0, field, source, sha, mesh=f"{name}/{name}.xdmf")
+            fibers_job.picture(geometry, a0, field, stage / "fibers.png", f"{name}: fibres from {source.path.name}")
         cells = fibers.cell_fibers(geometry, a0)
-        if comm.rank == 0:
+        if comm.rank == 0 and source is None:
             write_series(stage / fibers.FILE_NAME, data,
                          attrs={"geometry": name, "mesh": f"{name}/{name}.xdmf", "method": fibers.METHOD,
                                 "element": fibers.ELEMENT, "reference": "Varvik et al. 2021; MODEL.md §5",
                                 "inflow_tag": 1, "outflow_tag": 2, "lateral_tag": 3, "coordinates": "m",
                                 "ranks": comm.size, **stats},
                          groups={"parameters": as_attributes(params)})
+        if comm.rank == 0:
             record = {"source": str(args.surface), "source_sha256": built["sha256"], "unit": args.unit,
                       "mesher": f"gmsh {hm.gmsh_version()}", "cells_target": args.cells,
                       "surface_triangles": built["surface_triangles"], "ends": built["rule"],
                       "end_area_mm2": built["end_area_mm2"], "quality": built["quality"],
                       "statistics": {k: v for k, v in row.items() if k != "geometry"},
                       "fibers": {k: float(v) for k, v in stats.items()},
+                      **({} if field is None else {"fibers_from_data": {"source": str(source.path),
+                                                                        "source_sha256": sha,
+                                                                        "method": fiberdata.method(source, field),
+                                                                        **field.report}}),
                       "check_s": built["check_s"], "mesh_s": built["mesh_s"]}
             write_json(stage / "mesh.json", record)
             axis = np.asarray(built["rule"]["axis"])
-            plot.save(figure(name, arrays["x"], arrays["facets"], arrays["tags"], cells[0], cells[1], axis),
-                      stage / f"{name}.png", dpi=110)
+            plot.save(figure(name, arrays["x"], arrays["facets"], arrays["tags"], cells[0], cells[1], axis,
+                             "Stokes fibres" if field is None else "fibres from data"), stage / f"{name}.png", dpi=110)
             if out.exists():
                 shutil.rmtree(out)
             os.replace(stage, out)
@@ -141,11 +159,13 @@ def run(comm, args) -> int:
                f"{built['end_area_mm2'][1]:.0f} mm²; fibres within 30° of the axis "
                f"{100 * stats['share_within_30deg']:.1f} %; checks {built['check_s']:.1f} s, mesh "
                f"{built['mesh_s']:.1f} s, fibres {stats['solve_s']:.1f} s")
+    if field is not None:
+        info(comm, f"{name}: fibres from {source.path}: {fiberdata.summary(field)}")
     info(comm, f"wrote {out}/")
     return cli.EXIT_OK
 
 
-def figure(name: str, x_mm, facets, tags, centroid_m, fiber, axis):
+def figure(name: str, x_mm, facets, tags, centroid_m, fiber, axis, what: str = "Stokes fibres"):
     """Left: the surface seen across its axis, ends coloured; right: fibre glyphs on the mid-slab."""
     from matplotlib.collections import LineCollection, PolyCollection
 
@@ -178,7 +198,7 @@ def figure(name: str, x_mm, facets, tags, centroid_m, fiber, axis):
     right.set_xlim(left.get_xlim())
     right.set_ylim(left.get_ylim())
     right.set_aspect("equal")
-    right.set_title(f"Stokes fibres on the mid-slab ({slab.sum()} cells), colour: angle to the axis (0-45°)",
+    right.set_title(f"{what} on the mid-slab ({slab.sum()} cells), colour: angle to the axis (0-45°)",
                     fontsize=10)
     for ax in (left, right):
         ax.set_xlabel("along the axis, toward the origin (mm)")

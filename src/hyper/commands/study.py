@@ -18,6 +18,8 @@ of inputs are relative to the study file's folder (the output folder to the curr
     [[mesh]]                   # a mesh file of yours (repeatable): tetrahedral XDMF with
     file = "muscle.xdmf"       # facet tags ft_small (1, 2 the ends, 3 the side)
     unit = "mm"                # its length unit: m or mm
+    fibers = "muscle_dti.nii.gz"  # optional: fibres from data (docs/fibres-from-data.md; also
+                               # fibers_unit, fibers_min_fa, fibers_radius_mm, fibers_fa)
 
     [[protocol]]               # a protocol written here (repeatable), as in a protocol file:
     name = "twice-weekly"      # [[protocol.session]] tables (start, duration, intensity) and

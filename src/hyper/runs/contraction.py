@@ -27,7 +27,7 @@ from hyper.fem import fibers
 from hyper.fem import geometry as geo
 from hyper.fem.mechanics import MechanicsProblem, SolverError
 from hyper.runs import checkpoint as ckpt
-from hyper.runs import plot, runspec
+from hyper.runs import driver, plot, runspec
 
 SERIES = ("alpha", "end_force", "spring_force", "reaction_force_original", "reaction_force_current",
           "newton_iterations", "volume_ratio", "stretch_min", "stretch_max", "wall_s")
@@ -103,14 +103,24 @@ def figure(path: Path, series: dict, title: str) -> None:
 
 def contract(comm, args) -> dict:
     """The activation ramp of the job's ``args`` on ``comm``: the series (and the files)."""
-    original = args.fibers in fibers.UNNORMALISED_KINDS
+    source = getattr(args, "fiber_data", None)  # fibres from data (--fibers FILE)
+    original = source is None and args.fibers in fibers.UNNORMALISED_KINDS
     geometry = geo.load(args.geometry, comm, quadrature_degree=args.quadrature_degree, ends=args.ends,
                         estimated_surface_degree=original)
     for _ in range(args.refine):
         geometry = geo.refine(geometry)
-    a0 = fibers.fiber_field(geometry, args.fibers)
-    kind = fibers.resolved(geometry, args.fibers)
-    fibre_file = fibers.fiber_path(args.geometry) if kind == "stokes" else None
+    if source is not None:
+        a0, record = driver.data_fibres(geometry, source, driver.stokes_file(args.geometry),
+                                        f"contraction {args.geometry}")
+    else:
+        a0 = fibers.fiber_field(geometry, args.fibers)
+        kind = fibers.resolved(geometry, args.fibers)
+        fibre_file = fibers.fiber_path(args.geometry) if kind == "stokes" else None
+        record = {
+            "fibers": kind,  # the kind used (auto resolved); settings/fibers the one asked
+            "fibers_method": fibers.method(geometry, kind) + (f"; read from {fibre_file}" if fibre_file else ""),
+            "fibers_sha256": on_rank0(comm, lambda: ckpt.file_digest(fibre_file)) if fibre_file else "",
+        }
     material = args.material
     problem = MechanicsProblem(geometry, a0, material, normalize_fibres=not original)
     info(comm, f"{args.geometry}: {geometry.num_cells()} cells, {problem.num_dofs} unknowns, "
@@ -140,9 +150,7 @@ def contract(comm, args) -> dict:
     attrs = {
         "geometry": args.geometry,
         "steps": args.steps,
-        "fibers": kind,  # the kind used (auto resolved); settings/fibers the one asked
-        "fibers_method": fibers.method(geometry, kind) + (f"; read from {fibre_file}" if fibre_file else ""),
-        "fibers_sha256": on_rank0(comm, lambda: ckpt.file_digest(fibre_file)) if fibre_file else "",
+        **record,
         "fibres_normalised": not original,
         "refine": args.refine,
         "ends": args.ends,

@@ -304,7 +304,7 @@ def load_geometry(comm, spec: RunSpec):
     if spec.mesh is not None:
         if spec.quadrature_degree is not None or spec.ends != "disks":
             raise InputError("quadrature degree and ends apply to the built-in geometries only")
-        if spec.fibers not in presets.MESH_FIBERS:
+        if spec.fibers not in (*presets.MESH_FIBERS, presets.DATA):
             raise InputError(f"--fibers {spec.fibers}: a mesh file's fibres are one of "
                              f"{', '.join(presets.MESH_FIBERS)}")
         geometry = spec.mesh.load(comm)
@@ -327,7 +327,7 @@ def mesh_stokes_fibres(comm, mesh: MeshFile, geometry=None) -> tuple:
 
     geometry = mesh.load(comm) if geometry is None else geometry
     if on_rank0(comm, lambda: io.is_complete(mesh.fibres)):
-        info(comm, f"{mesh.path}: its Stokes fibres read from {mesh.fibres}")
+        info(comm, f"{mesh.path}: its fibres read from {mesh.fibres}")
         return fibers.load(geometry, mesh.fibres), mesh.fibres, f"read from {mesh.fibres}"
     cache, why = mesh.fibre_cache()
     info(comm, f"{mesh.path}: no fibre file beside it; computing its Stokes fibres"
@@ -350,12 +350,43 @@ def prepare_fibres(comm, meshes) -> None:
             mesh_stokes_fibres(comm, mesh)
 
 
+def stokes_file(geometry: str, mesh: MeshFile | None = None) -> Path | None:
+    """Where the Stokes fibres of a built-in ``geometry`` or a ``mesh`` file are kept, if it
+    can have them: what fibres from data are compared with."""
+    from hyper.fem import fibers  # DOLFINx (see `build`)
+    from hyper.fem import geometry as geo
+
+    if mesh is not None:
+        return mesh.fibres
+    return fibers.fiber_path(geometry) if geometry in geo.ANATOMICAL + geo.MESHED else None
+
+
+def data_fibres(geometry, source, stokes: Path | None, label: str) -> tuple:
+    """Fibres from the data file ``source`` (`hyper.fem.fiberdata`) on ``geometry``: made on
+    the loaded mesh, carried onto a refinement; (a0, their record as `fiber_field`'s),
+    compared with the Stokes fibres in ``stokes`` where that file holds them. Collective."""
+    from hyper.fem import fiberdata, fibers  # DOLFINx (see `build`)
+
+    comm = geometry.comm
+    a0, field = fiberdata.make(geometry.base, source, *fiberdata.stokes_beside(geometry.base, stokes))
+    info(comm, f"{label}: fibres from {source.path}: {fiberdata.summary(field)}")
+    method = fiberdata.method(source, field)
+    if geometry.refinements:
+        a0 = fibers.carried(a0, geometry)
+        method += fibers.CARRIED_METHOD.format(n=geometry.refinements)
+    sha = on_rank0(comm, lambda: ckpt.file_digest(source.path))
+    return a0, {"fibers": presets.DATA, "fibers_method": method, "fibers_sha256": sha}
+
+
 def fiber_field(spec: RunSpec, geometry) -> tuple:
     """The fibres of ``spec`` on ``geometry`` and their record: ``fibers`` the kind used
-    (never auto), ``fibers_method`` how they were made, ``fibers_sha256`` the SHA-256 of
-    the fibre file they come from ("" for a field made from a formula). Collective."""
-    from hyper.fem import fibers  # DOLFINx (see `build`)
+    (never auto; "data" for a data file, or a mesh's fibre file made from one),
+    ``fibers_method`` how they were made, ``fibers_sha256`` the SHA-256 of the file they
+    come from ("" for a field made from a formula). Collective."""
+    from hyper.fem import fiberdata, fibers  # DOLFINx (see `build`)
 
+    if spec.fiber_data is not None:
+        return data_fibres(geometry, spec.fiber_data, stokes_file(spec.geometry, spec.mesh), spec.label)
     base = geometry.base
     kind = fibers.resolved(geometry, spec.fibers)
     if spec.mesh is not None and kind == "stokes":
@@ -363,6 +394,11 @@ def fiber_field(spec: RunSpec, geometry) -> tuple:
         if geometry.refinements:
             a0 = fibers.carried(a0, geometry)
         method = fibers.method(geometry, kind) + f"; {how}"
+        stored = on_rank0(geometry.comm, lambda: fiberdata.stored(path)) if path is not None else None
+        if stored is not None and stored[0] == presets.DATA:  # `hyper mesh --fibers FILE` made it from data
+            kind = presets.DATA
+            method = stored[1] + f"; {how}" + (fibers.CARRIED_METHOD.format(n=geometry.refinements)
+                                                if geometry.refinements else "")
     else:
         path = fibers.fiber_path(spec.geometry) if kind == "stokes" else None
         a0 = fibers.fiber_field(geometry, kind)

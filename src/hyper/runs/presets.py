@@ -16,8 +16,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from collections.abc import Mapping
+from pathlib import Path
 
 from hyper.core.params import InputError, build
+from hyper.fem import fiberread as fr
 from hyper.model.signaling.integrators import METHODS
 
 PRESETS: dict[str, dict] = {
@@ -47,6 +49,13 @@ SHAPE_DEFAULTS = {"ends": "disks", "fibers": "auto"}  # what every geometry but 
 MESH_FIBERS = ("auto", "stokes", "axial", "principal")
 MESH_ONLY_FIBERS = MESH_FIBERS[1:]
 FIBER_CHOICES = ("auto", "original", *MESH_ONLY_FIBERS)
+DATA = "data"  # the kind of the fibres of a data file (--fibers FILE, hyper.fem.fiberdata)
+# where --fibers FILE stands for one file per geometry (hyper cohort)
+GEOMETRY_FIELD = "{geometry}"
+DATA_HELP = ("or a fibre data FILE (hyper.fem.fiberdata, docs/fibres-from-data.md): a DTI image (.nii, .nii.gz: "
+             "eigenvector or tensor), streamlines (.vtk, .vtp, .npz), a point cloud (.csv, .npz: x,y,z,ax,ay,az) "
+             "or a fibre file (.h5), in the mesh's world frame, sampled at the loaded mesh's nodes")
+PER_GEOMETRY_HELP = f" ({GEOMETRY_FIELD} in FILE stands for each geometry's id: one file per geometry)"
 
 
 def settings(cls, name: str, chosen: Mapping, options: Mapping[str, str] | None = None):
@@ -76,9 +85,9 @@ def method_option(p: argparse.ArgumentParser, default: str | None = "rk4") -> No
                    help=METHOD_HELP + ("" if default else "; rk4 unless --settings sets it"))
 
 
-def add_options(p: argparse.ArgumentParser, *, signaling_method: bool = True) -> None:
+def add_options(p: argparse.ArgumentParser, *, signaling_method: bool = True, several: bool = False) -> None:
     """--settings and the switches of a growth run; ``signaling_method`` False where the
-    parser has its --signaling-method already."""
+    parser has its --signaling-method already; ``several``: the job runs several geometries."""
     from hyper.fem.coupled import CSA_METHODS
     from hyper.fem.geometry import IDEALIZED_ENDS
     from hyper.fem.growthfield import GROWTH_FIELDS
@@ -109,17 +118,21 @@ def add_options(p: argparse.ArgumentParser, *, signaling_method: bool = True) ->
     p.add_argument("--ends", choices=IDEALIZED_ENDS,
                    help="the idealized shape's spring ends: the flat end disks, or the XDMF's end tags with "
                         "their lateral band (the original code); disks unless --settings sets it")
-    p.add_argument("--fibers", choices=FIBER_CHOICES,
+    p.add_argument("--fibers", metavar="KIND|FILE",
                    help="the geometry's fibres (auto), or on the idealized shape the original code's (P2 used as "
                         "they are, surface integrals at UFL's estimated degree); a --mesh file's: auto or stokes "
                         "(the fibre file beside it, else computed), axial (e_z) or principal (its principal "
-                        "axis); auto unless --settings sets it")
+                        f"axis); {DATA_HELP}{PER_GEOMETRY_HELP if several else ''}; auto unless --settings sets it")
 
 
 def shape(args: argparse.Namespace, geometries, mesh: bool = False) -> dict:
     """The RunSpec fields ends and fibers: explicit options, else the preset's on the
     idealized shape (the only one the original's end tags and fibres exist for); a mesh
     file (``mesh``) takes the fibres of `runspec.MESH_FIBERS`."""
+    if is_data(args.fibers, FIBER_CHOICES):
+        if args.ends not in (None, SHAPE_DEFAULTS["ends"]):
+            raise InputError("--ends applies to the idealized shape with its own fibres, not with --fibers FILE")
+        return {**SHAPE_DEFAULTS, "fibers": DATA}
     explicit = {"ends": args.ends, "fibers": args.fibers}
     if mesh:
         if args.ends not in (None, SHAPE_DEFAULTS["ends"]):
@@ -137,6 +150,37 @@ def shape(args: argparse.Namespace, geometries, mesh: bool = False) -> dict:
         out.update({k: v for k, v in PRESETS[args.settings].items() if k in out})
     out.update({k: v for k, v in explicit.items() if v is not None})
     return out
+
+
+def is_data(value: str | None, kinds) -> bool:
+    """Whether a --fibers value names a data file rather than one of ``kinds`` (InputError
+    if it is neither)."""
+    if value is None or value in kinds:
+        return False
+    if fr.suffix(Path(value)) not in fr.FORMATS:
+        kinds = f"one of {', '.join(kinds)} or " if kinds else ""
+        raise InputError(f"--fibers {value}: expected {kinds}a fibre data file ({', '.join(fr.FORMATS)})")
+    return True
+
+
+def data_source(args: argparse.Namespace, kinds=FIBER_CHOICES, geometry: str | None = None) -> fr.Source | None:
+    """The fibre data file of --fibers FILE and its options (None for a kind), for
+    ``geometry`` where FILE holds `GEOMETRY_FIELD`. Its options without a file are an error."""
+    options = {"--fibers-unit": args.fibers_unit != "auto", "--fibers-min-fa": args.fibers_min_fa != fr.MIN_FA,
+               "--fibers-radius": args.fibers_radius is not None, "--fibers-fa": args.fibers_fa is not None}
+    if not is_data(args.fibers, kinds):
+        given = [name for name, set_ in options.items() if set_]
+        if given:
+            raise InputError(f"{given[0]} applies to --fibers FILE (fibres from data); --fibers is "
+                             f"{args.fibers or 'auto'}")
+        return None
+    text = args.fibers if geometry is None else args.fibers.replace(GEOMETRY_FIELD, geometry)
+    try:
+        radius = None if args.fibers_radius is None else args.fibers_radius * 1e-3  # mm on the command line
+        return fr.Source(Path(text), args.fibers_unit, args.fibers_min_fa, radius, args.fibers_fa)
+    except InputError as err:
+        raise InputError(f"--fibers {args.fibers}: {err}" if text == args.fibers else f"--fibers {args.fibers} "
+                         f"for {geometry}: {err}") from None
 
 
 def chosen(args: argparse.Namespace) -> dict:

@@ -58,6 +58,16 @@ def protocol_lines(protocol) -> tuple[list[str], list[str]]:
     return [], lines
 
 
+def mesh_fibre_keys(source) -> dict:
+    """A [[mesh]] table's keys of fibres from data (`hyper.analysis.study.MESH_FIBRE_KEYS`)."""
+    out = {"fibers": str(source.path.resolve()), "fibers_unit": source.unit, "fibers_min_fa": source.min_fa}
+    if source.radius is not None:
+        out["fibers_radius_mm"] = source.radius * 1e3
+    if source.fa is not None:
+        out["fibers_fa"] = str(source.fa.resolve())
+    return out
+
+
 def study_text(spec) -> str:
     """The study file of the run ``spec`` (a `hyper.runs.driver.RunSpec`)."""
     names, protocol = protocol_lines(spec.protocol)
@@ -65,7 +75,10 @@ def study_text(spec) -> str:
     lines.append(f"geometries = {value([spec.geometry] if spec.mesh is None else [])}")
     lines += [f"protocols = {value(names)}", ""]
     if spec.mesh is not None:
-        lines += ["[[mesh]]", f"file = {value(str(spec.mesh.path.resolve()))}", f"unit = {value(spec.mesh.unit)}", ""]
+        lines += ["[[mesh]]", f"file = {value(str(spec.mesh.path.resolve()))}", f"unit = {value(spec.mesh.unit)}"]
+        if spec.fiber_data is not None:
+            lines += [f"{key} = {value(v)}" for key, v in mesh_fibre_keys(spec.fiber_data).items()]
+        lines.append("")
     lines += protocol
     lines += table("signaling", as_attributes(spec.params))
     lines += table("material", as_attributes(spec.material))
@@ -91,7 +104,10 @@ def study_text(spec) -> str:
     lines += table("numerics", numerics)
     if spec.petsc_options:
         lines.append(f"# PETSc options of the mechanics solver (no study key sets them): {dict(spec.petsc_options)}")
-    if spec.mesh is not None and spec.fibers != "auto":
+    if spec.mesh is None and spec.fiber_data is not None:
+        lines.append(f"# fibres from data: --fibers {spec.fiber_data.path.resolve()} (a study sets them on a [[mesh]] "
+                     "only)")
+    if spec.mesh is not None and spec.fibers not in ("auto", "data"):
         lines.append(f"# the mesh's fibres: --fibers {spec.fibers} (no study key sets them; a study's meshes "
                      "run their Stokes fibres)")
     return "\n".join(lines).rstrip() + "\n"

@@ -14,6 +14,7 @@ from mpi4py import MPI
 from hyper.core import io
 from hyper.core.collective import on_rank0
 from hyper.core.params import InputError, as_attributes, as_seed
+from hyper.fem import fiberread as fr
 from hyper.model import signaling
 from hyper.model.material import MaterialParams
 from hyper.model.protocols import Protocol
@@ -148,6 +149,8 @@ class RunSpec:
     ends: str = "disks"
     fibers: str = "auto"
     material: MaterialParams = MaterialParams()  # the muscle law's parameters (--material)
+    # fibres from data (--fibers FILE, hyper.fem.fiberdata), with fibers = "data"
+    fiber_data: fr.Source | None = None
 
     def __post_init__(self):
         if self.settings is None:
@@ -163,6 +166,8 @@ class RunSpec:
             as_seed(self.seed, "seed")  # every job's seed, however given: it is stored as an attribute
         if isinstance(self.refine, bool) or not isinstance(self.refine, int) or not 0 <= self.refine <= MAX_REFINE:
             raise InputError(f"expected an integer in [0, {MAX_REFINE}], got {self.refine!r}", field="refine")
+        if (self.fibers == "data") != (self.fiber_data is not None):
+            raise InputError("fibres from data (fibers = 'data') need their file, and a file makes them so")
         if self.quadrature_degree is not None and not (isinstance(self.quadrature_degree, int)
                                                        and 1 <= self.quadrature_degree <= 12):
             raise InputError(f"expected an integer in [1, 12], got {self.quadrature_degree!r}",
@@ -197,6 +202,10 @@ class RunSpec:
             out["ends"] = self.ends
         if self.fibers != "auto":
             out["fibers"] = self.fibers
+        if self.fiber_data is not None:  # the file's bytes and how it is read, not its name
+            files = [self.fiber_data.path] + ([self.fiber_data.fa] if self.fiber_data.fa is not None else [])
+            out["fiber_data"] = {**{k: v for k, v in self.fiber_data.attributes().items() if k not in ("file", "fa")},
+                                 "sha256": ckpt.file_digest(*files)}
         if self.material != MaterialParams():
             out["material"] = as_attributes(self.material)
         return out
