@@ -546,10 +546,11 @@ def fascicle_lengths(cell_x, gradient, seeds, exterior, exterior_cell, exterior_
     A streamline ends on the insertion: where it crosses one of its ``planes`` next to one
     of the section's triangles, or where it leaves the mesh through a boundary facet of
     the insertion (``exterior`` (k, 3, 3) the boundary facets, ``exterior_cell`` (k, 3) the
-    centroids of their cells, ``exterior_insertion`` the mask). Steps of `STEP` cells' size, the last one cut at the crossing or, bisected, at
-    the exit. Where the discrete field points out through a zero-flux wall (by the
-    discretisation error of ∇φ in a boundary cell), the rest of the step slides along the
-    wall; a streamline longer than `MAX_LENGTH` muscle lengths is lost.
+    centroids of their cells, ``exterior_insertion`` the mask). Steps of `STEP` cells'
+    size, the last one cut at the crossing or, bisected, at the exit. Where the discrete
+    field points out through a zero-flux wall (by the discretisation error of ∇φ in a
+    boundary cell), the rest of the step slides along the wall; a streamline longer than
+    `MAX_LENGTH` muscle lengths is lost.
     """
     direction = gradient / np.linalg.norm(gradient, axis=1)[:, None]
     tracer = Tracer(cell_x, direction)
@@ -706,51 +707,65 @@ def _gather(comm, *arrays):
 
 
 def statistics(result: PennateFibers) -> dict:
-    """Cells, vertices, pennation angle (°) and fascicle length (mm) distributions, the
-    share of the origin area whose streamline reached the insertion, the patches' areas.
-    Collective; every rank gets the numbers."""
-    frame, geometry = result.frame, result.frame.geometry
+    """The architecture of pennate fibres (`architecture`), with the patches' areas."""
+    stats = architecture(result.frame, result.a0, result.gradient, result.origin, result.insertion)
+    return {**stats, "origin_area_mm2": result.origin.area / geo.MM**2,
+            "insertion_area_mm2": result.insertion.area / geo.MM**2}
+
+
+def stokes_statistics(geometry: geo.Geometry, a0: fem.Function) -> dict:
+    """`architecture` of a fibre field from end to end (the Stokes fibres): streamlines of
+    the cells' mean fibre from the inflow end ``ends[0]`` to the outflow end ``ends[1]``."""
+    frame = Frame(geometry)
+    ends = [select(frame, parse(f"tags:{tag}"), "ends") for tag in geometry.ends]
+    dofs = a0.function_space.dofmap.list[: len(frame.cell_x)]
+    direction = a0.x.array.reshape(-1, 3)[dofs].mean(axis=1)
+    return architecture(frame, a0, direction, *ends)
+
+
+def architecture(frame: Frame, a0: fem.Function, direction: np.ndarray, origin: Selection,
+                 insertion: Selection) -> dict:
+    """Cells, vertices, the pennation angle (°, module docstring) and fascicle length (mm)
+    distributions (mean and `PERCENTILES`), the share of the origin area whose streamline
+    of ``direction`` (owned cells, piecewise constant) reached the insertion, and the
+    statistics of `hyper.fem.fibers`. Collective; every rank gets the numbers."""
+    geometry = frame.geometry
     comm = frame.comm
-    cells = fibers.cell_fibers(geometry, result.a0)
-    o, i = result.origin, result.insertion
+    cells = fibers.cell_fibers(geometry, a0)
+    o, i = origin, insertion
     # seeds: the centroids of the origin's triangles, a boundary one nudged into its cell,
     # a section's on both sides (fibres leave a sheet both ways), each half its area
-    f_x = frame.facet_x[o.facets]
-    f_cell = frame.cell_x[frame.facet_cell[o.facets]].mean(axis=1)
-    f_seed = f_x.mean(axis=1)
-    f_seed = f_seed + 1e-6 * (f_cell - f_seed)
+    f_seed = frame.facet_x[o.facets].mean(axis=1)
+    f_seed = f_seed + 1e-6 * (frame.cell_x[frame.facet_cell[o.facets]].mean(axis=1) - f_seed)
     t_seed = o.triangles.mean(axis=1)
     t_normal = np.zeros_like(t_seed)
     for origin_pt, normal in o.planes:
-        on = np.abs(section.signed_distance(t_seed, origin_pt, normal)) < 1e-9
-        t_normal[on] = normal
-    eps = 1e-6 * np.cbrt(result.volume.mean()) if len(result.volume) else 0.0
+        t_normal[np.abs(section.signed_distance(t_seed, origin_pt, normal)) < 1e-9] = normal
+    eps = 1e-6 * (frame.high - frame.low)
     seeds = np.concatenate([f_seed, t_seed + eps * t_normal, t_seed - eps * t_normal])
     areas = np.concatenate([frame.facet_area[o.facets], 0.5 * o.triangle_area, 0.5 * o.triangle_area])
-    gathered = _gather(comm, frame.cell_x, result.gradient)
+    gathered = _gather(comm, frame.cell_x, direction)
     seeds_all = _gather(comm, seeds, areas)
     ext = _gather(comm, frame.facet_x, frame.cell_x[frame.facet_cell].mean(axis=1), i.facets)
     tri = [_gather(comm, i.triangles[np.abs(section.signed_distance(i.triangles.mean(axis=1), pt, n)) < 1e-9])
            for pt, n in i.planes]
     stats = None
     if comm.rank == 0:
-        centroid, fiber, volume = cells
+        _, fiber, volume = cells
         angle = np.degrees(np.arccos(np.clip(np.abs(fiber @ frame.axis), 0.0, 1.0)))
         stats = {"cells": len(volume), "vertices": int(geometry.mesh.topology.index_map(0).size_global),
                  **weighted_summary(angle, volume, "pennation_deg")}
-        cell_x, gradient = gathered
+        cell_x, field = gathered
         seed_x, seed_area = seeds_all
-        length, reached = fascicle_lengths(cell_x, gradient, seed_x, *ext, i.planes,
-                                           [t[0] for t in tri], frame.high - frame.low)
+        length, reached = fascicle_lengths(cell_x, field, seed_x, *ext, i.planes, [t[0] for t in tri],
+                                           frame.high - frame.low)
         stats["fascicles"] = len(seed_x)
         stats["fascicles_reached_share"] = float(seed_area[reached].sum() / seed_area.sum())
         if reached.any():
             stats.update(weighted_summary(length[reached] / geo.MM, seed_area[reached], "fascicle_mm"))
-        stats["origin_area_mm2"] = o.area / geo.MM**2
-        stats["insertion_area_mm2"] = i.area / geo.MM**2
     stats = comm.bcast(stats, root=0)
-    stats["max_norm_error"] = fibers.max_norm_error(result.a0)
-    stats["share_within_30deg"] = fibers.aligned_share(geometry, result.a0, frame.axis)
+    stats["max_norm_error"] = fibers.max_norm_error(a0)
+    stats["share_within_30deg"] = fibers.aligned_share(geometry, a0, frame.axis)
     return stats
 
 
