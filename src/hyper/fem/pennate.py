@@ -39,28 +39,10 @@ elsewhere, fibres the normalized gradient. Where this differs:
   first principal axis of the vertices (the axis `hyper.fem.fibers` measures the Stokes
   fibres against), per cell (mean of its nodal fibres), weighted by cell volume.
 
-Patches. A patch is a union (``|``) of intersections (``&``) of terms; each intersection
-has one selector and any number of filters. Coordinates are in millimetres, whatever the
-mesh file's unit:
-
-    boundary                       every boundary facet (implied by an intersection of filters only)
-    tags:T[,T...]                  boundary facets with these facet tags (1 origin end, 2 insertion
-                                   end, 3 lateral surface in the shipped meshes)
-    stl:FILE[,D]                   boundary facets whose three vertices lie within D mm (default
-                                   `STL_DISTANCE_MM`) of the surface in FILE (STL, millimetres)
-    vertices:FILE                  boundary facets whose three vertices are all listed in FILE
-                                   (mesh file node indices, from 0, separated by spaces, commas
-                                   or new lines)
-    plane:X,Y,Z,NX,NY,NZ           the muscle's section by the plane through (X, Y, Z) normal to
-                                   (NX, NY, NZ): an internal aponeurosis
-    midplane[:K]                   the section by the plane through the vertices' mean that holds
-                                   the first principal axis and is normal to the K-th (2 or 3;
-                                   default 3, the thinnest direction)
-  filters:
-    halfspace:X,Y,Z,NX,NY,NZ       keep what lies where (x - X)·N >= 0 (a triangle's centroid)
-    along:A,B                      keep what lies between shares A and B of the muscle's length
-                                   along the line of action, from 0 at the origin end (tag 1) to
-                                   1 at the insertion end (tag 2)
+Patches: the origin and the insertion are each a patch, written as `SYNTAX` says
+(terms such as ``tags:1``, ``midplane``, ``plane:X,Y,Z,NX,NY,NZ``, ``along:A,B`` joined by
+``&`` and ``|``)
+(``hyper fibers --help`` shows it).
 
 Tags: `tag_patches` puts the boundary facets of the origin and insertion and the mesh
 facets lying in a plane section on facet tags `ORIGIN_TAG` and `INSERTION_TAG`, and the
@@ -91,9 +73,33 @@ from hyper.fem import fibers, section
 from hyper.fem import geometry as geo
 from hyper.fem import meshing as hm
 
+STL_DISTANCE_MM = 1.0
+SYNTAX = f"""\
+Patches (--origin, --insertion): a union (|) of intersections (&) of terms; each intersection
+has one selector and any number of filters. Coordinates are in millimetres, whatever the
+mesh file's unit:
+
+    boundary                       every boundary facet (implied by an intersection of filters only)
+    tags:T[,T...]                  boundary facets with these facet tags (1 origin end, 2 insertion
+                                   end, 3 lateral surface in the shipped meshes)
+    stl:FILE[,D]                   boundary facets whose three vertices lie within D mm (default
+                                   {STL_DISTANCE_MM:g}) of the surface in FILE (STL, millimetres)
+    vertices:FILE                  boundary facets whose three vertices are all listed in FILE
+                                   (mesh file node indices, from 0, separated by spaces, commas
+                                   or new lines)
+    plane:X,Y,Z,NX,NY,NZ           the muscle's section by the plane through (X, Y, Z) normal to
+                                   (NX, NY, NZ): an internal aponeurosis
+    midplane[:K]                   the section by the plane through the vertices' mean that holds
+                                   the first principal axis and is normal to the K-th (2 or 3;
+                                   default 3, the thinnest direction)
+  filters:
+    halfspace:X,Y,Z,NX,NY,NZ       keep what lies where (x - X)·N >= 0 (a triangle's centroid)
+    along:A,B                      keep what lies between shares A and B of the muscle's length
+                                   along the line of action, from 0 at the origin end (tag 1) to
+                                   1 at the insertion end (tag 2)
+"""
 KIND = "pennate"
 ORIGIN_TAG, INSERTION_TAG = 11, 12
-STL_DISTANCE_MM = 1.0
 SELECTORS = ("boundary", "tags", "stl", "vertices", "plane", "midplane")
 FILTERS = ("halfspace", "along")
 # The default attachments, a bipennate rule for a long muscle: fascicles leave the proximal
