@@ -97,11 +97,13 @@ mesh file's unit:
     along:A,B                      keep what lies between shares A and B of the muscle's length
                                    along the line of action, from 0 at the origin end (tag 1) to
                                    1 at the insertion end (tag 2)
+    side:[-]K                      keep what lies on the + (or -) side of midplane:K (K 2 or 3;
+                                   the axes' signs are those numpy's eigh gives: look at the picture)
 """
 KIND = "pennate"
 ORIGIN_TAG, INSERTION_TAG = 11, 12
 SELECTORS = ("boundary", "tags", "stl", "vertices", "plane", "midplane")
-FILTERS = ("halfspace", "along")
+FILTERS = ("halfspace", "along", "side")
 # The default attachments, a bipennate rule for a long muscle: fascicles leave the proximal
 # 80 % of its surface (the origin end and the lateral surface there) and converge on a central
 # aponeurosis, the mid-plane across the thinnest direction, over the distal 80 %, and on the
@@ -177,6 +179,11 @@ def _term(text: str, where: str) -> Term:
         k = args.strip() or "3"
         if k not in ("2", "3"):
             raise InputError(f"{where}: expected midplane, midplane:2 or midplane:3")
+        return Term(name, (int(k),))
+    if name == "side":
+        k = args.strip()
+        if k not in ("2", "3", "-2", "-3"):
+            raise InputError(f"{where}: expected side:K or side:-K with K 2 or 3")
         return Term(name, (int(k),))
     if name == "along":
         a, b = _numbers(args, 2, where)
@@ -346,6 +353,11 @@ def _group(frame: Frame, group: tuple[Term, ...], where: str):
             normal = np.asarray(term.args[3:])
             mask = mask & (section.signed_distance(frame.facet_centroid, origin, normal) >= 0)
             keep = section.signed_distance(tri_centroid, origin, normal) >= 0
+        elif term.name == "side":
+            k = term.args[0]
+            normal = np.sign(k) * frame.axes[:, abs(k) - 1]
+            mask = mask & (section.signed_distance(frame.facet_centroid, frame.mean, normal) >= 0)
+            keep = section.signed_distance(tri_centroid, frame.mean, normal) >= 0
         else:
             a, b = term.args
             s = frame.share(frame.facet_centroid)

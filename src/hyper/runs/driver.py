@@ -327,7 +327,8 @@ def mesh_stokes_fibres(comm, mesh: MeshFile, geometry=None) -> tuple:
 
     geometry = mesh.load(comm) if geometry is None else geometry
     if on_rank0(comm, lambda: io.is_complete(mesh.fibres)):
-        info(comm, f"{mesh.path}: its Stokes fibres read from {mesh.fibres}")
+        kind, _ = on_rank0(comm, lambda: stored_fibres(mesh.fibres))
+        info(comm, f"{mesh.path}: its {'Stokes' if kind == 'stokes' else kind} fibres read from {mesh.fibres}")
         return fibers.load(geometry, mesh.fibres), mesh.fibres, f"read from {mesh.fibres}"
     cache, why = mesh.fibre_cache()
     info(comm, f"{mesh.path}: no fibre file beside it; computing its Stokes fibres"
@@ -337,6 +338,14 @@ def mesh_stokes_fibres(comm, mesh: MeshFile, geometry=None) -> tuple:
         return a0, None, f"computed for this run (not kept: {why})"
     fibers.store(cache, geometry, a0, speed, mesh=str(mesh.path), mesh_sha256=mesh.identity()["mesh_sha256"])
     return a0, cache, f"computed and kept in {cache}"
+
+
+def stored_fibres(path: Path) -> tuple[str, str]:
+    """(kind, method) a fibre file records: "pennate" and its rule for `hyper.fem.pennate`'s
+    files; a file without a kind (`hyper.fem.fibers.store`'s, `hyper mesh`'s) holds Stokes
+    fibres, made as its method says."""
+    with io.reading_h5(path, "fibre file") as f:
+        return str(f.attrs.get("kind", "stokes")), str(f.attrs.get("method", ""))
 
 
 def prepare_fibres(comm, meshes) -> None:
@@ -352,7 +361,8 @@ def prepare_fibres(comm, meshes) -> None:
 
 def fiber_field(spec: RunSpec, geometry) -> tuple:
     """The fibres of ``spec`` on ``geometry`` and their record: ``fibers`` the kind used
-    (never auto), ``fibers_method`` how they were made, ``fibers_sha256`` the SHA-256 of
+    (never auto; a mesh file's fibre file may hold another kind than Stokes, "pennate",
+    and says so), ``fibers_method`` how they were made, ``fibers_sha256`` the SHA-256 of
     the fibre file they come from ("" for a field made from a formula). Collective."""
     from hyper.fem import fibers  # DOLFINx (see `build`)
 
@@ -363,6 +373,10 @@ def fiber_field(spec: RunSpec, geometry) -> tuple:
         if geometry.refinements:
             a0 = fibers.carried(a0, geometry)
         method = fibers.method(geometry, kind) + f"; {how}"
+        stored, made = on_rank0(geometry.comm, lambda: stored_fibres(path)) if path is not None else ("stokes", "")
+        if stored != "stokes":  # a fibre file of another kind beside the mesh (hyper fibers --method pennate)
+            carried_over = fibers.CARRIED_METHOD.format(n=geometry.refinements) if geometry.refinements else ""
+            kind, method = stored, f"{made}{carried_over}; {how}"
     else:
         path = fibers.fiber_path(spec.geometry) if kind == "stokes" else None
         a0 = fibers.fiber_field(geometry, kind)
