@@ -287,26 +287,47 @@ class Selection:
         return section.triangle_areas(self.triangles)
 
 
+def _segment_distance(p, a, b) -> np.ndarray:
+    ab = b - a
+    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-300), 0.0, 1.0)
+    return np.linalg.norm(p - a - t[:, None] * ab, axis=1)
+
+
+def point_triangle_distance(p, a, b, c) -> np.ndarray:
+    """Distance from points p (n, 3) to triangles (a, b, c) (each (n, 3)), pair by pair."""
+    ab, ac, ap = b - a, c - a, p - a
+    normal = np.cross(ab, ac)
+    size = np.einsum("ij,ij->i", normal, normal)
+    # barycentric coordinates of p's projection (Cramer's rule on the plane)
+    v = np.einsum("ij,ij->i", np.cross(ap, ac), normal) / np.maximum(size, 1e-300)
+    w = np.einsum("ij,ij->i", np.cross(ab, ap), normal) / np.maximum(size, 1e-300)
+    inside = (size > 0) & (v >= 0) & (w >= 0) & (v + w <= 1)
+    edges = np.minimum(np.minimum(_segment_distance(p, a, b), _segment_distance(p, b, c)), _segment_distance(p, c, a))
+    plane = np.abs(np.einsum("ij,ij->i", ap, normal)) / np.sqrt(np.maximum(size, 1e-300))
+    return np.where(inside, plane, edges)
+
+
 def _stl_near(frame: Frame, path: Path, distance_mm: float) -> np.ndarray:
-    """Over the frame's facets: all three vertices within ``distance_mm`` of the STL's surface,
-    measured to points sampled on its triangles no further apart than a fifth of the distance."""
+    """Over the frame's facets: all three vertices within ``distance_mm`` of the STL's
+    surface (exact point-triangle distances, for the vertices a triangle's bounding
+    sphere, widened by the distance, holds)."""
     try:
         points, triangles = hm.read_stl(path)
     except (InputError, ValueError, OSError) as err:
         raise InputError(f"stl:{path}: cannot read it as an STL: {err}") from None
     corners = points[triangles] * geo.MM
-    spacing = 0.2 * distance_mm * geo.MM
-    edge = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
-    samples = [corners.mean(axis=1)]
-    for k in np.unique(np.ceil(edge / spacing).astype(int)):
-        k = int(min(max(k, 1), 200))
-        i, j = np.meshgrid(np.arange(k + 1), np.arange(k + 1), indexing="ij")
-        keep = i + j <= k
-        bary = np.column_stack([i[keep], j[keep], k - i[keep] - j[keep]]) / k
-        these = corners[np.ceil(edge / spacing).astype(int).clip(1, 200) == k]
-        samples.append(np.einsum("qc,tcx->tqx", bary, these).reshape(-1, 3))
-    tree = cKDTree(np.concatenate(samples))
-    near = tree.query(frame.facet_x.reshape(-1, 3))[0] <= distance_mm * geo.MM
+    distance = distance_mm * geo.MM
+    vertices = frame.facet_x.reshape(-1, 3)
+    near = np.zeros(len(vertices), dtype=bool)
+    if len(vertices):
+        tree = cKDTree(vertices)
+        centre = corners.mean(axis=1)
+        radius = np.linalg.norm(corners - centre[:, None], axis=2).max(axis=1) + distance
+        for tri, found in enumerate(tree.query_ball_point(centre, radius)):
+            if found:
+                found = np.asarray(found)
+                a, b, c = (np.broadcast_to(corners[tri, k], (len(found), 3)) for k in range(3))
+                near[found[point_triangle_distance(vertices[found], a, b, c) <= distance]] = True
     return near.reshape(-1, 3).all(axis=1)
 
 
