@@ -248,7 +248,9 @@ class Frame:
         tag[geometry.facet_tags.indices] = geometry.facet_tags.values
         self.facet_tag = tag[self.facets]
         f2c = mesh.topology.connectivity(tdim - 1, tdim)
-        self.facet_cell = np.array([f2c.links(f)[0] for f in self.facets], dtype=np.int32)
+        # the centroid of each facet's cell (owned or ghost: a facet's owner need not own its cell)
+        cell = np.array([f2c.links(f)[0] for f in self.facets], dtype=np.int32)
+        self.facet_cell_centroid = x[mesh.geometry.dofmaps[0][cell]].mean(axis=1)
         ncells = mesh.topology.index_map(tdim).size_local
         self.cell_nodes = mesh.geometry.dofmaps[0][:ncells]
         self.cell_x = x[self.cell_nodes]
@@ -455,8 +457,11 @@ def potential(geometry: geo.Geometry, frame: Frame, origin: Selection, insertion
     mesh = geometry.mesh
     V = fem.functionspace(mesh, ("Lagrange", 1))
     u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
-    owned = V.dofmap.index_map.size_local
-    pinned = np.arange(1 if geometry.comm.rank == 0 and owned else 0, dtype=np.int32)
+    # the dof of global index 0, on its owner and where it is a ghost: every rank assembling
+    # its row or column must know the condition
+    index_map = V.dofmap.index_map
+    local = np.arange(index_map.size_local + index_map.num_ghosts, dtype=np.int32)
+    pinned = local[index_map.local_to_global(local) == 0]
     bc = fem.dirichletbc(np.float64(0.0), pinned, V)
     A = fem_petsc.assemble_matrix(fem.form(ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx), bcs=[bc])
     A.assemble()
@@ -775,7 +780,7 @@ def architecture(frame: Frame, a0: fem.Function, direction: np.ndarray, origin: 
     # seeds: the centroids of the origin's triangles, a boundary one nudged into its cell,
     # a section's on both sides (fibres leave a sheet both ways), each half its area
     f_seed = frame.facet_x[o.facets].mean(axis=1)
-    f_seed = f_seed + 1e-6 * (frame.cell_x[frame.facet_cell[o.facets]].mean(axis=1) - f_seed)
+    f_seed = f_seed + 1e-6 * (frame.facet_cell_centroid[o.facets] - f_seed)
     t_seed = o.triangles.mean(axis=1)
     t_normal = np.zeros_like(t_seed)
     for origin_pt, normal in o.planes:
@@ -785,7 +790,7 @@ def architecture(frame: Frame, a0: fem.Function, direction: np.ndarray, origin: 
     areas = np.concatenate([frame.facet_area[o.facets], 0.5 * o.triangle_area, 0.5 * o.triangle_area])
     gathered = _gather(comm, frame.cell_x, direction)
     seeds_all = _gather(comm, seeds, areas)
-    ext = _gather(comm, frame.facet_x, frame.cell_x[frame.facet_cell].mean(axis=1), i.facets)
+    ext = _gather(comm, frame.facet_x, frame.facet_cell_centroid, i.facets)
     tri = [_gather(comm, i.triangles[np.abs(section.signed_distance(i.triangles.mean(axis=1), pt, n)) < 1e-9])
            for pt, n in i.planes]
     stats = None
