@@ -32,6 +32,7 @@ import numpy as np
 
 from hyper.commands import cli, grow
 from hyper.commands import fibers as fibers_job
+from hyper.commands.bench import common
 from hyper.core import io
 from hyper.core.log import info
 from hyper.core.params import InputError
@@ -45,7 +46,8 @@ RULES = {
 }
 SECTIONS = 9
 SHOWN = ("pennation_deg_mean", "pennation_deg_p5", "pennation_deg_p50", "pennation_deg_p95", "fascicle_mm_mean",
-         "fascicle_mm_p5", "fascicle_mm_p50", "fascicle_mm_p95", "fascicles_reached_share", "share_within_30deg")
+         "fascicle_mm_p5", "fascicle_mm_p50", "fascicle_mm_p95", "fascicles", "fascicles_reached_share",
+         "share_within_30deg")
 
 
 def parser() -> cli.Parser:
@@ -72,7 +74,9 @@ def rule(name: str) -> tuple[str, str]:
 
 
 def growth(comm, args, name: str, origin: str, insertion: str) -> dict:
-    """The 9-week mwf run with each field on a copy of the mesh: gains and sections."""
+    """The 9-week mwf run with each field on a copy of the mesh: gains and sections. The
+    jobs run without --quiet: each sets up the logging again, and --quiet would silence
+    this bench's own lines after it."""
     source = geo.MESHES_DIR / geo.GEOMETRIES[name]
     out = {}
     for field in ("stokes", "pennate"):
@@ -85,11 +89,11 @@ def growth(comm, args, name: str, origin: str, insertion: str) -> dict:
         comm.barrier()
         mesh = folder / source.name
         made = ["--method", "pennate", "--origin", origin, "--insertion", insertion] if field == "pennate" else []
-        if fibers_job.main(["--mesh", str(mesh), "--quiet", *made], comm=comm) != cli.EXIT_OK:
+        if fibers_job.main(["--mesh", str(mesh), *made], comm=comm) != cli.EXIT_OK:
             raise InputError(f"{name}: hyper fibers --mesh failed")
         result = folder / "mwf.h5"
         (_, wall, cpu) = timed(lambda: grow.main(["--mesh", str(mesh), "--mesh-unit", "mm", "--protocol", "mwf",
-                                                 "--sections", str(SECTIONS), "--output", str(result), "--quiet"],
+                                                 "--sections", str(SECTIONS), "--output", str(result)],
                                                 comm=comm))
         series = io.read_series(result)
         with io.reading_h5(result) as f:
@@ -109,8 +113,8 @@ def run(comm, args) -> int:
         result, compute_wall, compute_cpu = timed(lambda: pennate.compute(geometry, origin, insertion))
         stats, stats_wall, stats_cpu = timed(lambda: pennate.statistics(result))
         stokes = pennate.stokes_statistics(geometry, fibers.load(geometry))
-        row = {"geometry": name, "cells": stats["cells"], "ranks": comm.size, "origin": origin,
-               "insertion": insertion, "compute_wall_s": compute_wall, "compute_cpu_s": compute_cpu,
+        row = {"geometry": name, "machine": common.machine(), "cells": stats["cells"], "ranks": comm.size,
+               "origin": origin, "insertion": insertion, "compute_wall_s": compute_wall, "compute_cpu_s": compute_cpu,
                "statistics_wall_s": stats_wall, "statistics_cpu_s": stats_cpu,
                "pennate": {k: stats.get(k) for k in SHOWN}, "stokes": {k: stokes.get(k) for k in SHOWN}}
         if args.growth:
