@@ -284,7 +284,7 @@ def test_a_fibre_file_is_stored_and_read_back(ta, tmp_path):
     assert np.array_equal(fibers.load(ta, tmp_path / "f.h5").x.array, a0.x.array)
     again, read = fiberdata.make(ta, fr.Source(tmp_path / "f.h5"))
     assert np.array_equal(again.x.array, a0.x.array) and read.coverage == 1.0
-    assert fiberdata.stored(tmp_path / "f.h5")[0] == "data"
+    assert fr.stored_fibres(tmp_path / "f.h5")[0] == "data"
 
 
 def test_the_angle_against_the_stokes_fibres_is_reported(ta):

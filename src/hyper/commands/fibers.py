@@ -1,6 +1,14 @@
 """``hyper fibers``: the Stokes-flow fibres (`hyper.fem.fibers`) of the anatomical meshes,
-stored next to each mesh, with a picture and a summary per mesh; or, with ``--fibers
-FILE``, fibres from data (`hyper.fem.fiberdata`) of the geometries given.
+stored next to each mesh, with a picture and a summary per mesh; with ``--fibers FILE``,
+fibres from data (`hyper.fem.fiberdata`) of the geometries given; or the fibres of one
+mesh file, Stokes or pennate (`hyper.fem.pennate`), beside it:
+
+    hyper fibers --mesh my_muscle/my_muscle.xdmf --mesh-unit mm --method pennate \
+        --origin "tags:1 | tags:3 & along:0,0.8" --insertion "tags:2 | midplane & along:0.2,1"
+
+writes my_muscle/fibers.h5 (which `hyper grow --mesh my_muscle/my_muscle.xdmf` then
+reads) and my_muscle/fibers.png: fibre glyphs on two mid-slices coloured by the pennation
+angle, and the distributions of pennation angle and fascicle length.
 
 ``mpirun -n 2 python -m hyper.fibers`` spreads the meshes over groups of
 ``--ranks-per-job`` ranks (hyper.runs.farm) and skips a mesh whose fibre file is complete
@@ -31,19 +39,34 @@ from hyper.core.collective import on_rank0
 from hyper.core.io import atomic_path, is_complete, write_series
 from hyper.core.log import info
 from hyper.core.params import InputError, as_attributes
-from hyper.fem import fiberdata, fibers
+from hyper.fem import fiberdata, fibers, pennate
 from hyper.fem import geometry as geo
-from hyper.runs import farm, plot, presets
+from hyper.runs import farm, plot, presets, runspec
 
 SUMMARY_COLUMNS = ("geometry", "muscle", "subject", "side", "cells", "vertices", "share_within_30deg",
                    "max_norm_error", "min_speed", "max_speed", "solve_s", "status")
 
 
+METHODS = ("stokes", "pennate")
+
+
 def parser() -> cli.Parser:
     p = cli.Parser("fibers", description="Stokes-flow fibre fields for the anatomical meshes (MODEL.md §5), stored "
-                   f"next to each mesh\nas {fibers.FILE_NAME}, with a picture and a summary per mesh.")
+                   f"next to each mesh\nas {fibers.FILE_NAME}, with a picture and a summary per mesh; or, with "
+                   f"--mesh, the Stokes or pennate fibres\nof one mesh file beside it.\n\n{pennate.SYNTAX}")
     p.add_argument("--geometries", nargs="+", metavar="ID", default=list(geo.ANATOMICAL),
                    help="geometries to do (the 12 anatomical meshes)")
+    p.add_argument("--mesh", type=Path, reads=True,
+                   help=f"instead of --geometries: one XDMF mesh with facet tags ft_small (1, 2 the ends, 3 the "
+                        f"lateral surface), whose fibres go beside it as {fibers.FILE_NAME} with fibers.png")
+    p.add_argument("--mesh-unit", choices=tuple(runspec.MESH_UNITS), default="mm", help="length unit of --mesh")
+    p.add_argument("--method", choices=METHODS, default="stokes",
+                   help="with --mesh: Stokes flow (hyper.fem.fibers) or pennate fibres between --origin and "
+                        "--insertion (hyper.fem.pennate)")
+    p.add_argument("--origin", default=pennate.DEFAULT_ORIGIN, metavar="PATCH",
+                   help="pennate: the origin aponeurosis (patch syntax above)")
+    p.add_argument("--insertion", default=pennate.DEFAULT_INSERTION, metavar="PATCH",
+                   help="pennate: the insertion aponeurosis (patch syntax above)")
     p.add_argument("--force", action="store_true", help="recompute fibre files that exist")
     p.add_argument("--ranks-per-job", type=cli.integer(1), default=1, help="MPI ranks per mesh")
     p.add_argument("--output", type=cli.output(folder=True), default="results/fibers",
@@ -153,6 +176,15 @@ def picture(geometry, a0, field, path: Path, title: str) -> None:
 def run(comm, args) -> int:
     if args.fibers is not None:
         return from_data(comm, args)
+    if args.method == "stokes" and (args.origin, args.insertion) != (pennate.DEFAULT_ORIGIN, pennate.DEFAULT_INSERTION):
+        raise InputError("--origin and --insertion are the attachments of --method pennate")
+    if args.mesh is not None:
+        if args.geometries != list(geo.ANATOMICAL):
+            raise InputError("--mesh and --geometries: one or the other")
+        return run_mesh(comm, args)
+    if args.method == "pennate":
+        raise InputError("--method pennate: give the --mesh file whose fibres to make (the shipped mesh folders keep "
+                         "their Stokes fibres; copy one to make pennate fibres beside it)")
     unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
     if unknown:
         raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")
@@ -189,6 +221,111 @@ def run(comm, args) -> int:
         info(comm, f"summary: {args.output / 'summary.csv'}")
         status = int(any(r.status == "failed" for r in results))
     return comm.bcast(status, root=0)
+
+
+def run_mesh(comm, args) -> int:
+    """The fibres of one mesh file, written beside it with their picture (module docstring)."""
+    mesh = runspec.MeshFile(args.mesh, unit=args.mesh_unit)
+    path = mesh.fibres
+    picture = path.with_suffix(".png")
+    if not on_rank0(comm, mesh.path.is_file):
+        raise InputError(f"--mesh {mesh.path}: no such file")
+    cache, why = mesh.fibre_cache()
+    if cache is None:
+        raise InputError(f"--mesh {mesh.path}: its fibres cannot go beside it ({why}); copy the mesh folder")
+    if not args.force and on_rank0(comm, path.exists):
+        raise InputError(f"{path}: exists; give --force to replace it")
+    if args.method == "pennate":  # the patches parsed before any work: a bad one writes nothing
+        origin = pennate.parse(args.origin, "--origin")
+        insertion = pennate.parse(args.insertion, "--insertion")
+    geometry = mesh.load(comm)
+    start = time.perf_counter()
+    identity = {"mesh": str(mesh.path), "mesh_sha256": mesh.identity()["mesh_sha256"]}
+    if args.method == "pennate":
+        result = pennate.compute(geometry, origin, insertion)
+        a0 = result.a0
+        solve_s = time.perf_counter() - start
+        stats = pennate.statistics(result)
+        pennate.store(path, result, {**stats, "solve_s": solve_s}, **identity)
+        label = f"pennate fibres (origin {origin.spec!r}, insertion {insertion.spec!r})"
+    else:
+        params = fibers.StokesParams(penalty=args.penalty)
+        a0, speed = fibers.compute(geometry, params)
+        solve_s = time.perf_counter() - start
+        stats = pennate.stokes_statistics(geometry, a0)
+        fibers.store(path, geometry, a0, speed, params, kind="stokes", solve_s=solve_s,
+                     **{f"architecture_{k}": v for k, v in stats.items() if k.startswith(("pennation", "fascicle"))},
+                     **identity)
+        label = "Stokes fibres"
+    cells = fibers.cell_fibers(geometry, a0)
+    axis = pennate.Frame(geometry).axis
+    if comm.rank == 0:
+        plot.save(pennation_figure(geometry.name, *cells, axis, stats, label), picture, dpi=110)
+    info(comm, f"{geometry.name}: {label}")
+    info(comm, f"  pennation angle to the line of action (first principal axis): mean "
+               f"{stats['pennation_deg_mean']:.1f}°, 5/50/95 % {stats['pennation_deg_p5']:.1f}/"
+               f"{stats['pennation_deg_p50']:.1f}/{stats['pennation_deg_p95']:.1f}°")
+    if "fascicle_mm_mean" in stats:
+        info(comm, f"  fascicle length: mean {stats['fascicle_mm_mean']:.1f} mm, 5/50/95 % "
+                   f"{stats['fascicle_mm_p5']:.1f}/{stats['fascicle_mm_p50']:.1f}/{stats['fascicle_mm_p95']:.1f} mm "
+                   f"({100 * stats['fascicles_reached_share']:.1f} % of the origin area reached the insertion)")
+    info(comm, f"  fibres within 30° of the axis: {100 * stats['share_within_30deg']:.1f} % of the volume; "
+               f"made in {solve_s:.1f} s")
+    info(comm, f"wrote {path} and {picture}")
+    return cli.EXIT_OK
+
+
+def pennation_figure(name: str, centroid, fiber, volume, axis, stats: dict, label: str):
+    """Fibre glyphs on two orthogonal mid-slices coloured by the pennation angle (to the
+    line of action ``axis``), and the distributions of pennation angle and fascicle length."""
+    plt = plot.pyplot()
+    from matplotlib.collections import LineCollection
+
+    angle = np.degrees(np.arccos(np.clip(np.abs(fiber @ axis), 0.0, 1.0)))
+    centred = centroid - centroid.mean(axis=0)
+    across = centred - np.outer(centred @ axis, axis)
+    spread = np.linalg.svd(across, full_matrices=False)[2]
+    basis = np.vstack([axis, spread[0], np.cross(axis, spread[0])])
+    p = centred @ basis.T * 1e3
+    d = fiber @ basis.T
+    cmap, norm = plt.get_cmap("viridis"), plt.Normalize(0.0, 30.0)
+    glyph = 0.012 * np.ptp(p[:, 0])
+    fig = plt.figure(figsize=(13, 6.0), layout="constrained")
+    grid = fig.add_gridspec(2, 2, width_ratios=(3.0, 1.0))
+    for row, (shown, hidden) in enumerate(((1, 2), (2, 1))):
+        ax = fig.add_subplot(grid[row, 0])
+        slab = np.abs(p[:, hidden] - np.median(p[:, hidden])) < 0.08 * np.ptp(p[:, hidden])
+        xy = p[slab][:, [0, shown]]
+        uv = d[slab][:, [0, shown]]
+        uv = uv / np.maximum(np.linalg.norm(uv, axis=1), 1e-12)[:, None] * glyph
+        ax.add_collection(LineCollection(np.stack([xy - uv, xy + uv], axis=1), colors=cmap(norm(angle[slab])),
+                                         linewidths=1.0))
+        ax.set_xlim(p[:, 0].min() - glyph, p[:, 0].max() + glyph)
+        ax.set_ylim(p[:, shown].min() - glyph, p[:, shown].max() + glyph)
+        ax.set_aspect("equal")
+        ax.set_ylabel(f"{('', '2nd', '3rd')[shown]} axis (mm)")
+        ax.set_title(f"mid-slice across the {('', '3rd', '2nd')[shown]} axis: {slab.sum()} cells", fontsize=10)
+    ax.set_xlabel("line of action: first principal axis (mm), from the origin end to the insertion end")
+    fig.colorbar(plt.cm.ScalarMappable(cmap=cmap, norm=norm), ax=fig.axes, shrink=0.6, location="bottom",
+                 aspect=40, label="pennation angle to the line of action (°, clipped at 30)")
+    top = fig.add_subplot(grid[0, 1])
+    top.hist(angle, bins=np.arange(0, 46, 1.5), weights=volume / volume.sum() * 100, color="0.4")
+    top.set_xlabel("pennation angle (°)")
+    top.set_ylabel("share of volume (%)")
+    top.set_title(f"mean {stats['pennation_deg_mean']:.1f}°, median {stats['pennation_deg_p50']:.1f}°", fontsize=10)
+    bottom = fig.add_subplot(grid[1, 1])
+    if "fascicle_mm_mean" in stats:
+        bottom.axvspan(stats["fascicle_mm_p5"], stats["fascicle_mm_p95"], color="C0", alpha=0.25,
+                       label="5-95 %")
+        bottom.axvline(stats["fascicle_mm_p50"], color="C0", label="median")
+        bottom.axvline(stats["fascicle_mm_mean"], color="C3", ls="--", label="mean")
+        bottom.set_xlim(0, max(1.1 * stats["fascicle_mm_p95"], 10.0))
+        bottom.legend(fontsize=8)
+        bottom.set_title(f"fascicle length: mean {stats['fascicle_mm_mean']:.0f} mm", fontsize=10)
+    bottom.set_yticks([])
+    bottom.set_xlabel("fascicle length, origin to insertion (mm)")
+    fig.suptitle(f"{name}: {label}", fontsize=11)
+    return fig
 
 
 def figure(name: str, centroid, fiber, volume, axis, stats: dict, title: str | None = None,
@@ -243,7 +380,8 @@ def figure(name: str, centroid, fiber, volume, axis, stats: dict, title: str | N
     return fig
 
 
-main = cli.entry(parser, run, locks=lambda args: [args.output])
+main = cli.entry(parser, run,
+                 locks=lambda args: [args.output] if args.mesh is None else [args.mesh.parent / fibers.FILE_NAME])
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -50,7 +50,7 @@ from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
 from hyper.core.collective import on_rank0
-from hyper.core.io import is_complete, reading_h5, write_series
+from hyper.core.io import is_complete, write_series
 from hyper.core.params import InputError
 from hyper.fem import fiberread as fr
 from hyper.fem import fibers
@@ -397,15 +397,9 @@ def stokes_beside(geometry: geo.Geometry, path: Path | None) -> tuple[fem.Functi
     if path is None:
         return None, "no Stokes fibres to compare with (none for this geometry)"
     path = Path(path)
-    if not on_rank0(geometry.comm, lambda: is_complete(path) and stored(path)[0] == "stokes"):
+    if not on_rank0(geometry.comm, lambda: is_complete(path) and fr.stored_fibres(path)[0] == "stokes"):
         return None, f"no Stokes fibres to compare with ({path}: none there)"
     return fibers.load(geometry, path), ""
-
-
-def stored(path: Path) -> tuple[str, str]:
-    """(kind, method) of a fibre file: "data" (`store`) or "stokes" (`hyper.fem.fibers.store`)."""
-    with reading_h5(path, "fibre file") as f:
-        return str(f.attrs.get("kind", "stokes")), str(f.attrs.get("method", ""))
 
 
 def store(path: str | Path, geometry: geo.Geometry, a0: fem.Function, field: Field, source: fr.Source,

@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hyper.core.io import reading_h5
 from hyper.core.params import InputError, as_float
 
 # what each suffix is read as
@@ -494,3 +495,11 @@ def read_samples(source: Source) -> Samples:
                          f"{', '.join(CLOUD_KEYS)} (a point cloud); it has {', '.join(arrays) or 'none'}")
     points, offsets = (legacy_vtk if source.format == ".vtk" else xml_vtk)(path)
     return pieces(points * metres, offsets, path, unit)
+
+
+def stored_fibres(path: Path) -> tuple[str, str]:
+    """(kind, method) a fibre file records: "data" (`hyper.fem.fiberdata.store`), "pennate"
+    (`hyper.fem.pennate.store`); a file without a kind (`hyper.fem.fibers.store`'s, an older
+    `hyper mesh`'s) holds Stokes fibres, made as its method says."""
+    with reading_h5(path, "fibre file") as f:
+        return str(f.attrs.get("kind", "stokes")), str(f.attrs.get("method", ""))

@@ -40,6 +40,7 @@ from hyper.core import io, term
 from hyper.core.collective import on_rank0
 from hyper.core.log import PROGRESS_EVERY, Progress, info
 from hyper.core.params import InputError, as_attributes
+from hyper.fem import fiberread as fr
 from hyper.model import signaling
 from hyper.model.failure import GrowthFailure
 from hyper.runs import checkpoint as ckpt
@@ -327,7 +328,8 @@ def mesh_stokes_fibres(comm, mesh: MeshFile, geometry=None) -> tuple:
 
     geometry = mesh.load(comm) if geometry is None else geometry
     if on_rank0(comm, lambda: io.is_complete(mesh.fibres)):
-        info(comm, f"{mesh.path}: its fibres read from {mesh.fibres}")
+        kind, _ = on_rank0(comm, lambda: fr.stored_fibres(mesh.fibres))
+        info(comm, f"{mesh.path}: its {'Stokes' if kind == 'stokes' else kind} fibres read from {mesh.fibres}")
         return fibers.load(geometry, mesh.fibres), mesh.fibres, f"read from {mesh.fibres}"
     cache, why = mesh.fibre_cache()
     info(comm, f"{mesh.path}: no fibre file beside it; computing its Stokes fibres"
@@ -380,10 +382,10 @@ def data_fibres(geometry, source, stokes: Path | None, label: str) -> tuple:
 
 def fiber_field(spec: RunSpec, geometry) -> tuple:
     """The fibres of ``spec`` on ``geometry`` and their record: ``fibers`` the kind used
-    (never auto; "data" for a data file, or a mesh's fibre file made from one),
-    ``fibers_method`` how they were made, ``fibers_sha256`` the SHA-256 of the file they
-    come from ("" for a field made from a formula). Collective."""
-    from hyper.fem import fiberdata, fibers  # DOLFINx (see `build`)
+    (never auto; "data" for a data file; a mesh file's fibre file may hold another kind
+    than Stokes, "pennate" or "data", and says so), ``fibers_method`` how they were made,
+    ``fibers_sha256`` the SHA-256 of the fibre file they come from ("" for a field made from a formula). Collective."""
+    from hyper.fem import fibers  # DOLFINx (see `build`)
 
     if spec.fiber_data is not None:
         return data_fibres(geometry, spec.fiber_data, stokes_file(spec.geometry, spec.mesh), spec.label)
@@ -394,11 +396,10 @@ def fiber_field(spec: RunSpec, geometry) -> tuple:
         if geometry.refinements:
             a0 = fibers.carried(a0, geometry)
         method = fibers.method(geometry, kind) + f"; {how}"
-        stored = on_rank0(geometry.comm, lambda: fiberdata.stored(path)) if path is not None else None
-        if stored is not None and stored[0] == presets.DATA:  # `hyper mesh --fibers FILE` made it from data
-            kind = presets.DATA
-            method = stored[1] + f"; {how}" + (fibers.CARRIED_METHOD.format(n=geometry.refinements)
-                                                if geometry.refinements else "")
+        stored, made = on_rank0(geometry.comm, lambda: fr.stored_fibres(path)) if path is not None else ("stokes", "")
+        if stored != "stokes":  # a fibre file of another kind beside the mesh (hyper fibers --method pennate)
+            carried_over = fibers.CARRIED_METHOD.format(n=geometry.refinements) if geometry.refinements else ""
+            kind, method = stored, f"{made}{carried_over}; {how}"
     else:
         path = fibers.fiber_path(spec.geometry) if kind == "stokes" else None
         a0 = fibers.fiber_field(geometry, kind)
