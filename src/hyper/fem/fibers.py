@@ -97,9 +97,12 @@ class StokesParams:
     # (at most 0.3°) and leaves the 30° share unchanged
     quadrature_degree: int = 4
     min_speed: float = 1.0e-6  # (1, of the inflow speed) below it a node has no fibre direction
+    degree: int = 2  # of the velocity (Taylor–Hood: the pressure one less)
 
     def __post_init__(self):
         check_positive(self, "penalty", "min_speed")
+        if self.degree not in (2, 3):
+            raise InputError(f"degree must be 2 or 3, got {self.degree!r}")
         q = self.quadrature_degree
         if isinstance(q, bool) or not float(q).is_integer() or not 2 <= q <= 12:
             raise InputError(f"quadrature_degree must be an integer in 2..12, got {q!r}")
@@ -136,14 +139,16 @@ class StokesFibers:
     nodal speed. Collective over the geometry's communicator.
     """
 
-    def __init__(self, geometry: geo.Geometry, params: StokesParams = StokesParams()):
+    def __init__(self, geometry: geo.Geometry, params: StokesParams = StokesParams(), inflow_speed=None):
+        """``inflow_speed``: the normal inflow speed as a function of x (shape (3, n)), for flows
+        whose exact field is known (tests); uniform 1 by default, as the method says."""
         self.geometry = geometry
         self.params = params
         mesh = geometry.mesh
         cell = mesh.topology.cell_name()
-        p2 = basix.ufl.element("Lagrange", cell, 2, shape=(3,))
-        p1 = basix.ufl.element("Lagrange", cell, 1)
-        self.W = fem.functionspace(mesh, basix.ufl.mixed_element([p2, p1]))
+        velocity = basix.ufl.element("Lagrange", cell, params.degree, shape=(3,))
+        pressure = basix.ufl.element("Lagrange", cell, params.degree - 1)
+        self.W = fem.functionspace(mesh, basix.ufl.mixed_element([velocity, pressure]))
         self.V1 = fem.functionspace(mesh, ("Lagrange", 1, (3,)))
 
         metadata = {"quadrature_degree": params.quadrature_degree}
@@ -170,12 +175,16 @@ class StokesFibers:
 
         a = (ufl.inner(2.0 * eps(u), eps(v)) - p * ufl.div(v) - q * ufl.div(u)) * dx
         L = fem.Constant(mesh, 0.0) * q * dx
-        for tag, flux in ((inflow, -1.0), (lateral, 0.0)):
+        speed = 1.0
+        if inflow_speed is not None:
+            speed = fem.Function(fem.functionspace(mesh, ("Lagrange", params.degree)))
+            speed.interpolate(inflow_speed)
+        for tag, flux in ((inflow, -speed), (lateral, 0.0)):
             N = unit(self.normals[tag])
             a += (-ufl.dot(N, sigma(u, p) * n) * ufl.dot(v, N)
                   - ufl.dot(N, sigma(v, q) * n) * ufl.dot(u, N)
                   + 2.0 * gamma / h * ufl.dot(u, N) * ufl.dot(v, N)) * ds(tag)
-            if flux:
+            if tag == inflow:
                 L += flux * (-ufl.dot(N, sigma(v, q) * n) + 2.0 * gamma / h * ufl.dot(v, N)) * ds(tag)
         self.problem = LinearProblem(
             a, L,
