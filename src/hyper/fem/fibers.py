@@ -469,6 +469,40 @@ def carried(a0: fem.Function, geometry: geo.Geometry) -> fem.Function:
     return a0
 
 
+TRANSFER_PADDING_M = 0.01  # how far outside the flow's mesh a node may lie (m): its nearest cell's value
+TRANSFERRED_METHOD = ("; solved on a mesh of the same surface at {cells} cells and interpolated onto this "
+                      "mesh's nodes, unit there")
+
+
+def transferred(field: fem.Function, geometry: geo.Geometry) -> fem.Function:
+    """A P1 field (vector or scalar) on another mesh of the same shape, interpolated at
+    ``geometry``'s nodes. Meshes of one surface at two resolutions have different facets:
+    a node outside the other mesh (by up to a few mm between coarse meshes) takes the
+    value of its nearest cell within TRANSFER_PADDING_M; one further out is an error."""
+    space = fem.functionspace(geometry.mesh, ("Lagrange", 1, field.function_space.value_shape))
+    out = fem.Function(space, name=field.name)
+    cmap = geometry.mesh.topology.index_map(geometry.mesh.topology.dim)
+    cells = np.arange(cmap.size_local + cmap.num_ghosts, dtype=np.int32)
+    out.interpolate_nonmatching(field, cells, fem.create_interpolation_data(space, field.function_space, cells,
+                                                                           padding=TRANSFER_PADDING_M))
+    out.x.scatter_forward()
+    found = bool(np.all(np.abs(out.x.array.reshape(-1, space.dofmap.index_map_bs)).max(axis=1) > 0))
+    if not geometry.comm.allreduce(found, op=MPI.LAND):
+        raise RuntimeError(f"{geometry.name}: some nodes lie further than {TRANSFER_PADDING_M:g} m from the mesh "
+                           "the field was computed on")
+    return out
+
+
+def compute_transferred(geometry: geo.Geometry, flow: geo.Geometry, params: StokesParams = StokesParams()
+                        ) -> tuple[fem.Function, fem.Function]:
+    """The Stokes fibres of ``geometry`` solved on ``flow``, a finer mesh of the same
+    surface, and carried onto ``geometry``'s nodes: (a0 unit at the nodes, speed)."""
+    a0, speed = StokesFibers(flow, params).fibers()
+    u = transferred(a0, geometry)
+    u.x.array[:] *= np.repeat(transferred(speed, geometry).x.array, 3)
+    return normalized(u, params.min_speed, geometry.name)
+
+
 def store(path: str | Path, geometry: geo.Geometry, a0: fem.Function, speed: fem.Function,
           params: StokesParams = StokesParams(), **attrs) -> None:
     """Write the Stokes fibres of ``geometry`` to ``path`` as a fibre file (module
