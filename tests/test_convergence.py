@@ -95,7 +95,8 @@ def test_an_accuracy_below_what_the_fibres_allow_is_refused(monkeypatch):
     scene = Scene("TA_VHF_Left", "mwf", heterogeneous=False, ask="growth")
     assert fidelity.choose_on_mesh(scene, 1e-2).refine == 0  # 4e-3 within half of 1e-2
     with pytest.raises(InputError, match=r"accuracy 0.001 is tighter than the mesh of TA_VHF_Left can give: its "
-                       r"spatial error is 0.003 of the growth even refined 3 time\(s\), 0.003 of it from the fibres.*accuracy is 0.006"):
+                       r"spatial error is 0.003 of the growth even refined 3 time\(s\), 0.003 of it from the "
+                       r"fibres and the surface's facets.*accuracy is 0.006"):
         fidelity.choose_on_mesh(scene, 1e-3)
 
 

@@ -24,9 +24,10 @@ convergence`), is a third source that adds to the other two. Every run's result 
 it (`spatial(...).as_attributes()`, the result's ``spatial`` group). With an accuracy,
 the mesh is chosen first: the fewest uniform refinements (``--refine K``, at least the K
 given) whose spatial error is within `SPATIAL_SHARE` of the accuracy; the steps then
-share what is left. The fibres' share of the error stays under refinement (a refined
-mesh carries the loaded mesh's fibre field, `hyper.fem.fibers.carried`), so an accuracy
-below it is refused with what the mesh can give.
+share what is left. Two parts of the error stay under refinement: the fibres' (a refined
+mesh carries the loaded mesh's fibre field, `hyper.fem.fibers.carried`) and the surface's
+(refining keeps the polyhedron, whose facets approximate the muscle's surface); an
+accuracy below them is refused with what the mesh can give.
 
 The linear solver is chosen once the mesh is known (`linear_solver`): MUMPS's LU while
 its memory, predicted from the measured growth with the number of unknowns, fits in the
@@ -312,8 +313,10 @@ class MeshError:
     the shipped mesh's size)."""
 
     error: float  # at the default mesh, refine 0
-    fibres: float  # the part the fibres carry: refining the mechanics mesh keeps it
-    order: float  # observed order in h of the rest (the mechanics'); --refine halves h
+    # the part uniform refinement keeps: the fibres' resolution (a refined mesh carries the
+    # loaded mesh's field) and the surface's facets (refining keeps the polyhedron)
+    kept: float
+    order: float  # of the rest, the finite elements' on the polyhedron, in h (--refine halves h)
     source: str  # the command and the level it was measured at
 
 
@@ -332,7 +335,7 @@ class Spatial:
     geometry: str
     refine: int
     error: float  # fraction of the growth
-    fibres: float  # of which the fibres' resolution
+    kept: float  # of which what refining keeps (`MeshError.kept`)
     measured: bool  # False: estimated from another geometry's table
     reason: str
 
@@ -341,7 +344,8 @@ class Spatial:
 
     def describe(self) -> str:
         est = "" if self.measured else ", estimated"
-        return (f"spatial error {self.error:.2g} of the growth{est} (fibres {self.fibres:.2g}; {self.reason})")
+        return (f"spatial error {self.error:.2g} of the growth{est} ({self.kept:.2g} of it kept under --refine: "
+                f"fibres and surface facets; {self.reason})")
 
 
 def _table_entry(geometry: str, mesh_file: bool) -> tuple[MeshError, bool, str]:
@@ -362,10 +366,10 @@ def _table_entry(geometry: str, mesh_file: bool) -> tuple[MeshError, bool, str]:
 def spatial(geometry: str, refine: int = 0, *, mesh_file: bool = False) -> Spatial:
     """The spatial error of the growth on ``geometry`` (a built-in id, or with
     ``mesh_file`` the stem of a user's mesh) refined ``refine`` times: the table's fibre
-    share plus its mechanics share times 2^(-order refine)."""
+    share that refining keeps plus the rest times 2^(-order refine)."""
     entry, measured, why = _table_entry(geometry, mesh_file)
-    mechanics = max(0.0, entry.error - entry.fibres) * 2.0 ** (-entry.order * refine)
-    return Spatial(geometry, int(refine), entry.fibres + mechanics, entry.fibres, measured, why)
+    elements = max(0.0, entry.error - entry.kept) * 2.0 ** (-entry.order * refine)
+    return Spatial(geometry, int(refine), entry.kept + elements, entry.kept, measured, why)
 
 
 def choose_on_mesh(scene: Scene, accuracy: float = DEFAULT_ACCURACY, *, refine: int = 0, mesh_file: bool = False,
@@ -383,9 +387,9 @@ def choose_on_mesh(scene: Scene, accuracy: float = DEFAULT_ACCURACY, *, refine: 
         best = candidates[-1]
         raise InputError(
             f"accuracy {accuracy:g} is tighter than the mesh of {scene.geometry} can give: its spatial error is "
-            f"{best.error:.2g} of the growth even refined {best.refine} time(s), {best.fibres:.2g} of it from the "
-            f"fibres, which --refine does not refine ({best.reason}); the smallest supported accuracy is "
-            f"{best.error / SPATIAL_SHARE:.2g}")
+            f"{best.error:.2g} of the growth even refined {best.refine} time(s), {best.kept:.2g} of it from the "
+            f"fibres and the surface's facets, which --refine keeps ({best.reason}); the smallest supported "
+            f"accuracy is {best.error / SPATIAL_SHARE:.2g}")
     mesh = fitting[0]
     steps = choose(scene, accuracy - mesh.error, growth_dt=growth_dt, signaling_dt=signaling_dt)
     estimated = "" if mesh.measured else " (an estimate)"

@@ -22,7 +22,8 @@ the level's nodes (mean and 95th percentile, °).
 
 From the three finest levels of each series, with h = (V / cells)^(1/3): the observed
 order p solving (f1 - f2) / (f2 - f3) = (h1^p - h2^p) / (h2^p - h3^p) (none where the
-changes alternate in sign or p falls outside 0.3-6), the Richardson limit
+changes alternate in sign, p falls outside 0.3-6 or the limit lies further from f3 than
+f1 does: the levels are not asymptotic), the Richardson limit
 f3 + (f3 - f2) / ((h2/h3)^p - 1), and each level's estimated error |f - limit| as a
 fraction of the growth (|f - limit| / limit for the force); without an order, the
 finest levels' spread |f3 - f2| stands for the finest level's error, and |f - f3| + that
@@ -200,6 +201,9 @@ def estimate(h: list[float], f: list[float], relative_to_growth: bool) -> dict:
     p = observed(h, f) if len(f) >= 3 else None
     if p is not None:
         limit = f[-1] + (f[-1] - f[-2]) / ((h[-2] / h[-1]) ** p - 1.0)
+        if abs(limit - f[-1]) > abs(f[-1] - f[-3]):  # further out than the levels spread: not asymptotic
+            p = None
+    if p is not None:
         errors = [abs(v - limit) for v in f]
     else:
         limit = f[-1]
