@@ -253,6 +253,14 @@ def study(comm, args) -> dict:
                    + "; ".join(f"{v}: CSA {row[v]['csa_gain_pct']:+.4f} %, V {row[v]['volume_gain_pct']:+.4f} % "
                                f"({row[v]['growth_s']:.0f} s), force {shown_force(row[v])}" for v in VARIANTS)
                    + f" ({row['wall_s']:.0f} s)")
+    return {"benchmark": "convergence", "muscle": name, "surface": str(stl), "protocol": PROTOCOL,
+            "quick": bool(args.quick), "ranks": comm.size, "machine": common.machine(), "levels": rows,
+            "estimates": estimates_of(rows), "wall_s": comm.allreduce(time.perf_counter() - start, op=MPI.MAX),
+            "versions": io.versions()}
+
+
+def estimates_of(rows: list[dict]) -> dict:
+    """`estimate` of every quantity and fibre field with three levels or more that have it."""
     estimates = {}
     for q in QUANTITIES:
         for v in VARIANTS:
@@ -261,12 +269,11 @@ def study(comm, args) -> dict:
                 estimates.setdefault(q, {})[v] = {**estimate(*map(list, zip(*kept)), q != "end_force_n"),
                                                    "h_mm": [k[0] for k in kept]}
     for q in estimates:
+        if "finest" not in estimates[q]:
+            continue
         own, fine = estimates[q]["own"], estimates[q]["finest"]
         own["fibres_share"] = [max(0.0, a - b) for a, b in zip(own["errors"], fine["errors"])]
-    return {"benchmark": "convergence", "muscle": name, "surface": str(stl), "protocol": PROTOCOL,
-            "quick": bool(args.quick), "ranks": comm.size, "machine": common.machine(), "levels": rows,
-            "estimates": estimates, "wall_s": comm.allreduce(time.perf_counter() - start, op=MPI.MAX),
-            "versions": io.versions()}
+    return estimates
 
 
 def fibre_check(comm, name: str) -> dict:
@@ -332,6 +339,8 @@ def parser() -> cli.Parser:
     p.add_argument("--surfaces", type=Path, default=mesh_bench.SURFACES, help="folder of the STL surfaces")
     p.add_argument("--fibres-only", nargs="+", metavar="ID", help="only the fixed-geometry fibre check (P2 against "
                    "P3) of these geometries")
+    p.add_argument("--replot", type=Path, metavar="JSON", reads=True,
+                   help="no runs: the estimates and chart again from a convergence_NAME.json")
     p.add_argument("--force", action="store_true", help="mesh the levels again")
     p.add_argument("--no-force-at-full-activation", dest="force_at_full_activation", action="store_false",
                    help="skip the end force at α = 1 (the growth only)")
@@ -357,7 +366,11 @@ def run(comm, args) -> int:
                                                                    "rows": rows, "versions": io.versions()})
         info(comm, f"wrote {args.output / 'convergence_fibres.json'}")
         return cli.EXIT_OK
-    result = study(comm, args)
+    if args.replot is not None:
+        result = json.loads(args.replot.read_text())
+        result["estimates"] = estimates_of(result["levels"])
+    else:
+        result = study(comm, args)
     stem = f"convergence_{result['muscle']}"
     if comm.rank == 0:
         args.output.mkdir(parents=True, exist_ok=True)
