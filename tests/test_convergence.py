@@ -105,6 +105,13 @@ def test_grow_refines_for_the_accuracy_and_refuses_below_the_mesh(tmp_path):
     assert plan.specs[0].refine == 2 and plan.choice.refine == 2
     with pytest.raises(InputError, match=r"--accuracy 1e-05: accuracy 1e-05 is tighter than the mesh of idealized"):
         grow.plan(MPI.COMM_SELF, ["--geometry", "idealized", "--accuracy", "1e-5", "--output", str(tmp_path)])
+    # an anatomical mesh: most of its error is its surface's and fibres', which refining keeps
+    entry = fidelity.SPATIAL_ERROR["TA_VHF_Left"]
+    least = (entry.kept + (entry.error - entry.kept) / 8) / fidelity.SPATIAL_SHARE
+    with pytest.raises(InputError, match=rf"--accuracy 0.001: .* the smallest supported accuracy is {least:.2g}$"):
+        grow.plan(MPI.COMM_SELF, ["--geometry", "TA_VHF_Left", "--accuracy", "1e-3", "--output", str(tmp_path)])
+    assert grow.plan(MPI.COMM_SELF, ["--geometry", "TA_VHF_Left", "--accuracy", "1e-2", "--output",
+                                     str(tmp_path)]).specs[0].refine == 0
 
 
 def test_every_result_records_its_spatial_error():
