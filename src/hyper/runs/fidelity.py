@@ -334,6 +334,10 @@ SPATIAL_ERROR = {
     "idealized": MeshError(1.5e-4, 0.0, 1.0, "python -m hyper.bench atlas: the mesh as given against refined once"),
     "TA_VHF_Left": MeshError(4.6e-3, 2.0e-3, 1.0, "python -m hyper.bench convergence TA_VHF_Left --quick: the "
                              "CSA gain's spread between the 4k and 8k meshes of its surface"),
+    # the 8k level is the shipped mesh itself (hyper mesh at 8000 cells); no refinement
+    # measured: all of the error is taken as kept
+    "GM_VHF_Left": MeshError(3.4e-3, 3.4e-3, 1.0, "python -m hyper.bench convergence GM_VHF_Left --quick: the "
+                             "CSA gain's spread between the 4k and 8k meshes of its surface"),
 }
 
 
