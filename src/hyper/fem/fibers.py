@@ -85,6 +85,11 @@ METHOD = ("Stokes flow, Taylor-Hood P2-P1; inflow u.N = -1 on ends[0] and free s
           "(N the area-weighted vertex normal); zero traction on ends[1]; MUMPS LU; "
           "a0 = u/|u| at the vertices (P1)")
 ELEMENT = "Lagrange P1 vector, unit length at the nodes"
+
+
+def stokes_method(params: StokesParams) -> str:
+    """METHOD with the Taylor–Hood degrees of ``params``."""
+    return METHOD.replace("P2-P1", f"P{params.degree}-P{params.degree - 1}")
 ALIGNMENT_DEG = 30.0  # the angle the alignment statistic counts up to
 
 _prefixes = itertools.count()
@@ -512,7 +517,7 @@ def store(path: str | Path, geometry: geo.Geometry, a0: fem.Function, speed: fem
     data = gather_nodal(a0, speed)
     if geometry.comm.rank == 0:
         write_series(path, data,
-                     attrs={"geometry": geometry.name, "method": METHOD, "element": ELEMENT,
+                     attrs={"geometry": geometry.name, "method": stokes_method(params), "element": ELEMENT,
                             "reference": "Varvik et al. 2021; MODEL.md §5", "inflow_tag": geometry.ends[0],
                             "outflow_tag": geometry.ends[1], "lateral_tag": geometry.lateral, "coordinates": "m",
                             "ranks": geometry.comm.size, **stats, **attrs},
