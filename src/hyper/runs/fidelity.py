@@ -338,6 +338,10 @@ SPATIAL_ERROR = {
     # measured: all of the error is taken as kept
     "GM_VHF_Left": MeshError(3.4e-3, 3.4e-3, 1.0, "python -m hyper.bench convergence GM_VHF_Left --quick: the "
                              "CSA gain's spread between the 4k and 8k meshes of its surface"),
+    # no refinement measured: all kept (the fibres carry 1.8e-3 of it: the finest fibres'
+    # series moves by 8.5e-4 only)
+    "ST_VHM_Right": MeshError(2.7e-3, 2.7e-3, 1.0, "python -m hyper.bench convergence ST_VHM_Right --quick: the "
+                              "CSA gain's spread between the 4k and 8k meshes of its surface"),
 }
 
 
