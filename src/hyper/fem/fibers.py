@@ -57,6 +57,13 @@ Stored form (``fibers.h5``): datasets ``node`` (the mesh file's node indices,
 and versions as attributes, and ``complete`` last (written atomically). Keyed by the
 file's node index, the field maps back exactly onto any partition of the mesh.
 
+Resolution (docs/convergence.md, `python -m hyper.bench convergence`). On one mesh the P2
+field is within 3° (95th percentile) of P3's on 7 of 10 muscles measured, not on the
+pennate or wide ones (``StokesParams.degree`` 3 computes P3). Between meshes of one
+surface the field changes far more, with the surface's facets and end patches;
+`compute_transferred` solves the flow on a finer mesh of the surface and carries it onto
+the mechanics mesh's nodes (`hyper mesh --flow-cells`).
+
 The job that computes and stores them for the anatomical meshes is `hyper.commands.fibers`.
 """
 
