@@ -117,7 +117,8 @@ def test_grow_keeps_its_defaults_without_accuracy(tmp_path):
     assert fixed.choice is None and fixed.settings == GrowthSettings()
     assert (fixed.settings.growth_dt, fixed.settings.signaling_dt) == (168.0, 0.05)
     chosen = grow.plan(MPI.COMM_WORLD, [*out, "--accuracy"])
-    assert chosen.choice == choose(GROWTH, 1e-3)
+    # the mesh counted (tests/test_convergence.py): its spatial error added, the same steps
+    assert chosen.choice == fidelity.choose_on_mesh(GROWTH, 1e-3)
     assert (chosen.settings.growth_dt, chosen.settings.signaling_dt) == (168.0, 0.125)
     explicit = grow.plan(MPI.COMM_WORLD, [*out, "--accuracy", "1e-3", "--signaling-dt", "0.05"])
     assert explicit.settings.signaling_dt == 0.05 and explicit.choice.signaling_dt == 0.05

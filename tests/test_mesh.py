@@ -232,3 +232,31 @@ def test_a_real_surface_meshes_end_to_end(tmp_path):
     assert geometry.num_cells() == stats["cells"]
     a0 = fibers.load(geometry, out / fibers.FILE_NAME)
     assert fibers.aligned_share(geometry, a0, record["ends"]["axis"], angle_deg=30.0) > 0.95
+
+
+def test_flow_cells_solves_the_fibres_on_a_finer_mesh_of_the_surface(meshed, tmp_path):
+    """--flow-cells 3000 on a 1000-cell mesh: the flow of the surface's 3000-cell mesh (the
+    `meshed` fixture's, gmsh being deterministic) interpolated onto the coarse nodes."""
+    import json
+
+    import h5py
+    from mpi4py import MPI
+
+    from hyper.fem import fibers
+    from hyper.fem import geometry as geo
+
+    out = tmp_path / "CYL_Y_Left"
+    assert mesh_job.main([str(meshed.parent / "c.stl"), "--output", str(out), "--cells", "1000", "--flow-cells", "3000",
+                          "--quiet"]) == cli.EXIT_OK
+    assert json.loads((out / "mesh.json").read_text())["flow_cells_target"] == 3000
+    assert sorted(p.name for p in out.iterdir()) == ["CYL_Y_Left.h5", "CYL_Y_Left.png", "CYL_Y_Left.xdmf",
+                                                     "fibers.h5", "mesh.json"]
+    flow_cells = json.loads((meshed / "mesh.json").read_text())["statistics"]["cells"]
+    with h5py.File(out / fibers.FILE_NAME) as f:
+        assert f.attrs["method"] == fibers.METHOD + fibers.TRANSFERRED_METHOD.format(cells=flow_cells)
+    coarse = geo.load_file(out / "CYL_Y_Left.xdmf", MPI.COMM_WORLD, name="CYL_Y_Left", scale=geo.MM)
+    fine = geo.load_file(meshed / "CYL_X_Left.xdmf", MPI.COMM_WORLD, name="CYL_X_Left", scale=geo.MM)
+    mine = fibers.load(coarse, out / fibers.FILE_NAME).x.array
+    expected = fibers.transferred(fibers.load(fine, meshed / fibers.FILE_NAME), coarse).x.array.reshape(-1, 3)
+    expected /= np.linalg.norm(expected, axis=1)[:, None]
+    np.testing.assert_allclose(mine, expected.ravel(), atol=1e-9)

@@ -77,6 +77,10 @@ def parser() -> cli.Parser:
     p.add_argument("--fibers", metavar="FILE", help=f"fibres from data instead of Stokes flow: {presets.DATA_HELP}"
                    f"{presets.PER_GEOMETRY_HELP}; written to OUTPUT/ID_fibers.h5 with a picture")
     cli.fibre_data_options(p)
+    p.add_argument("--degree", type=int, choices=(2, 3), default=fibers.StokesParams.degree,
+                   help="velocity degree of the Taylor–Hood flow (3: nearer the converged field where P2 is not, "
+                        "e.g. VL_VHM_Left, at about 2.5 GB for an 8k-cell mesh; python -m hyper.bench convergence "
+                        "--fibres-only)")
     return p
 
 
@@ -101,7 +105,7 @@ def _work(args, params: fibers.StokesParams):
             if comm.rank == 0:
                 write_series(
                     path, data,
-                    attrs={"geometry": name, "mesh": geo.GEOMETRIES[name], "method": fibers.METHOD,
+                    attrs={"geometry": name, "mesh": geo.GEOMETRIES[name], "method": fibers.stokes_method(params),
                            "element": fibers.ELEMENT, "reference": "Varvik et al. 2021; MODEL.md §5",
                            "inflow_tag": geometry.ends[0], "outflow_tag": geometry.ends[1],
                            "lateral_tag": geometry.lateral, "coordinates": "m",
@@ -190,7 +194,7 @@ def run(comm, args) -> int:
         raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")
     if len(set(args.geometries)) != len(args.geometries):
         raise InputError("--geometries: each geometry once")
-    params = fibers.StokesParams(penalty=args.penalty)
+    params = fibers.StokesParams(penalty=args.penalty, degree=args.degree)
     for name in args.geometries:
         mesh_file = fibers.fiber_path(name, args.meshes_dir).parent / Path(geo.GEOMETRIES[name]).name
         if not mesh_file.is_file():

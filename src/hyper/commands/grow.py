@@ -181,8 +181,12 @@ def choose(scene: fidelity.Scene, args, growth_dt=None) -> fidelity.Choice | Non
         raise InputError(f"--accuracy chooses steps from the errors of the default model; it does not "
                          f"combine with {untabulated(args)[0]}")
     try:
-        return None if args.accuracy is None else fidelity.choose(scene, args.accuracy, growth_dt=growth_dt,
-                                                                  signaling_dt=args.signaling_dt)
+        if args.accuracy is None:
+            return None
+        if scene.ask == "growth":
+            return fidelity.choose_on_mesh(scene, args.accuracy, refine=args.refine, mesh_file=args.mesh is not None,
+                                           growth_dt=growth_dt, signaling_dt=args.signaling_dt)
+        return fidelity.choose(scene, args.accuracy, signaling_dt=args.signaling_dt)
     except InputError as err:
         raise InputError(f"--accuracy {args.accuracy:g}: {err}") from None
 
@@ -248,8 +252,9 @@ def plan_from(comm, args) -> sequence.Plan:
     solver = args.linear_solver or ("auto" if args.accuracy is not None else "lu")
     shape = presets.shape(args, [name], mesh=mesh is not None)
     source = presets.data_source(args)
+    refine = args.refine if choice is None else choice.refine
     specs = [runspec.RunSpec(name, p, params, settings, petsc_options, mesh=mesh, linear_solver=solver, choice=choice,
-                             **shape, material=muscle, refine=args.refine, fiber_data=source) for p in runs]
+                             **shape, material=muscle, refine=refine, fiber_data=source) for p in runs]
     if not args.restart:
         sequence.refuse_foreign_checkpoints(comm, specs, [runspec.Outputs(h5) for h5 in results])
     outputs = [runspec.Outputs(h5) for h5 in results]

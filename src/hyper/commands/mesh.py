@@ -6,6 +6,7 @@ replaces ``--output`` whole."""
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import os
 import shutil
@@ -47,6 +48,10 @@ def parser() -> cli.Parser:
                       "default)")
     cli.vector_option(p, "--origin-toward", default=hm.ORIGIN_TOWARD,
                       help="the origin (tag 1) is the end further along this direction")
+    p.add_argument("--flow-cells", type=cli.integer(200, hm.MAX_CELLS), metavar="N",
+                   help="solve the fibres' Stokes flow on a second mesh of the surface at N cells (finer than "
+                        "--cells) and interpolate it onto this mesh's nodes: fibres nearer the converged field "
+                        "(python -m hyper.bench convergence); by default the flow is solved on this mesh")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
     p.add_argument("--fibers", metavar="FILE", help=f"the mesh's fibres from data instead of its Stokes fibres: "
                    f"{presets.DATA_HELP} (the surface's frame); stored as the folder's {fibers.FILE_NAME}, which "
@@ -81,6 +86,25 @@ def build(args) -> dict:
             "sha256": hashlib.sha256(path.read_bytes()).hexdigest()}
 
 
+def flow_mesh(comm, args, path: Path) -> geo.Geometry:
+    """The surface meshed again at --flow-cells (rank 0, by the same steps and end rule),
+    written to ``path`` and loaded: the mesh the fibres' flow is solved on."""
+    built = error = None
+    if comm.rank == 0:
+        try:
+            built = build(argparse.Namespace(**{**vars(args), "cells": args.flow_cells}))
+        except InputError as err:
+            error = f"--flow-cells {args.flow_cells}: {err}"
+    error = comm.bcast(error, root=0)
+    if error is not None:
+        raise InputError(error)
+    if comm.rank == 0:
+        path.parent.mkdir()
+    arrays = [built[k] for k in ARRAYS] if comm.rank == 0 else [None] * len(ARRAYS)
+    hm.write_xdmf(comm, path, *arrays)
+    return geo.load_file(path, comm, name=path.stem, scale=geo.MM)
+
+
 def run(comm, args) -> int:
     out = args.output
     name = out.name
@@ -111,7 +135,14 @@ def run(comm, args) -> int:
         hm.write_xdmf(comm, stage / f"{name}.xdmf", *(arrays[k] for k in ARRAYS))
         geometry = geo.load_file(stage / f"{name}.xdmf", comm, name=name, scale=geo.MM)
         params = fibers.StokesParams()
-        a0, speed = fibers.compute(geometry, params)
+        method = fibers.METHOD
+        if args.flow_cells is None:
+            a0, speed = fibers.compute(geometry, params)
+        else:
+            flow = flow_mesh(comm, args, stage / "flow" / f"{name}.xdmf")
+            a0, speed = fibers.compute_transferred(geometry, flow, params)
+            method += fibers.TRANSFERRED_METHOD.format(cells=flow.num_cells())
+            del flow
         stats = {**fibers.statistics(geometry, a0, speed), "solve_s": time.perf_counter() - start}
         data = fibers.gather_nodal(a0, speed)
         row = meshstats.statistics(geometry)
@@ -124,14 +155,17 @@ def run(comm, args) -> int:
         cells = fibers.cell_fibers(geometry, a0)
         if comm.rank == 0 and source is None:
             write_series(stage / fibers.FILE_NAME, data,
-                         attrs={"geometry": name, "mesh": f"{name}/{name}.xdmf", "method": fibers.METHOD,
+                         attrs={"geometry": name, "mesh": f"{name}/{name}.xdmf", "method": method,
                                 "element": fibers.ELEMENT, "reference": "Varvik et al. 2021; MODEL.md §5",
                                 "inflow_tag": 1, "outflow_tag": 2, "lateral_tag": 3, "coordinates": "m",
                                 "ranks": comm.size, **stats},
                          groups={"parameters": as_attributes(params)})
         if comm.rank == 0:
+            if args.flow_cells is not None:
+                shutil.rmtree(stage / "flow")
             record = {"source": str(args.surface), "source_sha256": built["sha256"], "unit": args.unit,
                       "mesher": f"gmsh {hm.gmsh_version()}", "cells_target": args.cells,
+                      **({} if args.flow_cells is None else {"flow_cells_target": args.flow_cells}),
                       "surface_triangles": built["surface_triangles"], "ends": built["rule"],
                       "end_area_mm2": built["end_area_mm2"], "quality": built["quality"],
                       "statistics": {k: v for k, v in row.items() if k != "geometry"},

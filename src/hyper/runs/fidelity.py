@@ -18,6 +18,17 @@ error tables below, stays within the accuracy:
 The predicted error of a choice is the sum of the table's estimates, without the safety
 factors; the choice keeps each estimate times its factor within its share.
 
+The mesh (`spatial`, `choose_on_mesh`): the spatial discretisation error of the growth,
+from the convergence tables below (`SPATIAL_ERROR`, measured by `python -m hyper.bench
+convergence`), is a third source that adds to the other two. Every run's result records
+it (`spatial(...).as_attributes()`, the result's ``spatial`` group). With an accuracy,
+the mesh is chosen first: the fewest uniform refinements (``--refine K``, at least the K
+given) whose spatial error is within `SPATIAL_SHARE` of the accuracy; the steps then
+share what is left. Two parts of the error stay under refinement: the fibres' (a refined
+mesh carries the loaded mesh's fibre field, `hyper.fem.fibers.carried`) and the surface's
+(refining keeps the polyhedron, whose facets approximate the muscle's surface); an
+accuracy below them is refused with what the mesh can give.
+
 The linear solver is chosen once the mesh is known (`linear_solver`): MUMPS's LU while
 its memory, predicted from the measured growth with the number of unknowns, fits in the
 memory available; GMRES with a block low-rank preconditioner beyond. Both answer to the
@@ -92,6 +103,8 @@ class Choice:
     predicted_error: float  # in the accuracy's measure (of the growth, or of N)
     reasons: tuple[str, ...]
     accuracy: float | None = None  # asked for; None: the steps were given, not chosen
+    refine: int | None = None  # uniform refinements chosen for the accuracy (`choose_on_mesh`); None: not chosen
+    spatial_error: float | None = None  # the mesh's share of predicted_error; None: not counted
     linear_solver: str | None = None  # "lu" or "iterative" once the mesh is known
     linear_solver_reason: str | None = None
 
@@ -116,6 +129,8 @@ class Choice:
         else:
             bound = f"{'<=' if self.predicted_error <= self.accuracy else '>'} accuracy {self.accuracy:g}"
         solver = "" if self.linear_solver is None else f"; linear solver {self.linear_solver}"
+        if self.refine is not None:
+            steps = f"mesh refined {self.refine} time(s) (spatial error {self.spatial_error:.2g}), " + steps
         return f"{self.model} model, {steps}; predicted error {self.predicted_error:.2g} {measure} {bound}{solver}"
 
 
@@ -282,3 +297,121 @@ def linear_solver(unknowns: int, available_mb: float) -> tuple[str, str]:
     return "iterative", (f"GMRES with a BLR preconditioner: LU would need about {lu / 1024:.3g} GiB for {unknowns} "
                          f"unknowns, more than {LU_MEMORY_SHARE:g} x {available_mb / 1024:.3g} GiB available; "
                          f"the iterative solver about {iterative / 1024:.3g} GiB{fits}")
+
+
+# ------------------------------------------------------------------------ the mesh
+
+MAX_REFINE = 3  # as runspec.MAX_REFINE (which imports this module)
+SPATIAL_SHARE = 0.5  # of a growth question's accuracy the mesh may take; the steps share the rest
+
+
+@dataclass(frozen=True)
+class MeshError:
+    """The measured spatial error of the growth on one geometry's default mesh: the larger
+    of the CSA (cut) and volume gains' errors, as a fraction of the growth, after 9 weeks
+    of mwf (`python -m hyper.bench convergence`, the own-fibre series at the level of
+    the shipped mesh's size)."""
+
+    error: float  # at the default mesh, refine 0
+    # the part uniform refinement keeps: the fibres' resolution (a refined mesh carries the
+    # loaded mesh's field) and the surface's facets (refining keeps the polyhedron)
+    kept: float
+    order: float  # of the rest, the finite elements' on the polyhedron, in h (--refine halves h)
+    source: str  # the command and the level it was measured at
+
+
+# Rounded up; measured as the source says. The idealized shape's, against its mesh refined
+# once (analytic fibres evaluated on each mesh: no fibre share), gives no order: 1, slower
+# than any measured (the end force's is 1.8, python -m hyper.bench refinement), is assumed.
+# The anatomical ones come from `hyper mesh` meshes of the shipped mesh's surface at the
+# levels of `python -m hyper.bench convergence ID --quick` (1k-8k cells), taken at the 8k
+# level (the shipped meshes have 6.7k-9.7k cells): no level sequence had an asymptotic
+# order, so the error is the spread of the two finest levels. The finite elements' part is
+# from the 4k level refined once (`hyper grow --mesh … --refine 1`: the CSA gain moves by
+# 1.5e-3 of the growth on TA_VHF_Left, order 1 assumed, scaled to the 8k level's h); the
+# rest is kept under --refine (docs/convergence.md).
+SPATIAL_ERROR = {
+    "idealized": MeshError(1.5e-4, 0.0, 1.0, "python -m hyper.bench atlas: the mesh as given against refined once"),
+    "TA_VHF_Left": MeshError(4.6e-3, 2.0e-3, 1.0, "python -m hyper.bench convergence TA_VHF_Left --quick: the "
+                             "CSA gain's spread between the 4k and 8k meshes of its surface"),
+    # the 8k level is the shipped mesh itself (hyper mesh at 8000 cells); no refinement
+    # measured: all of the error is taken as kept
+    "GM_VHF_Left": MeshError(3.4e-3, 3.4e-3, 1.0, "python -m hyper.bench convergence GM_VHF_Left --quick: the "
+                             "CSA gain's spread between the 4k and 8k meshes of its surface"),
+    # no refinement measured: all kept (the fibres carry 1.8e-3 of it: the finest fibres'
+    # series moves by 8.5e-4 only)
+    "ST_VHM_Right": MeshError(2.7e-3, 2.7e-3, 1.0, "python -m hyper.bench convergence ST_VHM_Right --quick: the "
+                              "CSA gain's spread between the 4k and 8k meshes of its surface"),
+}
+
+
+@dataclass(frozen=True)
+class Spatial:
+    """The spatial error of the growth on a geometry refined ``refine`` times, and whence."""
+
+    geometry: str
+    refine: int
+    error: float  # fraction of the growth
+    kept: float  # of which what refining keeps (`MeshError.kept`)
+    measured: bool  # False: estimated from another geometry's table
+    reason: str
+
+    def as_attributes(self) -> dict:
+        return as_attributes(self)
+
+    def describe(self) -> str:
+        est = "" if self.measured else ", estimated"
+        return (f"spatial error {self.error:.2g} of the growth{est} ({self.kept:.2g} of it kept under --refine: "
+                f"fibres and surface facets; {self.reason})")
+
+
+def _table_entry(geometry: str, mesh_file: bool) -> tuple[MeshError, bool, str]:
+    if not mesh_file and geometry in SPATIAL_ERROR:
+        return SPATIAL_ERROR[geometry], True, SPATIAL_ERROR[geometry].source
+    anatomical = {k: v for k, v in SPATIAL_ERROR.items() if k != "idealized"}
+    if geometry == "cylinder" and not mesh_file:
+        entry = SPATIAL_ERROR["idealized"]
+        return entry, False, f"no table for the cylinder: the idealized shape's ({entry.source})"
+    if not anatomical:
+        entry = SPATIAL_ERROR["idealized"]
+        return entry, False, f"no anatomical table: the idealized shape's ({entry.source})"
+    name, entry = max(anatomical.items(), key=lambda item: item[1].error)
+    what = "a mesh file" if mesh_file else geometry
+    return entry, False, f"no table for {what}: the largest measured, {name}'s ({entry.source})"
+
+
+def spatial(geometry: str, refine: int = 0, *, mesh_file: bool = False) -> Spatial:
+    """The spatial error of the growth on ``geometry`` (a built-in id, or with
+    ``mesh_file`` the stem of a user's mesh) refined ``refine`` times: the table's fibre
+    share that refining keeps plus the rest times 2^(-order refine)."""
+    entry, measured, why = _table_entry(geometry, mesh_file)
+    elements = max(0.0, entry.error - entry.kept) * 2.0 ** (-entry.order * refine)
+    return Spatial(geometry, int(refine), entry.kept + elements, entry.kept, measured, why)
+
+
+def choose_on_mesh(scene: Scene, accuracy: float = DEFAULT_ACCURACY, *, refine: int = 0, mesh_file: bool = False,
+                   growth_dt: float | None = None, signaling_dt: float | None = None) -> Choice:
+    """`choose` for a growth question with its mesh counted: the fewest refinements from
+    ``refine`` up to MAX_REFINE whose spatial error is within SPATIAL_SHARE of
+    ``accuracy``, then the steps for what is left. Raises InputError (one line: what the
+    mesh can give) where none is."""
+    if scene.ask != "growth":
+        raise InputError("the mesh counts for a growth question only")
+    choose(scene, accuracy, growth_dt=growth_dt, signaling_dt=signaling_dt)  # the accuracy's own checks
+    candidates = [spatial(scene.geometry, k, mesh_file=mesh_file) for k in range(refine, MAX_REFINE + 1)]
+    fitting = [c for c in candidates if c.error <= SPATIAL_SHARE * accuracy]
+    if not fitting:
+        best = candidates[-1]
+        raise InputError(
+            f"accuracy {accuracy:g} is tighter than the mesh of {scene.geometry} can give: its spatial error is "
+            f"{best.error:.2g} of the growth even refined {best.refine} time(s), {best.kept:.2g} of it from the "
+            f"fibres and the surface's facets, which --refine keeps ({best.reason}); the smallest supported "
+            f"accuracy is {best.error / SPATIAL_SHARE:.2g}")
+    mesh = fitting[0]
+    steps = choose(scene, accuracy - mesh.error, growth_dt=growth_dt, signaling_dt=signaling_dt)
+    estimated = "" if mesh.measured else " (an estimate)"
+    reasons = (steps.reasons[0], f"mesh refined {mesh.refine} time(s): the fewest from {refine} whose spatial error "
+               f"{mesh.error:.2g}{estimated} <= {SPATIAL_SHARE:g} x accuracy {accuracy:g} ({mesh.reason}; python -m "
+               f"hyper.bench convergence); the steps get the rest, {accuracy - mesh.error:.3g}", *steps.reasons[1:])
+    return dataclasses.replace(steps, accuracy=accuracy, refine=mesh.refine, spatial_error=mesh.error,
+                               predicted_error=steps.predicted_error + mesh.error, reasons=reasons)

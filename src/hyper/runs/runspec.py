@@ -27,7 +27,8 @@ LINEAR_SOLVERS = ("lu", "iterative", "auto")
 MESH_FIBERS_STOKES = ("auto", "stokes")
 # uniform refinements a run takes (--refine, [numerics] refine): each multiplies the cells
 # by 8, and 3 puts the idealized shape past what one LU factorisation holds on a workstation
-MAX_REFINE = 3
+# (fidelity, which counts refinements for --accuracy, holds the number)
+MAX_REFINE = fidelity.MAX_REFINE
 MESH_UNITS = {"m": 1.0, "mm": 1.0e-3}
 
 # A muscle's longest side: the paper's are 0.1-0.45 m. Outside this, the declared unit
@@ -284,11 +285,17 @@ class Outputs:
 
 def result_groups(spec: RunSpec, choice: fidelity.Choice | None = None) -> dict:
     """The attribute groups every run's result carries; ``choice`` the run's fidelity
-    choice (`Result.choice`)."""
+    choice (`Result.choice`); ``spatial`` the estimated spatial error of its growth."""
     groups = {"signaling": as_attributes(spec.params), "material": as_attributes(spec.material),
               "protocol": spec.protocol.to_attributes(), "settings": dataclasses.asdict(spec.settings)}
     if spec.heterogeneity is not None:
         groups["heterogeneity"] = {**spec.heterogeneity.attributes(), "seed": spec.seed}
     if choice is not None:
         groups["fidelity"] = choice.as_attributes()
+    groups["spatial"] = spatial_error(spec).as_attributes()
     return groups
+
+
+def spatial_error(spec: RunSpec) -> fidelity.Spatial:
+    """The estimated spatial error of the growth of ``spec`` (`fidelity.spatial`)."""
+    return fidelity.spatial(spec.geometry, spec.refine, mesh_file=spec.mesh is not None)

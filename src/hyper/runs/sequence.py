@@ -117,6 +117,7 @@ def carry_out(comm, work: Plan, stop, figure: bool = True) -> Outcome:
             info(comm, f"{spec.protocol.name}: CSA/CSA0 {done.series['csa_ratio'][-1]:.5f}, V/V0 "
                        f"{done.series['volume_ratio'][-1]:.5f} in {hms(done.meta['wall_s'])}; wrote {out.h5} "
                        f"and {out.fields}")
+            info(comm, f"{spec.protocol.name}: {runspec.spatial_error(spec).describe()}")
             results[spec.protocol.name] = done.series
             if box_plot is not None:
                 draw_box(comm, done.model, box_plot, f"{spec.label}, day {done.model.t / 24:g}")

@@ -1,0 +1,391 @@
+"""Spatial convergence of a muscle's headline numbers: meshes of one surface at several
+resolutions, and which of fibres and mechanics carries the error.
+
+    python -m hyper.bench convergence [MUSCLE] [--cells 4000 8000 16000 32000] [--quick]
+    python -m hyper.bench convergence --fibres-only ID … (the fixed-geometry fibre check)
+
+MUSCLE: a shipped or meshed geometry id whose surface is known (the 12 paper muscles:
+their Visible Human STL in --surfaces, origin at the shipped tag 1; the meshed ones: the
+source their mesh.json records), or an STL file (mm). Each level is the surface meshed by
+`hyper mesh --cells N` (kept under OUTPUT/convergence/NAME/ and reused), with its Stokes
+fibres. Per level, with two fibre fields:
+
+    own      the level's own Stokes fibres (what a run on that mesh uses)
+    finest   the finest level's fibres interpolated onto the level's nodes (unit there):
+             only the mechanics' resolution changes between levels
+
+the 9-week `mwf` CSA gain (the exact cut) and volume gain (%, default settings and
+parameters), and the end force at full activation α = 1 (the headline of `hyper
+contraction`; α in 6 steps, each halved up to twice where Newton fails; a failure is
+recorded; with --quick own fibres only); the fibre field's angle to the finest field at
+the level's nodes (mean and 95th percentile, °).
+
+From the three finest levels of each series, with h = (V / cells)^(1/3): the observed
+order p solving (f1 - f2) / (f2 - f3) = (h1^p - h2^p) / (h2^p - h3^p) (none where the
+changes alternate in sign, p falls outside 0.3-6 or the limit lies further from f3 than
+f1 does: the levels are not asymptotic), the Richardson limit
+f3 + (f3 - f2) / ((h2/h3)^p - 1), and each level's estimated error |f - limit| as a
+fraction of the growth (|f - limit| / limit for the force); without an order, the
+finest levels' spread |f3 - f2| stands for the finest level's error, and |f - f3| + that
+for the others. The error of the own-fibre series less that of the finest-fibre series
+is the fibres' share.
+
+--fibres-only ID …: the Stokes fibres of each geometry at the default Taylor–Hood P2-P1
+against P3-P2 on the same mesh (the same polyhedron, one order higher): mean, 95th
+percentile and largest angle at the nodes, and the seconds and peak memory of the P3
+solve; this bounds the discretisation error of the fibre field at the mesh's own geometry.
+
+Writes OUTPUT/convergence_NAME.json and .png (or convergence_fibres.json).
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import sys
+import time
+from pathlib import Path
+
+import dolfinx_solver  # noqa: F401  (must precede dolfinx)
+import numpy as np
+from dolfinx import fem
+from mpi4py import MPI
+
+from hyper.commands import cli
+from hyper.commands import mesh as mesh_job
+from hyper.commands.bench import common
+from hyper.commands.bench import mesh as mesh_bench
+from hyper.core import io
+from hyper.core.log import info
+from hyper.core.params import InputError
+from hyper.fem import fibers
+from hyper.fem import geometry as geo
+from hyper.fem.coupled import GrowthSettings, build_model
+from hyper.fem.mechanics import MechanicsProblem, SolverError
+from hyper.model import protocols
+from hyper.model.failure import GrowthFailure
+from hyper.runs import contraction, plot
+
+PROTOCOL = "mwf"
+CELLS = (4000, 8000, 16000, 32000)
+QUICK_CELLS = (1000, 2000, 4000, 8000)
+ALPHAS = (0.1, 0.2, 0.35, 0.55, 0.8, 1.0)
+MAX_HALVINGS = 2  # of an α step whose Newton solve fails (a failure costs minutes; more rarely help)
+VARIANTS = ("own", "finest")
+QUANTITIES = ("csa_gain_pct", "volume_gain_pct", "end_force_n")
+ORDER_RANGE = (0.3, 6.0)  # observed orders outside it are taken as no order
+
+
+# ---------------------------------------------------------------------------- source
+
+
+def source(muscle: str, surfaces: Path) -> tuple[str, Path, list[str]]:
+    """(name, STL, extra `hyper mesh` options) of ``muscle``: an STL path or a geometry id."""
+    path = Path(muscle)
+    if path.suffix.lower() == ".stl":
+        if not path.is_file():
+            raise InputError(f"{path}: no such file")
+        return path.stem.split("_smooth")[0], path, []
+    if muscle in geo.ANATOMICAL:
+        stl = surfaces / f"{Path(geo.GEOMETRIES[muscle]).parent.name}.stl"
+        if not stl.is_file():
+            raise InputError(f"{muscle}: no surface {stl} (the right BFLH of the female has none); give --surfaces")
+        return muscle, stl, ["--origin-toward", *map(str, mesh_bench.shipped(muscle)["toward"])]
+    if muscle in geo.MESHED:
+        record = json.loads((geo.MESHES_DIR / muscle / "mesh.json").read_text())
+        stl = Path(record["source"])
+        stl = stl if stl.is_absolute() else geo.MESHES_DIR.parent / stl
+        if not stl.is_file():
+            stl = surfaces / Path(record["source"]).name
+        if not stl.is_file():
+            raise InputError(f"{muscle}: its source surface {record['source']} is not found; give --surfaces")
+        return muscle, stl, ["--origin-toward", *map(str, record["ends"]["origin_toward"])]
+    raise InputError(f"{muscle!r}: expected an STL file or a geometry id with a surface "
+                     f"({', '.join(geo.ANATOMICAL[:3])}, …, or one of meshes/)")
+
+
+def level_mesh(comm, name: str, stl: Path, extra: list[str], cells: int, root: Path, force: bool) -> Path:
+    """The folder of `hyper mesh STL --cells CELLS`, made once (reused unless ``force``)."""
+    folder = root / f"{name}_c{cells}"
+    record = folder / "mesh.json"
+    done = comm.bcast(record.is_file() and json.loads(record.read_text()).get("cells_target") == cells
+                      if comm.rank == 0 else None, root=0)
+    if done and not force:
+        return folder
+    status = mesh_job.main([str(stl), "--output", str(folder), "--force", "--cells", str(cells), *extra], comm=comm)
+    if status != cli.EXIT_OK:
+        raise InputError(f"{name}: hyper mesh --cells {cells} failed (exit {status})")
+    return folder
+
+
+def load_level(comm, folder: Path) -> geo.Geometry:
+    return geo.load_file(folder / f"{folder.name}.xdmf", comm, name=folder.name, scale=geo.MM)
+
+
+# ---------------------------------------------------------------------- fibre fields
+
+
+def unit(a0: fem.Function) -> fem.Function:
+    values = a0.x.array.reshape(-1, 3)
+    values /= np.linalg.norm(values, axis=1)[:, None]
+    return a0
+
+
+def angles(a: fem.Function, b: fem.Function) -> dict:
+    """Angle (°) between two vector P1 fields of one space at its owned nodes, as lines
+    (a fibre and its reverse are one direction): mean, 95th percentile, largest."""
+    n = a.function_space.dofmap.index_map.size_local
+    x, y = a.x.array.reshape(-1, 3)[:n], b.x.array.reshape(-1, 3)[:n]
+    cosine = np.abs(np.einsum("ij,ij->i", x, y)) / (np.linalg.norm(x, axis=1) * np.linalg.norm(y, axis=1))
+    local = np.degrees(np.arccos(np.clip(cosine, 0.0, 1.0)))
+    comm = a.function_space.mesh.comm
+    every = np.concatenate(comm.allgather(local))
+    return {"mean_deg": float(every.mean()), "p95_deg": float(np.percentile(every, 95)),
+            "max_deg": float(every.max())}
+
+
+# ----------------------------------------------------------------------- the numbers
+
+
+def growth(geometry: geo.Geometry, a0: fem.Function) -> dict:
+    """The 9-week `mwf` CSA (cut) and volume gains (%), default settings, and the wall time."""
+    start = time.perf_counter()
+    model = build_model(geometry, a0, protocols.named(PROTOCOL), settings=GrowthSettings())
+    *_, last = model.run()
+    return {"csa_gain_pct": 100.0 * (last.csa_ratio - 1.0), "volume_gain_pct": 100.0 * (last.volume_ratio - 1.0),
+            "growth_s": time.perf_counter() - start}
+
+
+def end_force(geometry: geo.Geometry, a0: fem.Function) -> dict:
+    start = time.perf_counter()
+    problem = MechanicsProblem(geometry, a0)
+    try:
+        for alpha in ALPHAS:
+            contraction.advance(problem, alpha, MAX_HALVINGS)
+    except SolverError as err:  # some coarse gmsh meshes of the TA buckle near α = 0.9
+        return {"end_force_n": None, "end_force_failed": str(err), "force_s": time.perf_counter() - start}
+    return {"end_force_n": problem.end_force(), "force_s": time.perf_counter() - start}
+
+
+def shown_force(numbers: dict) -> str:
+    if "end_force_n" not in numbers:
+        return "not asked"
+    if numbers["end_force_n"] is None:
+        return "failed"
+    return f"{numbers['end_force_n']:.5f} N ({numbers['force_s']:.0f} s)"
+
+
+def observed(h: list[float], f: list[float]) -> float | None:
+    """The order p of f = f* + C h^p through the last three points, by bisection; None
+    where the changes alternate in sign or no p in ORDER_RANGE fits."""
+    (h1, h2, h3), (f1, f2, f3) = h[-3:], f[-3:]
+    d1, d2 = f1 - f2, f2 - f3
+    if d1 == 0.0 or d2 == 0.0 or (d1 > 0) != (d2 > 0):
+        return None
+    ratio = d1 / d2
+
+    def misfit(p):
+        return (h1**p - h2**p) / (h2**p - h3**p) - ratio
+
+    lo, hi = ORDER_RANGE
+    if misfit(lo) * misfit(hi) > 0:
+        return None
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if misfit(lo) * misfit(mid) > 0 else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def estimate(h: list[float], f: list[float], relative_to_growth: bool) -> dict:
+    """Order, Richardson limit and each level's estimated error (module docstring)."""
+    p = observed(h, f) if len(f) >= 3 else None
+    if p is not None:
+        limit = f[-1] + (f[-1] - f[-2]) / ((h[-2] / h[-1]) ** p - 1.0)
+        if abs(limit - f[-1]) > abs(f[-1] - f[-3]):  # further out than the levels spread: not asymptotic
+            p = None
+    if p is not None:
+        errors = [abs(v - limit) for v in f]
+    else:
+        limit = f[-1]
+        spread = abs(f[-1] - f[-2])
+        errors = [abs(v - f[-1]) + spread for v in f]
+    scale = abs(limit)  # a gain in % is itself the growth
+    return {"values": list(f), "order": p, "limit": limit,
+            "errors": [e / scale for e in errors], "error_of": "the growth" if relative_to_growth else "the force"}
+
+
+def study(comm, args) -> dict:
+    name, stl, extra = source(args.muscle, args.surfaces)
+    cells = sorted(args.cells if args.cells else (QUICK_CELLS if args.quick else CELLS))
+    if len(cells) < 3:
+        raise InputError("--cells: at least three resolutions (four or more for a check of the order)")
+    root = args.output / "convergence" / name
+    start = time.perf_counter()
+    folders = [level_mesh(comm, name, stl, extra, n, root, args.force) for n in cells]
+    finest_geometry = load_level(comm, folders[-1])
+    finest = fibers.load(finest_geometry, folders[-1] / fibers.FILE_NAME)
+    rows = []
+    for n, folder in zip(cells, folders):
+        level = time.perf_counter()
+        geometry = load_level(comm, folder)
+        own = fibers.load(geometry, folder / fibers.FILE_NAME)
+        fields = {"own": own, "finest": unit(fibers.transferred(finest, geometry))}
+        volume = geometry.reference_volume()
+        row = {"cells_target": n, "cells": geometry.num_cells(),
+               "vertices": geometry.mesh.topology.index_map(0).size_global,
+               "h_mm": (volume / geometry.num_cells()) ** (1 / 3) / geo.MM, "volume_m3": volume,
+               "fibre_angle_to_finest": angles(fields["own"], fields["finest"])}
+        for variant, a0 in fields.items():
+            if variant == "finest" and folder == folders[-1]:
+                row[variant] = row["own"]  # the same field
+                continue
+            try:
+                row[variant] = growth(geometry, a0)
+            except GrowthFailure as err:
+                raise InputError(f"{folder.name} ({variant} fibres): {err}; take finer levels (--cells)") from None
+            if args.force_at_full_activation and not (args.quick and variant == "finest"):
+                row[variant].update(end_force(geometry, a0))
+        row["wall_s"] = comm.allreduce(time.perf_counter() - level, op=MPI.MAX)
+        rows.append(row)
+        a = row["fibre_angle_to_finest"]
+        info(comm, f"{folder.name}: {row['cells']} cells, h {row['h_mm']:.2f} mm; fibres to the finest: mean "
+                   f"{a['mean_deg']:.2f}°, p95 {a['p95_deg']:.2f}°; "
+                   + "; ".join(f"{v}: CSA {row[v]['csa_gain_pct']:+.4f} %, V {row[v]['volume_gain_pct']:+.4f} % "
+                               f"({row[v]['growth_s']:.0f} s), force {shown_force(row[v])}" for v in VARIANTS)
+                   + f" ({row['wall_s']:.0f} s)")
+    return {"benchmark": "convergence", "muscle": name, "surface": str(stl), "protocol": PROTOCOL,
+            "quick": bool(args.quick), "ranks": comm.size, "machine": common.machine(), "levels": rows,
+            "estimates": estimates_of(rows), "wall_s": comm.allreduce(time.perf_counter() - start, op=MPI.MAX),
+            "versions": io.versions()}
+
+
+def estimates_of(rows: list[dict]) -> dict:
+    """`estimate` of every quantity and fibre field with three levels or more that have it."""
+    estimates = {}
+    for q in QUANTITIES:
+        for v in VARIANTS:
+            kept = [(r["h_mm"], r[v][q]) for r in rows if r[v].get(q) is not None]
+            if len(kept) >= 3:
+                estimates.setdefault(q, {})[v] = {**estimate(*map(list, zip(*kept)), q != "end_force_n"),
+                                                   "h_mm": [k[0] for k in kept]}
+    for q in estimates:
+        if "finest" not in estimates[q]:
+            continue
+        own, fine = estimates[q]["own"], estimates[q]["finest"]
+        own["fibres_share"] = [max(0.0, a - b) for a, b in zip(own["errors"], fine["errors"])]
+    return estimates
+
+
+def fibre_check(comm, name: str) -> dict:
+    """The stored (or computed) P2 fibres of ``name`` against P3-P2 on the same mesh."""
+    geometry = geo.load(name, comm)
+    path = fibers.fiber_path(name)
+    p2 = fibers.load(geometry, path) if io.is_complete(path) else fibers.compute(geometry)[0]
+    start = time.perf_counter()
+    p3, speed = fibers.compute(geometry, fibers.StokesParams(degree=3))
+    seconds = comm.allreduce(time.perf_counter() - start, op=MPI.MAX)
+    rss = comm.allreduce(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, op=MPI.MAX) / 1024
+    return {"geometry": name, "cells": geometry.num_cells(), **angles(p2, p3), "p3_solve_s": seconds,
+            "peak_rss_mb": rss, "p3_min_speed": fibers.statistics(geometry, p3, speed)["min_speed"]}
+
+
+# ---------------------------------------------------------------------------- chart
+
+
+def chart(path: Path, result: dict) -> None:
+    plt = plot.pyplot()
+    rows = result["levels"]
+    h = np.array([r["h_mm"] for r in rows])
+    fig, axes = plt.subplots(1, 4, figsize=(17, 4.0))
+    labels = {"csa_gain_pct": "CSA gain (%)", "volume_gain_pct": "volume gain (%)",
+              "end_force_n": "end force α = 1 (N)"}
+    for ax, q in zip(axes, QUANTITIES):
+        for v, style in zip(VARIANTS, ("o-", "s--")):
+            e = result["estimates"].get(q, {}).get(v)
+            if e is None:
+                continue
+            order = f", order {e['order']:.2f}" if e["order"] is not None else ", no order"
+            ax.plot(e["h_mm"], e["values"], style, label=f"{v} fibres{order}")
+            ax.axhline(e["limit"], ls=":", lw=1, color=ax.lines[-1].get_color())
+        ax.set_xscale("log")
+        ax.invert_xaxis()
+        ax.set_xlabel("h = (V / cells)^(1/3) (mm)")
+        ax.set_ylabel(labels[q])
+        ax.legend(fontsize=8)
+    a = axes[3]
+    a.plot(h[:-1], [r["fibre_angle_to_finest"]["mean_deg"] for r in rows[:-1]], "o-", label="mean")
+    a.plot(h[:-1], [r["fibre_angle_to_finest"]["p95_deg"] for r in rows[:-1]], "s-", label="95th percentile")
+    a.set_xscale("log")
+    a.set_yscale("log")
+    a.invert_xaxis()
+    a.set_xlabel("h (mm)")
+    a.set_ylabel("fibre angle to the finest field (°)")
+    a.legend(fontsize=8)
+    fig.suptitle(f"{result['muscle']}: {PROTOCOL} 9 weeks against mesh size (dotted: Richardson limits)")
+    fig.tight_layout()
+    plot.save(fig, path, dpi=120)
+
+
+# ------------------------------------------------------------------------------ job
+
+
+def parser() -> cli.Parser:
+    p = cli.Parser("bench convergence", __doc__)
+    p.add_argument("muscle", nargs="?", default="TA_VHF_Left", help="geometry id or STL file (mm)")
+    p.add_argument("--cells", type=cli.integer(200, 100000), nargs="+", metavar="N",
+                   help=f"target cells of the levels; {' '.join(map(str, CELLS))} "
+                        f"({' '.join(map(str, QUICK_CELLS))} with --quick)")
+    p.add_argument("--quick", action="store_true", help="coarser levels: a few minutes on 2 cores")
+    p.add_argument("--surfaces", type=Path, default=mesh_bench.SURFACES, help="folder of the STL surfaces")
+    p.add_argument("--fibres-only", nargs="+", metavar="ID", help="only the fixed-geometry fibre check (P2 against "
+                   "P3) of these geometries")
+    p.add_argument("--replot", type=Path, metavar="JSON", reads=True,
+                   help="no runs: the estimates and chart again from a convergence_NAME.json")
+    p.add_argument("--force", action="store_true", help="mesh the levels again")
+    p.add_argument("--no-force-at-full-activation", dest="force_at_full_activation", action="store_false",
+                   help="skip the end force at α = 1 (the growth only)")
+    p.add_argument("--output", type=Path, default=Path("results/bench"), help="output folder")
+    return p
+
+
+def run(comm, args) -> int:
+    if args.fibres_only:
+        for name in args.fibres_only:
+            if name not in geo.GEOMETRIES or name in ("idealized", "cylinder"):
+                raise InputError(f"--fibres-only: {name!r} is not an anatomical or meshed geometry")
+        rows = []
+        for name in args.fibres_only:
+            rows.append(fibre_check(comm, name))
+            r = rows[-1]
+            info(comm, f"{name}: {r['cells']} cells, P2 against P3: mean {r['mean_deg']:.2f}°, p95 "
+                       f"{r['p95_deg']:.2f}°, max {r['max_deg']:.1f}° (P3 {r['p3_solve_s']:.0f} s, "
+                       f"{r['peak_rss_mb']:.0f} MB)")
+        if comm.rank == 0:
+            args.output.mkdir(parents=True, exist_ok=True)
+            io.write_json(args.output / "convergence_fibres.json", {"benchmark": "convergence --fibres-only",
+                                                                   "rows": rows, "versions": io.versions()})
+        info(comm, f"wrote {args.output / 'convergence_fibres.json'}")
+        return cli.EXIT_OK
+    if args.replot is not None:
+        result = json.loads(args.replot.read_text())
+        result["estimates"] = estimates_of(result["levels"])
+    else:
+        result = study(comm, args)
+    stem = f"convergence_{result['muscle']}"
+    if comm.rank == 0:
+        args.output.mkdir(parents=True, exist_ok=True)
+        io.write_json(args.output / f"{stem}.json", result)
+        chart(args.output / f"{stem}.png", result)
+    for q, by_variant in result["estimates"].items():
+        for v, e in by_variant.items():
+            order = f"order {e['order']:.2f}" if e["order"] is not None else "no order"
+            info(comm, f"{q} ({v} fibres): {order}, limit {e['limit']:.5f}, errors of {e['error_of']} "
+                       + " ".join(f"{x:.2g}" for x in e["errors"]))
+    info(comm, f"{result['wall_s']:.0f} s; wrote {args.output / stem}.json and .png")
+    return cli.EXIT_OK
+
+
+main = cli.entry(parser, run)
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,121 @@
+"""Spatial convergence: the Stokes fibres on a curved tube whose flow is known converge at
+their observed order, and --accuracy counts the mesh (hyper.runs.fidelity.spatial): it
+refines where refining helps and refuses where the fibres' resolution bounds the error."""
+
+import dolfinx_solver  # noqa: F401  (must precede dolfinx)
+import numpy as np
+import pytest
+from dolfinx import mesh as dmesh
+from mpi4py import MPI
+
+from hyper.commands import grow
+from hyper.commands.bench import convergence
+from hyper.core.params import InputError
+from hyper.fem import fibers
+from hyper.fem import geometry as geo
+from hyper.runs import fidelity
+from hyper.runs.fidelity import Scene
+
+R1, R2, SWEEP, HEIGHT = 1.0, 2.0, np.pi / 2, 0.5  # an annular sector: a bent tube of square section
+
+
+def sector(n: int, comm) -> geo.Geometry:
+    """The sector R1 <= ρ <= R2, 0 <= θ <= SWEEP, 0 <= z <= HEIGHT from a box of n × 2n × n
+    cubes: inflow (1) at θ = 0, outflow (2) at θ = SWEEP, the rest lateral (3). Its curved
+    walls are chords, as an anatomical mesh's surface is."""
+    mesh = dmesh.create_box(comm, [[0, 0, 0], [1, 1, 1]], [n, 2 * n, n], dmesh.CellType.tetrahedron)
+    x = mesh.geometry.x
+    rho, theta = R1 + (R2 - R1) * x[:, 0], SWEEP * x[:, 1]
+    x[:, 0], x[:, 1], x[:, 2] = rho * np.cos(theta), rho * np.sin(theta), HEIGHT * x[:, 2]
+    mesh.topology.create_connectivity(2, 3)
+    facets = dmesh.exterior_facet_indices(mesh.topology)
+    middle = dmesh.compute_midpoints(mesh, 2, facets)
+    angle = np.arctan2(middle[:, 1], middle[:, 0])
+    values = np.full(len(facets), 3, dtype=np.int32)
+    values[np.isclose(angle, 0.0, atol=1e-9)] = 1
+    values[np.isclose(angle, SWEEP, atol=1e-9)] = 2
+    return geo.Geometry("sector", mesh, dmesh.meshtags(mesh, 2, facets, values), ends=(1, 2), lateral=3)
+
+
+def angle_to_exact(n: int) -> tuple[float, float]:
+    """(mean, largest) angle (°) at the nodes between the fibres and e_θ, the direction of
+    the exact flow: with inflow speed ρ the rigid rotation u = ρ e_θ is strain-free, so it
+    meets every condition (free slip, zero traction at the outflow) with p = 0."""
+    geometry = sector(n, MPI.COMM_WORLD)
+    a0, _ = fibers.StokesFibers(geometry, inflow_speed=lambda x: np.hypot(x[0], x[1])).fibers()
+    exact = a0.copy()
+    exact.interpolate(lambda x: np.vstack([-x[1], x[0], 0 * x[2]]) / np.hypot(x[0], x[1]))
+    got = convergence.angles(a0, exact)
+    return got["mean_deg"], got["max_deg"]
+
+
+def test_fibres_on_a_bent_tube_converge_at_their_observed_order():
+    errors = np.array([angle_to_exact(n) for n in (2, 4, 8)])  # (level, mean/max)
+    orders = np.log2(errors[:-1] / errors[1:])
+    # measured: mean 5.31°, 1.45°, 0.371° (orders 1.88, 1.96: the chords' O(h²)); largest
+    # 12.1°, 5.65°, 2.84° (1.10, 0.99: at the rims, where the vertex normal averages two walls)
+    assert errors[:, 0] == pytest.approx([5.31, 1.446, 0.3711], rel=0.02)
+    assert orders[:, 0] == pytest.approx([1.88, 1.96], abs=0.05) and np.all(orders[:, 1] > 0.9)
+
+
+def test_observed_order_and_richardson_limit_of_a_known_sequence():
+    h = [4.0, 2.5, 1.6]
+    f = [3.0 + 0.7 * x**1.5 for x in h]
+    order = convergence.observed(h, f)
+    assert order == pytest.approx(1.5, abs=1e-9)
+    e = convergence.estimate(h, f, relative_to_growth=True)
+    assert e["limit"] == pytest.approx(3.0, rel=1e-9)
+    assert e["errors"][-1] == pytest.approx(0.7 * 1.6**1.5 / 3.0, rel=1e-9)
+    assert convergence.observed(h, [1.0, 2.0, 1.5]) is None  # changes alternate: no order
+
+
+GROWTH = Scene("idealized", "mwf", heterogeneous=False, ask="growth")
+
+
+def test_the_mesh_takes_its_share_and_the_steps_the_rest():
+    choice = fidelity.choose_on_mesh(GROWTH, 1e-3)
+    steps = fidelity.choose(GROWTH, 1e-3 - choice.spatial_error)
+    assert choice.refine == 0 and choice.spatial_error == fidelity.SPATIAL_ERROR["idealized"].error
+    assert (choice.growth_dt, choice.signaling_dt) == (steps.growth_dt, steps.signaling_dt) == (168.0, 0.125)
+    assert choice.predicted_error == pytest.approx(steps.predicted_error + choice.spatial_error)
+    assert "mesh refined 0 time(s) (spatial error 0.00015)" in choice.describe()
+
+
+def test_an_accuracy_below_the_mesh_refines_it():
+    entry = fidelity.SPATIAL_ERROR["idealized"]
+    choice = fidelity.choose_on_mesh(GROWTH, 1e-4)
+    # 1.5e-4, 7.5e-5, 3.75e-5 at order 1: the first within half of 1e-4 is twice refined
+    assert choice.refine == 2 and choice.spatial_error == pytest.approx(entry.error / 4)
+    assert choice.predicted_error <= 1e-4
+    assert fidelity.choose_on_mesh(GROWTH, 1e-4, refine=3).refine == 3  # never fewer than given
+
+
+def test_an_accuracy_below_what_the_fibres_allow_is_refused(monkeypatch):
+    monkeypatch.setitem(fidelity.SPATIAL_ERROR, "TA_VHF_Left", fidelity.MeshError(4e-3, 3e-3, 2.0, "a test"))
+    scene = Scene("TA_VHF_Left", "mwf", heterogeneous=False, ask="growth")
+    assert fidelity.choose_on_mesh(scene, 1e-2).refine == 0  # 4e-3 within half of 1e-2
+    with pytest.raises(InputError, match=r"accuracy 0.001 is tighter than the mesh of TA_VHF_Left can give: its "
+                       r"spatial error is 0.003 of the growth even refined 3 time\(s\), 0.003 of it from the "
+                       r"fibres and the surface's facets.*accuracy is 0.006"):
+        fidelity.choose_on_mesh(scene, 1e-3)
+
+
+def test_grow_refines_for_the_accuracy_and_refuses_below_the_mesh(tmp_path):
+    plan = grow.plan(MPI.COMM_SELF, ["--geometry", "idealized", "--accuracy", "1e-4", "--output", str(tmp_path)])
+    assert plan.specs[0].refine == 2 and plan.choice.refine == 2
+    with pytest.raises(InputError, match=r"--accuracy 1e-05: accuracy 1e-05 is tighter than the mesh of idealized"):
+        grow.plan(MPI.COMM_SELF, ["--geometry", "idealized", "--accuracy", "1e-5", "--output", str(tmp_path)])
+    # an anatomical mesh: most of its error is its surface's and fibres', which refining keeps
+    entry = fidelity.SPATIAL_ERROR["TA_VHF_Left"]
+    least = (entry.kept + (entry.error - entry.kept) / 8) / fidelity.SPATIAL_SHARE
+    with pytest.raises(InputError, match=rf"--accuracy 0.001: .* the smallest supported accuracy is {least:.2g}$"):
+        grow.plan(MPI.COMM_SELF, ["--geometry", "TA_VHF_Left", "--accuracy", "1e-3", "--output", str(tmp_path)])
+    assert grow.plan(MPI.COMM_SELF, ["--geometry", "TA_VHF_Left", "--accuracy", "1e-2", "--output",
+                                     str(tmp_path)]).specs[0].refine == 0
+
+
+def test_every_result_records_its_spatial_error():
+    spatial = fidelity.spatial("idealized", 1)
+    assert spatial.error == pytest.approx(7.5e-5) and spatial.measured
+    other = fidelity.spatial("a_mesh", 0, mesh_file=True)
+    assert not other.measured and "no table for a mesh file" in other.reason
