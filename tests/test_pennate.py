@@ -5,8 +5,10 @@ equals serial."""
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -17,12 +19,14 @@ from mpi4py import MPI
 
 from hyper.commands import fibers as fibers_job
 from hyper.commands import grow
+from hyper.commands import mesh as mesh_job
 from hyper.core import io
 from hyper.core.params import InputError
 from hyper.fem import fiberread as fr
 from hyper.fem import fibers, pennate
 from hyper.fem import geometry as geo
-from hyper.runs import runspec
+from hyper.model import protocols
+from hyper.runs import driver, runspec
 
 THETA = 20.0  # deg, the analytic pennation angle
 L, W, T = 0.12, 0.03, 0.015  # m: aponeurosis length, width, half-thickness of the bipennate block
@@ -274,3 +278,28 @@ def test_pennate_on_two_ranks_equals_serial():
         for key in ("pennation_deg_mean", "pennation_deg_p50", "fascicle_mm_mean", "fascicle_mm_p50",
                     "origin_area_mm2", "insertion_area_mm2"):
             assert stats[0][key] == pytest.approx(stats[1][key], rel=1e-6, abs=1e-9), key
+
+
+def test_hyper_mesh_makes_pennate_fibres_which_runs_then_use(tmp_path):
+    out = tmp_path / "TA_PEN"
+    stl = Path(__file__).parent / "data" / "TA_VHF_Right_coarse.stl"
+    assert mesh_job.main([str(stl), "--output", str(out), "--cells", "3000", "--method", "pennate", "--quiet"]) == 0
+    record = json.loads((out / "mesh.json").read_text())["pennate"]
+    assert record["origin"] == pennate.DEFAULT_ORIGIN and 3.0 < record["pennation_deg_p50"] < 30.0
+    assert fr.stored_fibres(out / "fibers.h5")[0] == "pennate"
+    mesh = runspec.MeshFile(out / "TA_PEN.xdmf", "mm")
+    spec = runspec.RunSpec("TA_PEN", protocols.from_option("mwf")[0], mesh=mesh)
+    geometry = mesh.load(MPI.COMM_SELF)
+    a0, made = driver.fiber_field(spec, geometry)
+    assert made["fibers"] == "pennate"
+    assert np.array_equal(a0.x.array, fibers.load(geometry, out / "fibers.h5").x.array)
+
+
+def test_hyper_mesh_refuses_a_bad_patch_before_meshing(tmp_path, capsys):
+    stl = Path(__file__).parent / "data" / "TA_VHF_Right_coarse.stl"
+    out = tmp_path / "TA_BAD"
+    bad = ["--method", "pennate", "--origin", "plane:0,0"]
+    assert mesh_job.main([str(stl), "--output", str(out), *bad, "--quiet"]) == 2
+    assert capsys.readouterr().err.count("error:") == 1 and not out.exists()
+    assert mesh_job.main([str(stl), "--output", str(out), "--origin", "midplane", "--quiet"]) == 2
+    assert "--method pennate" in capsys.readouterr().err and not out.exists()

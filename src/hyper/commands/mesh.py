@@ -22,7 +22,7 @@ from hyper.core.collective import on_rank0
 from hyper.core.io import write_json, write_series
 from hyper.core.log import info
 from hyper.core.params import InputError, as_attributes
-from hyper.fem import fiberdata, fibers, meshstats
+from hyper.fem import fiberdata, fibers, meshstats, pennate
 from hyper.fem import geometry as geo
 from hyper.fem import meshing as hm
 from hyper.runs import plot, presets
@@ -52,6 +52,13 @@ def parser() -> cli.Parser:
                    help="solve the fibres' Stokes flow on a second mesh of the surface at N cells (finer than "
                         "--cells) and interpolate it onto this mesh's nodes: fibres nearer the converged field "
                         "(python -m hyper.bench convergence); by default the flow is solved on this mesh")
+    p.add_argument("--method", choices=("stokes", "pennate"), default="stokes",
+                   help="the mesh's fibres: Stokes flow, or pennate fibres between --origin and --insertion "
+                        "(hyper.fem.pennate; patch syntax: hyper fibers --help)")
+    p.add_argument("--origin", default=pennate.DEFAULT_ORIGIN, metavar="PATCH",
+                   help="pennate: the origin aponeurosis, tagged on the mesh and recorded in its fibre file")
+    p.add_argument("--insertion", default=pennate.DEFAULT_INSERTION, metavar="PATCH",
+                   help="pennate: the insertion aponeurosis")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
     p.add_argument("--fibers", metavar="FILE", help=f"the mesh's fibres from data instead of its Stokes fibres: "
                    f"{presets.DATA_HELP} (the surface's frame); stored as the folder's {fibers.FILE_NAME}, which "
@@ -113,6 +120,13 @@ def run(comm, args) -> int:
     if out.exists() and not args.force:
         raise InputError(f"--output {out}: exists; give --force to replace it")
     source = presets.data_source(args, ())
+    if args.method == "stokes" and (args.origin, args.insertion) != (pennate.DEFAULT_ORIGIN, pennate.DEFAULT_INSERTION):
+        raise InputError("--origin and --insertion are the attachments of --method pennate")
+    if args.method == "pennate" and source is not None:
+        raise InputError("--method pennate and --fibers FILE: the fibres come from one or the other")
+    # the patches parsed before any meshing: a bad one writes nothing
+    patches = (pennate.parse(args.origin, "--origin"), pennate.parse(args.insertion, "--insertion")) \
+        if args.method == "pennate" else None
     built = error = None
     if comm.rank == 0:
         try:
@@ -152,8 +166,16 @@ def run(comm, args) -> int:
             sha = on_rank0(comm, lambda: hashlib.sha256(source.path.read_bytes()).hexdigest())
             fiberdata.store(stage / fibers.FILE_NAME, geometry, a0, field, source, sha, mesh=f"{name}/{name}.xdmf")
             fibers_job.picture(geometry, a0, field, stage / "fibers.png", f"{name}: fibres from {source.path.name}")
+        if patches is not None:
+            result = pennate.compute(geometry, *patches)
+            a0 = result.a0
+            architecture = pennate.statistics(result)
+            pennate.store(stage / fibers.FILE_NAME, result, architecture, mesh=f"{name}/{name}.xdmf")
+            info(comm, f"{name}: pennate fibres, pennation angle mean {architecture['pennation_deg_mean']:.1f}°, "
+                       f"5/50/95 % {architecture['pennation_deg_p5']:.1f}/{architecture['pennation_deg_p50']:.1f}/"
+                       f"{architecture['pennation_deg_p95']:.1f}°")
         cells = fibers.cell_fibers(geometry, a0)
-        if comm.rank == 0 and source is None:
+        if comm.rank == 0 and source is None and patches is None:
             write_series(stage / fibers.FILE_NAME, data,
                          attrs={"geometry": name, "mesh": f"{name}/{name}.xdmf", "method": method,
                                 "element": fibers.ELEMENT, "reference": "Varvik et al. 2021; MODEL.md §5",
@@ -170,6 +192,8 @@ def run(comm, args) -> int:
                       "end_area_mm2": built["end_area_mm2"], "quality": built["quality"],
                       "statistics": {k: v for k, v in row.items() if k != "geometry"},
                       "fibers": {k: float(v) for k, v in stats.items()},
+                      **({} if patches is None else {"pennate": {"origin": args.origin, "insertion": args.insertion,
+                                                                 **{k: float(v) for k, v in architecture.items()}}}),
                       **({} if field is None else {"fibers_from_data": {"source": str(source.path),
                                                                         "source_sha256": sha,
                                                                         "method": fiberdata.method(source, field),
