@@ -60,7 +60,7 @@ def test_original_switches_give_the_original_reaction_force(tmp_path):
         (["--geometry", "BFLH"], "error: unknown geometry 'BFLH'"),
         (["--steps", "0"], "error: argument --steps: expected an integer in [1, 10000], got 0"),
         (["--output", "x.txt"], "error: argument --output: x.txt: expected a .h5 file"),
-        (["--fibers", "helical"], "error: unknown fibre kind 'helical'"),
+        (["--fibers", "helical"], "error: --fibers helical: expected one of auto, idealized, axial"),
         (["--ends", "band"], "error: argument --ends: invalid choice: 'band'"),
         (["--geometry", "cylinder", "--ends", "tags"], "apply to the idealized shape only"),
         (["--stepz", "3"], "error: unknown option(s) --stepz"),

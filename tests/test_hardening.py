@@ -203,7 +203,7 @@ JOBS = {
         **integer_cases("--refine", 0, 3),
         "output_suffix": (["--output", "{out}/c.txt"], r"c.txt: expected a .h5 file"),
         "geometry": (["--geometry", "nowhere"], r"unknown geometry 'nowhere'"),
-        "fibers": (["--fibers", "helical"], r"unknown fibre kind 'helical'"),
+        "fibers": (["--fibers", "helical"], r"--fibers helical: expected one of auto, idealized"),
     }),
     "meshstats": (["--geometries", "TA_VHF_Left", "--output", "{out}/s.csv"], "s.csv", {
         "output_suffix": (["--output", "{out}/s.txt"], r"s.txt: expected a .csv file"),

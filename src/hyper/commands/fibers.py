@@ -77,7 +77,7 @@ def parser() -> cli.Parser:
     p.add_argument("--fibers", metavar="FILE", help=f"fibres from data instead of Stokes flow: {presets.DATA_HELP}"
                    f"{presets.PER_GEOMETRY_HELP}; written to OUTPUT/ID_fibers.h5 with a picture")
     cli.fibre_data_options(p)
-    p.add_argument("--degree", type=int, choices=(2, 3), default=fibers.StokesParams.degree,
+    p.add_argument("--degree", type=cli.integer(2, 3), default=fibers.StokesParams.degree,
                    help="velocity degree of the Taylor–Hood flow (3: nearer the converged field where P2 is not, "
                         "e.g. VL_VHM_Left, at about 2.5 GB for an 8k-cell mesh; python -m hyper.bench convergence "
                         "--fibres-only)")
