@@ -96,7 +96,7 @@ BAD_OPTIONS = {
     "mesh_fibres_on_a_geometry": (["--fibers", "principal"], r"--fibers principal applies to a --mesh file"),
     "original_fibres_on_a_mesh": (["--mesh", "{d}/muscle_m.xdmf", "--fibers", "original"],
                                   r"--fibers original: a --mesh file's fibres are one of auto, stokes, axial"),
-    "fibres_unknown": (["--fibers", "helical"], r"--fibers helical: expected one of auto, original, stokes, axial, principal"),
+    "fibres_unknown": (["--fibers", "helical"], r"--fibers helical: expected one of auto, original, stokes"),
     "petsc_option_no_value": (["--petsc-option", "snes_max_it"], r"--petsc-option 'snes_max_it': expected KEY=VALUE"),
     "petsc_option_dash": (["--petsc-option=-snes_max_it=3"], r"--petsc-option '-snes_max_it=3': expected KEY=VALUE"),
     "petsc_option_lag": (["--petsc-option", "snes_lag_jacobian=0"], r"snes_lag_jacobian must be a positive integer"),
