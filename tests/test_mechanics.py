@@ -337,3 +337,29 @@ def test_newton_matrix_is_the_derivative_of_the_residual():
 @pytest.mark.mpi
 def test_newton_matrix_is_the_derivative_of_the_residual_in_parallel():
     _check_taylor(MPI.COMM_WORLD)
+
+
+def _grown_cylinder(**kwargs):
+    geometry = geo.load("cylinder", MPI.COMM_WORLD)
+    a0 = fibers.fiber_field(geometry)
+    theta = fem.Constant(geometry.mesh, 1.0)
+    Fg = growth.transverse_growth_ufl(theta**2, a0 / ufl.sqrt(ufl.dot(a0, a0)))
+    problem = MechanicsProblem(geometry, a0, growth=Fg, **kwargs)
+    theta.value = 1.05
+    return problem, problem.solve()
+
+
+def test_the_experimental_amg_solver_equals_lu_on_a_body_with_free_rigid_motions():
+    lu, _ = _grown_cylinder()
+    amg, newton = _grown_cylinder(linear_solver="amg")
+    assert len(amg.rigid.modes) == 3 and newton >= 2 and amg.linear_iterations() > 10 * newton
+    n = lu.owned_size
+    u = np.setdiff1d(np.arange(n), lu.pressure_dofs)
+    du = np.abs(amg.w.x.array[u] - lu.w.x.array[u]).max() / np.abs(lu.w.x.array[u]).max()
+    assert MPI.COMM_WORLD.allreduce(du, op=MPI.MAX) < 1e-8
+    assert abs(amg.volume() - lu.volume()) < 1e-12 * lu.volume()
+
+
+def test_the_amg_solver_refuses_a_fieldsplit_option_petsc_does_not_read():
+    with pytest.raises(InputError, match="fieldsplit_u_pc_gamg_thresold"):
+        _grown_cylinder(linear_solver="amg", petsc_options={"fieldsplit_u_pc_gamg_thresold": "0.1"})

@@ -34,12 +34,14 @@ Newton step. "iterative": GMRES, right-preconditioned by MUMPS's block low-rank 
 factorisation at precision 1e-4 with compressed contribution blocks, to a relative
 residual of 1e-10: the factors of the off-diagonal blocks of every front are stored as
 low-rank products, which saves memory (the bench `solvers` measures how much) and the
-Krylov iterations recover the accuracy. Why not algebraic multigrid: a Schur-complement
-fieldsplit with GAMG on the displacement block needs about 100 GMRES iterations per
-Newton step on the 48k-unknown TA mesh at rest (24 with an exact displacement solve) and
-breaks down on the idealized shape, whose displacement block is singular (the free rigid
-motions live in the multipliers); hypre is not in the PETSc wheel. Measured in
-`python -m hyper.bench solvers`.
+Krylov iterations recover the accuracy. "amg" (experimental: no job offers it): GMRES
+right-preconditioned by an upper Schur factorisation, GAMG on the displacement block
+(the rigid-body near null space, block size 3), -(1/μ) M_p for the pressure, and for the
+multipliers of free rigid motions the Schur complement taken with the same V-cycle
+(`_preconditioner`, `_multiplier_schur`). Its Schur part is adequate (with an exact
+displacement solve, 11-36 iterations a Newton step on TA), its AMG is not: one V-cycle
+of GAMG on the P2 displacement block fails on the anatomical meshes; hypre is not in the
+PETSc wheel. Measured in `python -m hyper.bench solvers --parts amg` (docs/performance.md).
 """
 
 from __future__ import annotations
@@ -73,6 +75,9 @@ DEFAULT_PETSC_OPTIONS = {
 }
 
 LINEAR_SOLVERS = ("lu", "iterative")
+# Built here, measured by `python -m hyper.bench solvers --parts amg`, offered by no job:
+# its displacement block's AMG is too weak on the anatomical meshes (docs/performance.md).
+EXPERIMENTAL_SOLVERS = ("amg",)
 ITERATIVE_PETSC_OPTIONS = {
     "ksp_type": "gmres",
     "ksp_gmres_restart": 100,
@@ -87,6 +92,39 @@ ITERATIVE_PETSC_OPTIONS = {
 # over 4 Newton steps at 1e-4, 290 at 1e-3, 635 at 1e-2 and fails at 1e-1; at 578k
 # unknowns and 1e-4, 95 over 4, with 0.60x LU's memory (python -m hyper.bench solvers).
 BLR_PRECISION = 1e-4
+
+# "amg": GMRES right-preconditioned by a block upper-triangular Schur factorisation,
+# smoothed-aggregation AMG (GAMG) on the displacement block, the pressure mass matrix
+# scaled by the shear modulus for the Schur complement (`_preconditioner`). The
+# sub-solvers' options are read at the first set-up (`_SUBSOLVERS`).
+AMG_PETSC_OPTIONS = {
+    "ksp_type": "gmres",
+    "ksp_gmres_restart": 60,
+    "ksp_pc_side": "right",
+    "ksp_rtol": 1e-10,
+    "ksp_atol": 0.0,
+    "ksp_max_it": 600,
+    "pc_type": "fieldsplit",
+    "pc_fieldsplit_type": "schur",
+    "pc_fieldsplit_schur_fact_type": "upper",
+    "pc_fieldsplit_schur_precondition": "a11",
+}
+AMG_SUBSOLVER_OPTIONS = {
+    "fieldsplit_u_ksp_type": "preonly",
+    "fieldsplit_u_pc_type": "gamg",
+    "fieldsplit_u_pc_gamg_threshold": 0.02,
+    "fieldsplit_u_pc_gamg_aggressive_coarsening": 0,
+    "fieldsplit_u_mg_levels_ksp_type": "chebyshev",
+    "fieldsplit_u_mg_levels_pc_type": "jacobi",
+    "fieldsplit_u_mg_levels_ksp_max_it": 3,
+    "fieldsplit_p_ksp_type": "preonly",
+    "fieldsplit_p_pc_type": "jacobi",
+}
+# The shift ε M added to the displacement block of the preconditioner where the springs
+# leave rigid motions free (its AMG hierarchy would be singular there), as a fraction of
+# the shear modulus over the squared body size: the softest elastic motion of a body is
+# about μ/L², so the shift perturbs it by ~1e-3 and GMRES corrects the few free ones.
+AMG_SHIFT = 1e-3
 
 
 def blr_controls(precision: float) -> dict:
@@ -133,7 +171,7 @@ class MechanicsProblem:
         blr_precision: float = BLR_PRECISION,
         normalize_fibres: bool = True,
     ):
-        if linear_solver not in LINEAR_SOLVERS:
+        if linear_solver not in LINEAR_SOLVERS + EXPERIMENTAL_SOLVERS:
             raise ValueError(f"linear_solver must be one of {', '.join(LINEAR_SOLVERS)}, got {linear_solver!r}")
         if not 0 < blr_precision < 1:
             raise ValueError(f"blr_precision must be in (0, 1), got {blr_precision!r}")
@@ -195,13 +233,24 @@ class MechanicsProblem:
 
         self.snes = PETSc.SNES().create(self.comm)
         self.snes.setFunction(self._assemble_residual, self._F)
-        self.snes.setJacobian(self._snes_jacobian, self._K, self._K)
         self.snes.setOptionsPrefix(options_prefix)
-        preset = ITERATIVE_PETSC_OPTIONS if linear_solver == "iterative" else {}
-        _set_options(self.snes, options_prefix, {**DEFAULT_PETSC_OPTIONS, **preset, **(petsc_options or {})},
-                     checked=tuple(petsc_options or ()))
+        user = dict(petsc_options or {})
+        # The sub-solvers of the fieldsplit read their options at its first set-up, long
+        # after setFromOptions: they are kept here and put into the database for it.
+        given = {k: v for k, v in user.items() if k.startswith(SUBSOLVER)}
+        self._subsolver_options = {**AMG_SUBSOLVER_OPTIONS, **given} if linear_solver == "amg" else {}
+        self._user_subsolver_options = tuple(k for k in user if k in self._subsolver_options)
+        self._subsolvers_read = False
+        preset = {"iterative": ITERATIVE_PETSC_OPTIONS, "amg": AMG_PETSC_OPTIONS}.get(linear_solver, {})
+        read_now = {k: v for k, v in user.items() if k not in self._subsolver_options}
+        _set_options(self.snes, options_prefix, {**DEFAULT_PETSC_OPTIONS, **preset, **read_now},
+                     checked=tuple(read_now))
+        self._P = self._K
+        if linear_solver == "amg":
+            self._preconditioner(mesh)
+        self.snes.setJacobian(self._snes_jacobian, self._K, self._P)
         controls = {**(blr_controls(blr_precision) if linear_solver == "iterative" else {}),
-                    **{k: v for k, v in (petsc_options or {}).items() if k.startswith(READ_LATER)}}
+                    **{k: v for k, v in user.items() if k.startswith(READ_LATER)}}
         self._set_mumps(controls)
 
         sigma = self.P * self.F.T / ufl.det(self.F)
@@ -279,6 +328,138 @@ class MechanicsProblem:
             self._blocks = (nest, A, B, BT)
         self._x, self._F = self._K.createVecs()
 
+    def _preconditioner(self, mesh) -> None:
+        """The splits and matrices of the "amg" preconditioner (module docstring).
+
+        Displacement split: the owned u dofs node by node (blocks of 3, as GAMG wants),
+        with the six rigid motions about the centroid as its near null space. Its
+        preconditioner is built from the linear elasticity of the reference body,
+        2μ ε(δu):ε(v) and the springs (μ = 2 (c1 + c2), the shear modulus), assembled
+        once: the Jacobian's displacement block itself is indefinite (the pressure's
+        geometric terms), and AMG with Chebyshev smoothing needs a definite matrix.
+        Pressure split: the owned p dofs in the order of the collapsed P1 space, then
+        (last rank) the multipliers, so that the Schur preconditioner
+        Sp = -(1/μ) M_p ⊕ -diag(c) is assembled on the P1 space directly. Where rigid
+        motions are free, ε M_u (ε = AMG_SHIFT μ / L²) keeps the elasticity definite and
+        c_i = ∫ r_i·r_i dX / ε is the Schur complement Bᵀ (E + ε M_u)⁻¹ B of a motion r_i
+        the elasticity E does not resist.
+        """
+        import dolfinx.fem.petsc  # noqa: F401
+
+        comm = self.comm
+        first = self._K.getOwnershipRange()[0]
+        Vu, udofs = self.W.sub(0).collapse()
+        nu = Vu.dofmap.index_map.size_local
+        udofs = np.asarray(udofs, dtype=np.int64).ravel()[: 3 * nu]
+        Q, qdofs = self.W.sub(1).collapse()
+        nq = Q.dofmap.index_map.size_local
+        qdofs = np.asarray(qdofs, dtype=np.int64).ravel()[:nq]
+        if udofs.max(initial=-1) >= self._nowned or qdofs.max(initial=-1) >= self._nowned:
+            raise RuntimeError("a collapsed space owns a dof its mixed space does not")
+        is_u = PETSc.IS().createGeneral((udofs + first).astype(PETSc.IntType), comm=comm)
+        is_u.setBlockSize(3)
+        m = len(self.rigid.modes)
+        mult = self._mult_index[: self._nmult] if m else np.empty(0, dtype=np.int64)
+        is_p = PETSc.IS().createGeneral(np.concatenate([qdofs + first, mult]).astype(PETSc.IntType), comm=comm)
+        is_u.compose("nearnullspace", _rigid_body_space(Vu.tabulate_dof_coordinates()[:nu], comm))
+
+        mu = 2.0 * (self.material.c1 + self.material.c2)
+        dx = self.geometry.dx
+        c = np.empty(0)
+        if m:
+            lo, hi = comm.allreduce(mesh.geometry.x.min(axis=0), op=MPI.MIN), comm.allreduce(
+                mesh.geometry.x.max(axis=0), op=MPI.MAX)
+            eps = AMG_SHIFT * mu / float(np.sum((hi - lo) ** 2))
+            c = np.array([self._sum(fem.form(ufl.dot(r, r) * dx)) for r in self.rigid.modes]) / eps
+            v = ufl.TestFunction(Vu)
+            Mu = fem.petsc.assemble_matrix(fem.form(ufl.dot(ufl.TrialFunction(Vu), v) * dx))
+            Mu.assemble()
+            diag = Mu.getDiagonal()
+            # the shift as a matrix of the u diagonal: K's pattern lacks the multipliers' diagonal
+            shift = np.zeros(self._K.getLocalSize()[0])
+            shift[udofs] = eps * diag.getArray()
+            Mu.destroy()
+            diag.destroy()
+            has = shift != 0
+            self._shift = PETSc.Mat().createAIJ(self._K.getSizes(), comm=comm)
+            self._shift.setPreallocationCSR((np.concatenate([[0], np.cumsum(has)]).astype(PETSc.IntType),
+                                             (first + np.flatnonzero(has)).astype(PETSc.IntType), shift[has]))
+            self._shift.assemble()
+            self._P = self._K.duplicate(copy=True)
+
+        p, q = ufl.TrialFunction(Q), ufl.TestFunction(Q)
+        Mp = fem.petsc.assemble_matrix(fem.form(p * q * dx))
+        Mp.assemble()
+        indptr, indices, values = Mp.getValuesCSR()
+        Mp.destroy()
+        NQ = Q.dofmap.index_map.size_global
+        indptr = np.concatenate([indptr, indptr[-1] + np.arange(1, self._nmult + 1)]).astype(PETSc.IntType)
+        indices = np.concatenate([indices, NQ + np.arange(self._nmult)]).astype(PETSc.IntType)
+        values = np.concatenate([-values / mu, -c[: self._nmult]])
+        n = nq + self._nmult
+        self._schur = PETSc.Mat().createAIJ(((n, NQ + m), (n, NQ + m)), comm=comm)
+        self._schur.setPreallocationCSR((indptr, indices, values))
+        self._schur.assemble()
+        pc = self.snes.getKSP().getPC()
+        pc.setFieldSplitIS(("u", is_u), ("p", is_p))
+        pc.setFieldSplitSchurPreType(PETSc.PC.FieldSplitSchurPreType.USER, self._schur)
+        self._splits = (is_u, is_p)
+        self._split_udofs = udofs
+
+    def setup_linear_solver(self) -> None:
+        """Set up the linear solver for the current matrix (factorise it, or build the AMG
+        hierarchy): done only where the matrix changed since the last set-up. The first
+        set-up of "amg" reads the sub-solvers' options; one of the user's it did not read
+        is an InputError, as `_set_options` makes of the others."""
+        ksp = self.snes.getKSP()
+        ksp.setOperators(self._K, self._P)
+        if self._subsolvers_read or not self._subsolver_options:
+            ksp.setUp()
+            self._multiplier_schur()
+            return
+        db = PETSc.Options()
+        prefix = self.snes.getOptionsPrefix()
+        added = [prefix + k for k in self._subsolver_options if not db.hasName(prefix + k)]
+        for key, value in self._subsolver_options.items():
+            if prefix + key in added:
+                db.setValue(prefix + key, value)
+        try:
+            ksp.setUp()
+            for sub in ksp.getPC().getFieldSplitSubKSP():  # GAMG reads its levels' options here
+                sub.setUp()
+            unused = [k for k in self._user_subsolver_options if not db.used(prefix + k)]
+        finally:
+            for name in added:
+                db.delValue(name)
+        self._subsolvers_read = True
+        self._multiplier_schur()
+        if unused:
+            raise InputError(f"--petsc-option: PETSc does not read {', '.join(unused)} for the mechanics "
+                             "solver's fieldsplit (misspelt, or an option of another object)")
+
+    def _multiplier_schur(self) -> None:
+        """The multipliers' part of the Schur preconditioner, -bᵢᵀ Â⁻¹ bᵢ with Â⁻¹ the
+        displacement split's preconditioner and bᵢ = ∫ rᵢ·v dX: the free motions are
+        near null vectors of the shifted block, where Â⁻¹ is large; taken with the same
+        Â⁻¹ the large parts cancel (as in the Woodbury identity)."""
+        if not self._subsolver_options or not len(self.rigid.modes):
+            return
+        sub = self.snes.getKSP().getPC().getFieldSplitSubKSP()[0]
+        upc = sub.getPC()
+        b = upc.getOperators()[1].createVecRight()
+        z = b.duplicate()
+        udofs = self._split_udofs
+        c = []
+        for row in self._B:
+            b.getArray()[:] = row[udofs]
+            upc.apply(b, z)
+            c.append(b.dot(z))
+        if self._nmult:
+            rows = self._schur.getOwnershipRange()[1] - self._nmult + np.arange(self._nmult, dtype=PETSc.IntType)
+            for row, value in zip(rows, c[len(c) - self._nmult:]):
+                self._schur.setValue(row, row, -value)
+        self._schur.assemble()
+
     def _set_mumps(self, controls: dict) -> None:
         """Set MUMPS controls (``mat_mumps_icntl_N`` / ``mat_mumps_cntl_N`` keys) on the
         factor object, made now for the purpose: MUMPS reads its -mat_mumps_ options at
@@ -353,6 +534,12 @@ class MechanicsProblem:
         return self._K
 
     @property
+    def preconditioner_matrix(self) -> PETSc.Mat:
+        """The matrix the linear solver's preconditioner is built from: `jacobian_matrix`,
+        or for "amg" the reference body's elasticity (`_preconditioner`), built once."""
+        return self._P
+
+    @property
     def solution_vector(self) -> PETSc.Vec:
         """The Newton unknowns as SNES sees them: this rank's `owned_size` dofs of w,
         then on the last rank the multipliers."""
@@ -391,6 +578,9 @@ class MechanicsProblem:
             K.setValues(self._rows, self._mult_index, self._B.T.copy(), addv=add)
             K.setValues(self._mult_index, self._rows, self._B, addv=add)
         K.assemble()
+        if self._P is not K:
+            K.copy(self._P, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+            self._P.axpy(1.0, self._shift, structure=PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
 
     @property
     def num_dofs(self) -> int:
@@ -431,6 +621,11 @@ class MechanicsProblem:
         x = self._x.getArray()
         x[: self._nowned] = self.w.x.array[: self._nowned]
         x[self._nowned:] = self.multipliers[: self._nmult]
+        if not self._subsolvers_read and self._subsolver_options:
+            # SNES would set the fieldsplit up without its sub-solvers' options (and an
+            # InputError inside its callback would become a PETSc error)
+            self.assemble_jacobian(self._x)
+            self.setup_linear_solver()
         try:
             self.snes.solve(None, self._x)
             reason = self.snes.getConvergedReason()
@@ -505,6 +700,8 @@ def taylor_hood_unknowns(mesh) -> int:
 # Read by MUMPS when it factorises, after setFromOptions: whether they are used cannot be
 # known when the solver is set up.
 READ_LATER = ("mat_mumps_",)
+# Read by the fieldsplit's sub-solvers at its first set-up ("amg").
+SUBSOLVER = "fieldsplit_"
 
 
 def _set_options(snes, prefix: str, options: dict, checked: tuple[str, ...] = ()) -> None:
@@ -552,6 +749,26 @@ def refused(db, prefix: str, options: dict, checked: tuple[str, ...], added: lis
 
 
 # ------------------------------------------------------------------- rigid motions
+
+
+def _rigid_body_space(x: np.ndarray, comm) -> PETSc.NullSpace:
+    """The six rigid motions at the nodes ``x`` (owned, in order) as vectors of blocks of
+    three, orthonormalised: the near null space of elasticity that GAMG coarsens with."""
+    centre = comm.allreduce(x.sum(axis=0), op=MPI.SUM) / comm.allreduce(len(x), op=MPI.SUM)
+    vectors = []
+    for k in range(6):
+        vec = PETSc.Vec().createMPI((3 * len(x), PETSc.DETERMINE), bsize=3, comm=comm)
+        values = np.zeros((len(x), 3))
+        if k < 3:
+            values[:, k] = 1.0
+        else:
+            values[:] = np.cross(np.eye(3)[k - 3], x - centre)
+        vec.getArray()[:] = values.ravel()
+        for previous in vectors:
+            vec.axpy(-vec.dot(previous), previous)
+        vec.normalize()
+        vectors.append(vec)
+    return PETSc.NullSpace().create(vectors=vectors, comm=comm)
 
 
 def _end_facets(geometry: Geometry, tag: int):

@@ -1,6 +1,6 @@
 """Linear solvers side by side: MUMPS LU against GMRES with a BLR preconditioner, and GAMG.
 
-    python -m hyper.bench solvers [--levels 0 1 2] [--ranks 2] [--parts levels precision gamg]
+    python -m hyper.bench solvers [--levels 0 1 2] [--ranks 2] [--parts levels precision gamg amg]
 
 The scene is a growth solve: the resting idealized shape (refined `level` times, every
 tetrahedron into eight) takes one transverse growth increment Fg = I + (ϑ - 1)(I - a0⊗a0)
@@ -28,7 +28,12 @@ Where it stalls:
   TA_VHF_Left also with tuned GAMG and with an exact (LU) displacement solve, which
   tells the displacement block's preconditioner from the Schur approximation.
 
---parts runs only some of the three (levels, precision, gamg); the others are kept from
+- amg: the mechanics' experimental "amg" solver (`hyper.fem.mechanics`: mass-matrix Schur
+  preconditioner, the free modes' multiplier Schur taken with the same V-cycle) with one
+  GAMG V-cycle and with an exact (LU) displacement solve, on the idealized shape (levels 0
+  and 1) and TA_VHF_Left, 1 rank.
+
+--parts runs only some of the four (levels, precision, gamg, amg); the others are kept from
 an existing OUTPUT/solvers.json. Writes results/bench/solvers.json and solvers.png (memory and time against unknowns,
 iterations against unknowns and precision).
 """
@@ -67,7 +72,17 @@ GAMG_VARIANTS = {
     "exact displacement solve (LU)": {"fieldsplit_u_pc_type": "lu", "fieldsplit_u_pc_factor_mat_solver_type": "mumps"},
 }
 GAMG_CASES = (("idealized", "GAMG"), *(("TA_VHF_Left", variant) for variant in GAMG_VARIANTS))
-PARTS = ("levels", "precision", "gamg")
+PARTS = ("levels", "precision", "gamg", "amg")
+# The mechanics' experimental "amg" solver (mass-matrix Schur preconditioner, the free
+# modes' multiplier Schur with the same V-cycle): (geometry, level, variant), the variant's
+# options over AMG_PETSC_OPTIONS; the exact displacement solve tells its Schur part from its AMG.
+AMG_VARIANTS = {
+    "GAMG V-cycle": {},
+    "exact displacement solve (LU)": {"fieldsplit_u_pc_type": "lu", "fieldsplit_u_pc_factor_mat_solver_type": "mumps"},
+}
+AMG_CASES = (("idealized", 0, "exact displacement solve (LU)"), ("idealized", 0, "GAMG V-cycle"),
+             ("idealized", 1, "GAMG V-cycle"), ("TA_VHF_Left", 0, "exact displacement solve (LU)"),
+             ("TA_VHF_Left", 0, "GAMG V-cycle"))
 # The Schur-complement fieldsplit of the GAMG cases; its splits are set in `_fieldsplit`.
 GAMG_OPTIONS = {
     "ksp_type": "gmres", "ksp_gmres_restart": 200, "ksp_pc_side": "right", "ksp_rtol": 1e-10,
@@ -145,6 +160,8 @@ def run_case(case: dict, comm, save: Path | None) -> dict:
         kwargs = {"linear_solver": "iterative", "blr_precision": case.get("precision", BLR_PRECISION)}
     start = time.perf_counter()
     options = {**GAMG_OPTIONS, **GAMG_VARIANTS[case["variant"]]} if solver == "gamg" else None
+    if solver == "amg":
+        kwargs, options = {"linear_solver": "amg"}, AMG_VARIANTS[case["variant"]] or None
     problem = MechanicsProblem(geometry, a0, growth=Fg, petsc_options=options, **kwargs)
     if solver == "gamg":
         _fieldsplit(problem, comm, options)
@@ -223,6 +240,11 @@ def chart(path: Path, result: dict) -> None:
     rows = [r for r in result["levels"] if r["solver"] == "iterative" and "failed" not in r]
     ax.semilogx([r["unknowns"] for r in rows], [r["krylov_iterations"] / r["newton_iterations"] for r in rows],
                 "s-", label="GMRES + BLR 1e-4, against unknowns")
+    for r in result.get("amg", []):
+        ok = "failed" not in r
+        its = r["krylov_iterations"] / max(r.get("newton_iterations") or 1, 1) if ok else 0
+        ax.semilogx([r["unknowns"]], [its], "v" if ok else "rx", ms=9,
+                    label=f"amg, {r['variant']}, {r['geometry']}" + ("" if ok else ": fails"))
     for r in result["gamg"]:
         ok = "failed" not in r
         its = r["krylov_iterations"] / max(r.get("newton_iterations") or 1, 1) if ok else 0
@@ -314,17 +336,23 @@ def run(comm, args) -> int:
         print(f"solvers: {variant} fieldsplit on {name} …", flush=True)
         gamg.append(_run_worker({"geometry": name, "level": 0, "solver": "gamg", "variant": variant}, 1,
                                 args.timeout, None))
-    measured = {"levels": rows, "precision": precision, "gamg": gamg}
-    rows, precision, gamg = ({**measured, **kept}[part] for part in PARTS)
+    amg = []
+    for name, level, variant in AMG_CASES if "amg" in args.parts else ():
+        print(f"solvers: amg, {variant}, on {name} level {level} …", flush=True)
+        amg.append(_run_worker({"geometry": name, "level": level, "solver": "amg", "variant": variant}, 1,
+                               args.timeout, None))
+    measured = {"levels": rows, "precision": precision, "gamg": gamg, "amg": amg}
+    rows, precision, gamg, amg = ({**measured, **kept}[part] for part in PARTS)
     result = {"benchmark": "solvers", "machine": common.machine(), "ranks": args.ranks, "theta": THETA,
-              "levels": rows, "precision": precision, "gamg": gamg, "parts_run": args.parts,
+              "levels": rows, "precision": precision, "gamg": gamg, "amg": amg, "parts_run": args.parts,
               "memory_fit": {s: memory_fit([r for r in rows if r["solver"] == s]) for s in ("lu", "iterative")},
               "versions": io.versions(), "wall_s": time.perf_counter() - start}
     args.output.mkdir(parents=True, exist_ok=True)
     io.write_json(args.output / "solvers.json", result)
     chart(args.output / "solvers.png", result)
-    for r in precision + gamg:
-        print(f"{r.get('variant', r['solver']):40s} {r['geometry']:12s} precision {r.get('precision', '-')}: " +
+    for r in precision + gamg + amg:
+        print(f"{r.get('variant', r['solver']):40s} {r['geometry']:12s} level {r.get('level', 0)} "
+              f"precision {r.get('precision', '-')}: " +
               (f"FAILED {r['failed']}" if "failed" in r else
                f"{r['newton_iterations']} Newton, {r['krylov_iterations']} Krylov its, {r['solve_s']:.1f} s"))
     print(f"wrote {args.output / 'solvers.json'} and solvers.png")
