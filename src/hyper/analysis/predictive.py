@@ -112,7 +112,7 @@ def run_samples(comm, runs: list[runspec.RunSpec], output: Path, *, ranks_per_jo
         out = runspec.Outputs(result_path(output, j))
         with locks.hold(subcomm, [out.h5]):
             on_rank0(subcomm, lambda: cohort.drop_stale_checkpoint(out.checkpoint, digests[j]))
-            log = cohort._RunLog(out.h5.with_suffix(".log")) if subcomm.rank == 0 else contextlib.nullcontext()
+            log = cohort.RunLog(out.h5.with_suffix(".log")) if subcomm.rank == 0 else contextlib.nullcontext()
             try:
                 with log:
                     done = driver.execute(subcomm, runs[j], out, stop=stop, progress_every=progress_every)
