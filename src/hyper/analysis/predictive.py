@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+import textwrap
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
@@ -201,9 +202,10 @@ def figure(path: Path, t: np.ndarray, csa: np.ndarray, fast: np.ndarray, kM: np.
         ax.plot(weeks, 100 * (csa[j] - 1), color="C0", lw=1, label="coupled runs" if j == 0 else None)
         ax.plot(weeks, 100 * (fast[j] - 1), color="C1", lw=1, ls="--", label="ODE growth model" if j == 0 else None)
     c, e = summary["coupled"]["csa_gain_pct"], summary["surrogate_error"]["csa"]
-    ax.set_title(f"{summary['geometry']}, {summary['protocol']}, {len(kM)} posterior samples of kM: CSA gain "
-                 f"{c['median']:.2f} [{c['low']:.2f}, {c['high']:.2f}] %; ODE model error "
-                 f"{e['max_abs_pp']:.2g} pp (max)", fontsize=7)
+    ax.set_title("\n".join(textwrap.wrap(
+        f"{summary['geometry']}, {summary['protocol']}, {len(kM)} posterior samples of kM: CSA gain "
+        f"{c['median']:.2f} [{c['low']:.2f}, {c['high']:.2f}] % ({LEVEL:.0%}); ODE growth model's error "
+        f"{e['max_abs_pp']:.2g} pp (max)", 90)), fontsize=8)
     ax.set_xlabel("time (weeks)")
     ax.set_ylabel("CSA change (%)")
     ax.grid(alpha=0.3)
