@@ -2,10 +2,12 @@
 
 import json
 import re
+from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
+from mpi4py import MPI
 
 from hyper.analysis import predictive
 from hyper.commands import cli
@@ -107,3 +109,21 @@ def test_a_file_without_kM_samples_is_refused(inputs):
     io.write_series(inputs / "other.h5", {"kF": np.array([0.01, 0.02])})
     with pytest.raises(InputError, match="no kM samples"):
         predictive.read_posterior(inputs / "other.h5")
+
+
+@pytest.mark.mpi
+def test_mpi_two_groups_of_one_and_one_group_of_two_give_the_same_gains(tmp_path):
+    comm = MPI.COMM_WORLD
+    folder = Path(comm.bcast(str(tmp_path) if comm.rank == 0 else None, root=0))
+    if comm.rank == 0:
+        (folder / "short.toml").write_text(PROTOCOL)
+        io.write_series(folder / "posterior.h5", {"kM": np.array(KM)}, attrs={"geometry": "cylinder"})
+    comm.barrier()
+    gains = []
+    for ranks, name in (("1", "groups"), ("2", "whole")):
+        words = argv(folder, "--ranks-per-job", ranks)
+        words[words.index("--output") + 1] = str(folder / name)
+        assert cli.main(words) == cli.EXIT_OK
+        gains.append(json.loads((folder / name / "predictive.json").read_text())["per_sample"]["csa_gain_pct"])
+    # the same runs on one rank or split over two: the same growth up to the Newton tolerance
+    assert np.allclose(gains[0], gains[1], rtol=0, atol=1e-6)
