@@ -31,7 +31,6 @@ from hyper.analysis.cohort import idle_barrier
 from hyper.commands import cli
 from hyper.core.log import info
 from hyper.core.params import InputError
-from hyper.fem import geometry as geo
 from hyper.model import protocols
 from hyper.runs import driver, farm, runspec
 
@@ -41,7 +40,7 @@ def parser() -> cli.Parser:
     p.add_argument("--posterior", type=Path, required=True, reads=True, metavar="H5",
                    help="posterior.h5 of hyper calibrate --method bayes --fit kM")
     p.add_argument("--geometry", default="TA_VHF_Left",
-                   help=f"the muscle, a built-in geometry ({geo.ANATOMICAL[0]}, …)")
+                   help="the muscle: a built-in geometry id (an anatomical mesh, or cylinder or idealized)")
     p.add_argument("--protocol", default="mwf", metavar="NAME|FILE", reads=True,
                    help="the protocol (a name or a .toml)")
     p.add_argument("--samples", type=cli.integer(2, 1000), default=predictive.DEFAULT_SAMPLES,
