@@ -257,6 +257,17 @@ JOBS = {
         "budget_inf": (["--budgets", "inf"], r"argument --budgets: expected a finite number of hours > 0"),
         "accuracy_text": (["--accuracy", "tight"], r"argument --accuracy: expected a number, got 'tight'"),
     }),
+    "predict": (["--posterior", "{d}/posterior.h5", "--geometry", "cylinder", "--output", "{out}"], "predict", {
+        **FOLDER_OUTPUT,
+        **{f"protocol_{k}": v for k, v in PROTOCOL_CASES.items()},
+        "samples_one": (["--samples", "1"], r"argument --samples: expected an integer in \[2, 1000\], got 1"),
+        "samples_past_the_posterior": (["--samples", "9"], r"--samples 9: the posterior holds only 3 samples"),
+        "geometry_unknown": (["--geometry", "femur"], r"--geometry: unknown geometry 'femur'"),
+        "posterior_missing": (["--posterior", "{d}/absent.h5"], r"--posterior .*absent.h5: no such file"),
+        "posterior_not_hdf5": (["--posterior", "{d}/a_file"], r"posterior file"),
+        "posterior_without_kM": (["--posterior", "{d}/kF.h5"], r"kF.h5: no kM samples \(datasets: kF\)"),
+        "ranks_per_job_zero": (["--ranks-per-job", "0"], r"argument --ranks-per-job: expected an integer"),
+    }),
     "design": (["--target", "5", "--week", "8", "--no-check", "--output", "{out}"], "design", {
         **FOLDER_OUTPUT,
         **integer_cases("--week", 1, 104),
@@ -328,6 +339,10 @@ def inputs(tmp_path_factory):
     (d / "surface").mkdir()
     (d / "surface" / "s.stl").write_text("solid s\nendsolid s\n")
     (d / "R.h5").write_text("a result\n")
+    from hyper.core import io
+
+    io.write_series(d / "posterior.h5", {"kM": [0.01, 0.012, 0.014]}, attrs={"geometry": "cylinder"})
+    io.write_series(d / "kF.h5", {"kF": [0.01, 0.012]})
     (d / "R_fields.h5").write_text("its snapshots\n")
     return d
 

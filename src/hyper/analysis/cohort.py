@@ -116,7 +116,7 @@ def drop_stale_checkpoint(path: Path, digest: str) -> None:
             path.unlink()
 
 
-class _RunLog:
+class RunLog:
     """While a run computes, what the calling thread prints (the run's own progress) goes
     to the run's log file; other threads still print to the terminal. On rank 0 the farm's
     server thread prints the other groups' progress while rank 0 computes a run of its own."""
@@ -182,7 +182,7 @@ def run_cohort(comm, runs: list[Run], output: Path, *, params=None, settings: Gr
         with locks.hold(subcomm, [out.h5]):
             on_rank0(subcomm, lambda: drop_stale_checkpoint(out.checkpoint, digests[entry.key]))
             try:
-                with _RunLog(out.h5.with_suffix(".log")) if subcomm.rank == 0 else contextlib.nullcontext():
+                with RunLog(out.h5.with_suffix(".log")) if subcomm.rank == 0 else contextlib.nullcontext():
                     done = driver.execute(subcomm, specs[entry.key], out, snapshot_every=snapshot_every, stop=stop,
                                           progress_every=progress_every)
             except driver.Interrupted:

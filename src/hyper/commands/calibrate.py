@@ -54,7 +54,8 @@ takes the grid for one parameter. The least-squares fit runs too, as emcee's sta
 the comparison. Writes OUTPUT/posterior.h5 (the samples, one dataset per quantity; the
 data files' SHA-256, the priors and the diagnostics as groups), OUTPUT/calibration.json
 (both fits) and OUTPUT/calibration.png (data, posterior median, 95 % credible and
-predictive bands). --no-check skips the coupled run at the posterior median.
+predictive bands). --no-check skips the coupled run at the posterior median. The samples feed
+``hyper design --posterior`` and ``hyper predict`` (coupled runs of them on a real muscle).
 """
 
 from __future__ import annotations

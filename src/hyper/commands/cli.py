@@ -53,7 +53,7 @@ EXIT_PIPE = 128 + signal.SIGPIPE
 # `hyper JOB` runs hyper.commands.JOB.main (`python -m hyper.JOB`: the shim hyper/JOB.py); the
 # benches keep their own dispatcher (hyper bench NAME).
 JOBS = ("grow", "cohort", "ensemble", "signaling", "sobol", "contraction", "fibers", "meshstats", "mesh", "slurm",
-        "calibrate", "dose", "design", "inspect", "demo", "study", "reproduce", "box", "bench")
+        "calibrate", "dose", "design", "predict", "inspect", "demo", "study", "reproduce", "box", "bench")
 
 LOGGER = "hyper"
 
