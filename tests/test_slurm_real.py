@@ -18,6 +18,7 @@ import datetime
 import os
 import re
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -373,14 +374,29 @@ def test_sobol_stopped_requeued_and_resumed(cluster, tmp_path):
         assert got.attrs["digest"] == want.attrs["digest"] and got.attrs["evaluations_computed"] == 960 - 16 * kept
 
 
-def _grow_started(folder: Path) -> bool:
-    """Whether a `python -m hyper.grow` of the job in ``folder`` (its --chdir) has started."""
+def _grow_holds_term(folder: Path) -> bool:
+    """Whether a `python -m hyper.grow` of the job in ``folder`` (its --chdir) has started
+    and blocked SIGTERM, that is hyper.core.term has taken the signal over.
+
+    Before that (Python's own start, some tens of ms) a TERM kills the rank by the default
+    disposition: srun reports 'Terminated', the template still requeues it (exit status
+    143), but this test is about the window after, while imports and PETSc start.
+    """
+    term_bit = 1 << (signal.SIGTERM - 1)
     for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
         try:
-            if b"hyper.grow" in cmdline.read_bytes() and Path(cmdline.parent / "cwd").resolve() == folder.resolve():
-                return True
+            argv = cmdline.read_bytes().split(b"\0")
+            # the rank itself, not the srun that started it (whose argv names hyper.grow too)
+            if b"python" not in os.path.basename(argv[0]) or b"hyper.grow" not in argv:
+                continue
+            if Path(cmdline.parent / "cwd").resolve() != folder.resolve():
+                continue
+            status = (cmdline.parent / "status").read_text()
         except OSError:  # ended meanwhile, or not ours to read
             continue
+        blocked = int(re.search(r"^SigBlk:\s*([0-9a-f]+)", status, re.M).group(1), 16)
+        if blocked & term_bit:
+            return True
     return False
 
 
@@ -394,7 +410,7 @@ def test_grow_array_task_termed_in_its_start_up_is_requeued_and_finishes(cluster
     array = submit(cluster, script)
     log = tmp_path / "logs" / f"hyper-grow-array-{array}_0.out"
     task = wait_until("task 0 to start", lambda: job(cluster, f"{array}_0")["JobId"], timeout=60)
-    wait_until("the run to start", lambda: _grow_started(tmp_path), timeout=60)
+    wait_until("the run to take TERM over", lambda: _grow_holds_term(tmp_path), timeout=60)
     warn(cluster, task)
     requeued_then_released(cluster, task)
     completed(cluster, task)
