@@ -19,6 +19,7 @@ from hyper.core.params import InputError
 from hyper.model import protocols
 from hyper.model.heterogeneity import Heterogeneity
 from hyper.model.protocols import Repeat
+from hyper.runs import fidelity
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -139,6 +140,35 @@ def test_numerics_growth_step_and_accuracy(tmp_path):
     settings, choice = study.steps(s)
     assert choice is not None and settings.growth_dt == choice.growth_dt
     assert study.spec_options(s, choice)["linear_solver"] == "auto"
+    assert choice.spatial_error == fidelity.spatial("cylinder").error and choice.refine == 0
+    assert choice.predicted_error > choice.spatial_error
+
+
+def test_accuracy_counts_the_worst_mesh_and_refines_every_mesh_alike(tmp_path):
+    # TA_VHF_Left's table: 4.6e-3 of the growth on its mesh, 2.0e-3 of it kept, order 1, so
+    # 3.3e-3 refined once; half of 0.008 (the mesh's share) needs one refinement
+    ta = fidelity.SPATIAL_ERROR["TA_VHF_Left"]
+    once = ta.kept + (ta.error - ta.kept) / 2
+    assert 2 * once < 0.008 < 2 * ta.error
+    s = study.load(write(tmp_path, 'geometries = ["cylinder", "TA_VHF_Left"]\nprotocols = ["weekly"]\n'
+                                   '[numerics]\naccuracy = 0.008\n'))
+    settings, choice = study.steps(s)
+    assert choice.refine == 1 and study.spec_options(s, choice)["refine"] == 1
+    assert choice.spatial_error == pytest.approx(once, rel=1e-12)
+    assert choice.predicted_error <= 0.008
+    # a looser accuracy leaves the meshes as they are; the worst one still counts
+    s = study.load(write(tmp_path, 'geometries = ["cylinder", "TA_VHF_Left"]\nprotocols = ["weekly"]\n'
+                                   '[numerics]\naccuracy = 0.02\n'))
+    _, choice = study.steps(s)
+    assert (choice.refine, choice.spatial_error) == (0, ta.error)
+
+
+def test_an_accuracy_no_mesh_of_the_study_can_give_is_refused(tmp_path):
+    s = study.load(write(tmp_path, 'geometries = ["cylinder", "TA_VHF_Left"]\nprotocols = ["weekly"]\n'
+                                   '[numerics]\naccuracy = 1e-3\n'))
+    with pytest.raises(InputError, match=r"numerics.accuracy 0.001: accuracy 0.001 is tighter than the mesh of "
+                                         r"TA_VHF_Left can give: .* the smallest supported accuracy is"):
+        study.steps(s)
 
 
 def test_material_and_model_switches(tmp_path):

@@ -327,10 +327,8 @@ def steps(study: Study) -> tuple[GrowthSettings, fidelity.Choice | None]:
     choice = None
     growth_dt, signaling_dt = n.growth_dt, n.signaling_dt
     if n.accuracy is not None:
-        scene = fidelity.Scene(",".join(study.names), ",".join(p.name for p in study.protocols),
-                               heterogeneous=study.heterogeneity is not None, ask="growth")
         try:
-            choice = fidelity.choose(scene, n.accuracy, growth_dt=growth_dt, signaling_dt=signaling_dt)
+            choice = mesh_and_steps(study, growth_dt, signaling_dt)
         except InputError as err:
             raise InputError(f"numerics.accuracy {n.accuracy:g}: {err}") from None
         growth_dt, signaling_dt = choice.growth_dt, choice.signaling_dt
@@ -345,11 +343,28 @@ def steps(study: Study) -> tuple[GrowthSettings, fidelity.Choice | None]:
     return settings, choice
 
 
+def mesh_and_steps(study: Study, growth_dt, signaling_dt) -> fidelity.Choice:
+    """`fidelity.choose_on_mesh` over every geometry of the study: one refinement for all
+    (a study's `refine` is one number), the fewest that each geometry's mesh needs, and the
+    steps from what the worst mesh at that refinement leaves of the accuracy."""
+    n, protocols = study.numerics, ",".join(p.name for p in study.protocols)
+    built_in = set(study.geometries)
+
+    def on(name: str, refine: int) -> fidelity.Choice:
+        scene = fidelity.Scene(name, protocols, heterogeneous=study.heterogeneity is not None, ask="growth")
+        return fidelity.choose_on_mesh(scene, n.accuracy, refine=refine, mesh_file=name not in built_in,
+                                       growth_dt=growth_dt, signaling_dt=signaling_dt)
+
+    refine = max(on(name, n.refine).refine for name in study.names)
+    return max((on(name, refine) for name in study.names), key=lambda c: c.spatial_error)
+
+
 def spec_options(study: Study, choice) -> dict:
     """The `RunSpec` fields a study sets beyond geometry, protocol, parameters and settings."""
     solver = study.numerics.linear_solver or ("auto" if choice is not None else "lu")
     return {"heterogeneity": study.heterogeneity, "seed": study.seed, "linear_solver": solver, "choice": choice,
-            "quadrature_degree": study.numerics.quadrature_degree, "refine": study.numerics.refine,
+            "quadrature_degree": study.numerics.quadrature_degree,
+            "refine": study.numerics.refine if choice is None or choice.refine is None else choice.refine,
             "material": study.material}
 
 

@@ -43,10 +43,10 @@ of inputs are relative to the study file's folder (the output folder to the curr
     seed = 1
 
     [numerics]
-    growth_dt = 168.0          # h; or accuracy = 1e-3, the steps hyper.runs.fidelity chooses
+    growth_dt = 168.0          # h; or accuracy = 1e-3: the steps and refine hyper.runs.fidelity choose
     signaling_dt = 0.05        # h, the RK4 step
     quadrature_degree = 4      # built-in geometries only
-    refine = 0                 # uniform refinements of every mesh (0 to 3; --refine)
+    refine = 0                 # uniform refinements of every mesh (0 to 3; --refine; with accuracy, the least)
     linear_solver = "lu"       # lu, iterative or auto (lu; auto with accuracy)
     max_halvings = 4
     feedback = "hill"          # of CSA on protein synthesis: hill, linear or none
@@ -101,7 +101,9 @@ def parser() -> cli.Parser:
     p.add_argument("--figures", action=argparse.BooleanOptionalAction,
                    help="write the figures (--no-figures: none); overrides [output] figures")
     p.add_argument("--growth-dt", type=cli.positive("hours"), help="growth step (h); overrides [numerics] growth_dt")
-    p.add_argument("--accuracy", type=cli.number(), help="fidelity choice of the steps; overrides [numerics] accuracy")
+    p.add_argument("--accuracy", type=cli.number(),
+                   help="fidelity choice of the steps and of the meshes' refinement (their spatial error counted); "
+                   "overrides [numerics] accuracy")
     p.add_argument("--signaling-dt", type=cli.positive("hours"), help="RK4 step (h); overrides [numerics] signaling_dt")
     p.add_argument("--quadrature-degree", type=cli.integer(1, 12), help="overrides [numerics] quadrature_degree")
     cli.refine_option(p, default=None)
