@@ -116,7 +116,8 @@ def fit_option(text: str) -> tuple[str, tuple[float, float]]:
     except ValueError:
         lo = hi = math.nan
     if not colon or not (math.isfinite(lo) and math.isfinite(hi)):
-        raise InputError(f"--fit {text}: expected finite bounds NAME=LOW:HIGH, e.g. {name}=0.001:0.1")
+        example = ":".join(f"{b:g}" for b in BOUNDS.get(name, (0.001, 0.1)))
+        raise InputError(f"--fit {text}: expected finite bounds NAME=LOW:HIGH, e.g. {name}={example}")
     if not lo < hi:
         raise InputError(f"--fit {text}: need LOW < HIGH")
     for bound in (lo, hi):  # a bound the model refuses (kM < 0) would stop the fit after it started
