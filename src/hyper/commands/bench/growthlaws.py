@@ -15,7 +15,8 @@ fills the form cache:
     detraining   the gain's turnover (--detraining --tau hours): a decay of N in every growth step
 
 Per part: the wall and CPU time of the time loop (set-up apart), the ratio of its wall time to
-the default's, growth steps, Newton solves and iterations, the final CSA/CSA0 and V/V0 (and
+the default's, growth steps, Newton solves, iterations and Jacobian assemblies (each one
+factorised), the time in the measures (CSA cuts, volume), the final CSA/CSA0 and V/V0 (and
 ϑ_f, the fascicle length change, with along-fibre growth). A part is one entry of ``PARTS``
 (its name, what it is, the settings it changes and the protocol's stretch): a switch added
 later (the local stimulus) is one more entry. Writes results/bench/growthlaws.json and
@@ -94,10 +95,20 @@ def run_case(comm, case: dict) -> dict:
             "cpu_s": comm.allreduce(cpu, op=MPI.SUM), "growth_steps": model.step,
             "newton_solves": clock.calls["mechanics"],
             "newton_iterations": int(sum(r.newton_iterations for r in reports)),
+            "jacobian_assemblies": model.jacobian.assemblies,
             "signaling_s": comm.allreduce(clock.seconds["signaling"], op=MPI.MAX),
             "measures_s": comm.allreduce(clock.seconds["measures"], op=MPI.MAX),
             "csa_ratio": last.csa_ratio, "volume_ratio": last.volume_ratio,
             **({"fiber_stretch": last.extra["fiber_stretch"]} if "fiber_stretch" in last.extra else {})}
+
+
+def summary(row: dict) -> str:
+    if "failed" in row:
+        return f"FAILED {row['failed']}"
+    fibre = f", ϑ_f {row['fiber_stretch']:.5f}" if "fiber_stretch" in row else ""
+    return (f"{row['wall_s']:.1f} s, {row['growth_steps']} steps, {row['newton_solves']} solves, "
+            f"{row['newton_iterations']} Newton its, {row['jacobian_assemblies']} Jacobians, "
+            f"CSA/CSA0 {row['csa_ratio']:.5f}, V/V0 {row['volume_ratio']:.5f}{fibre}")
 
 
 def case_of(part: Part, args) -> dict:
@@ -136,7 +147,8 @@ def parser() -> cli.Parser:
     p.add_argument("--parts", nargs="+", choices=NAMES, metavar="PART", default=list(NAMES),
                    help=f"which parts to run ({', '.join(NAMES)}); default is always run, as the reference")
     p.add_argument("--quick", action="store_true", help="cut mwf at --quick-end hours (a check, not the result)")
-    p.add_argument("--quick-end", type=cli.positive("hours"), default=QUICK_END, help="end of the cut mwf with --quick (h)")
+    p.add_argument("--quick-end", type=cli.positive("hours"), default=QUICK_END,
+                   help="end of the cut mwf with --quick (h)")
     p.add_argument("--tau", type=cli.positive("hours"), default=TAU, help="the detraining part's time constant (h)")
     p.add_argument("--stretch", type=cli.number(above=1.0), default=STRETCH,
                    help="the passive stretch of every session in the fiber part (stretched / rest length)")
@@ -154,8 +166,9 @@ def run(comm, args) -> int:
         return 0
     if args.geometry not in geo.GEOMETRIES:
         raise InputError(f"--geometry: unknown geometry {args.geometry!r}; known: {', '.join(geo.GEOMETRIES)}")
-    if args.quick and args.quick_end >= protocols.named("mwf").end:
-        raise InputError(f"--quick-end: {args.quick_end:g} h is not before mwf's end ({protocols.named('mwf').end:g} h)")
+    end = protocols.named("mwf").end
+    if args.quick and args.quick_end >= end:
+        raise InputError(f"--quick-end: {args.quick_end:g} h is not before mwf's end ({end:g} h)")
     host = common.machine()
     started = time.perf_counter()
     chosen = [p for p in PARTS if p.name == "default" or p.name in args.parts]
@@ -170,10 +183,7 @@ def run(comm, args) -> int:
     for part in chosen:
         row = common.run_worker("growthlaws", case_of(part, args), args.ranks, args.timeout)
         rows.append(row)
-        print(f"  {part.name:<11} " + (f"FAILED {row['failed']}" if "failed" in row else
-              f"{row['wall_s']:.1f} s, {row['growth_steps']} steps, {row['newton_solves']} solves, "
-              f"{row['newton_iterations']} Newton its, CSA/CSA0 {row['csa_ratio']:.5f}, V/V0 {row['volume_ratio']:.5f}"
-              + (f", ϑ_f {row['fiber_stretch']:.5f}" if "fiber_stretch" in row else "")), flush=True)
+        print(f"  {part.name:<11} {summary(row)}", flush=True)
     default = rows[0]
     if "failed" in default:
         raise InputError(f"the default run failed: {default['failed']}; nothing written")
@@ -190,7 +200,8 @@ def run(comm, args) -> int:
     chart(args.output / "growthlaws.png", result)
     for row in rows:
         if "failed" not in row:
-            print(f"  {row['part']:<11} wall x{row['wall_ratio_to_default']:.3f}, CPU x{row['cpu_ratio_to_default']:.3f}")
+            print(f"  {row['part']:<11} wall x{row['wall_ratio_to_default']:.3f}, "
+                  f"CPU x{row['cpu_ratio_to_default']:.3f}")
     print(f"wrote {args.output / 'growthlaws.json'} and growthlaws.png", flush=True)
     return 0
 
