@@ -82,27 +82,21 @@ def split(names: list[str], x) -> tuple[dict, float | None]:
 def surrogate_model(datasets: list[Dataset], names: list[str], base: signaling.SignalingParams, *,
                     signaling_dt: float, factor: float, feedback: str, growth_dt: float = 168.0) -> Callable:
     """X (m, p) -> the model's CSA/CSA0 at every data point, (m, points): one ODE batch of m
-    members per data set; with the detraining τ among ``names`` one member at a time (the
-    turnover is applied per growth step of at most ``growth_dt``, as the coupled model does)."""
+    members per data set, the detraining τ among ``names`` one per member too (its turnover
+    applied per growth step of at most ``growth_dt``, as the coupled model does)."""
 
     def evaluate(X: np.ndarray, times: list[np.ndarray] | None = None) -> np.ndarray:
         X = np.atleast_2d(X)
-        if "detraining" in names:
-            return np.vstack([one(x, times) for x in X])
-        return one(X.T, times)
-
-    def one(x, times) -> np.ndarray:
-        """The members of ``x`` (a value or an array per name), one batch."""
-        rates, tau = split(names, x)
-        params = dataclasses.replace(base, **{n: float(v) if np.ndim(v) == 0 else np.array(v, dtype=float)
-                                              for n, v in rates.items()})
+        rates, tau = split(names, X.T)
+        if not rates:  # τ alone: the members are a batch by their τ, the rates the same in each
+            rates = {"kM": np.full(len(X), float(base.kM))}
+        params = dataclasses.replace(base, **{n: np.array(v, dtype=float) for n, v in rates.items()})
         out = []
         for k, d in enumerate(datasets):
             t = d.t if times is None else times[k]
             g = surrogate.grow(params, d.protocol, np.concatenate([[0.0], t]), signaling_dt=signaling_dt,
-                               feedback=feedback, factor=factor,
-                               detraining=None if tau is None else float(tau), growth_dt=growth_dt)
-            out.append(np.atleast_2d(g.csa_ratio[1:].T))
+                               feedback=feedback, factor=factor, detraining=tau, growth_dt=growth_dt)
+            out.append(g.csa_ratio[1:].T)
         return np.concatenate(out, axis=1)
 
     return evaluate
