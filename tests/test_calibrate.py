@@ -5,6 +5,7 @@ import pytest
 
 from hyper.analysis import calibrate
 from hyper.commands import calibrate as calibrate_job
+from hyper.core.params import InputError
 from hyper.model import protocols, signaling, surrogate
 from hyper.runs import runspec
 
@@ -140,3 +141,32 @@ def test_a_parameter_the_data_do_not_see_gets_its_bounds_as_interval():
     f = calibrate.fit(evaluate, [data], ["kM", "kF"], bounds, np.array([0.01, 0.019]))
     assert f.unseen == ["kF"] and (f.low[1], f.high[1]) == tuple(bounds[1])
     assert f.low[0] < 0.016 < f.high[0]
+
+
+def test_a_known_detraining_time_constant_is_recovered_with_kM():
+    """Issue 35 item 4: the gain's turnover τ (hyper calibrate --fit detraining) from a training
+    block then six weeks of rest, sampled weekly with noise: kM and τ jointly within their intervals."""
+    protocol = protocols.Protocol(MWF.sessions, end=MWF.end + 6 * protocols.WEEK, name="mwf_then_rest")
+    t = np.arange(1.0, protocol.end / protocols.WEEK + 1e-9) * protocols.WEEK
+    truth = surrogate.grow(signaling.SignalingParams(kM=0.012), protocol, np.concatenate([[0.0], t]),
+                           detraining=500.0, growth_dt=168.0)
+    assert truth.csa_ratio[-1] - 1 < 0.5 * (truth.csa_ratio.max() - 1)  # the rest weeks lose most of the gain
+    data = calibrate.Dataset("synthetic", t, truth.csa_ratio[1:] + np.random.default_rng(3).normal(0, 0.002, t.size),
+                             protocol)
+    names = ["kM", "detraining"]
+    evaluate = calibrate.surrogate_model([data], names, signaling.SignalingParams(), signaling_dt=0.125,
+                                         factor=1.0, feedback="hill", growth_dt=168.0)
+    # each member alone equals the batch row: the per-member path is the same model
+    np.testing.assert_array_equal(evaluate(np.array([[0.012, 500.0], [0.02, 300.0]]))[0],
+                                  evaluate(np.array([0.012, 500.0]))[0])
+    bounds = np.array([calibrate.BOUNDS[n] for n in names])
+    f = calibrate.fit(evaluate, [data], names, bounds, np.array([0.01, np.sqrt(bounds[1].prod())]))
+    assert f.low[0] < 0.012 < f.high[0] and f.low[1] < 500.0 < f.high[1]
+    assert f.high[1] - f.low[1] < 300.0 and f.at_bound == []
+
+
+def test_detraining_is_a_fittable_parameter_with_checked_bounds():
+    assert calibrate_job.fit_option("detraining") == ("detraining", calibrate.BOUNDS["detraining"])
+    assert calibrate_job.fit_option("detraining=100:1000") == ("detraining", (100.0, 1000.0))
+    with pytest.raises(InputError, match="detraining"):
+        calibrate_job.fit_option("detraining=0:1000")  # τ must be a positive time

@@ -31,6 +31,9 @@ PROTOCOL_FILES = {
     "huge_end.toml": "end = " + "9" * 401 + "\n",
     "long_end.toml": "end = 1e15\n",
     "huge_duration.toml": "end = 48.0\n[[session]]\nstart = 0.0\nduration = " + "9" * 401 + "\nintensity = 0.5\n",
+    # issue 35: a session's passive stretch (along-fibre growth), a finite number >= 1
+    **{f"stretch_{k}.toml": f"end = 48.0\n[[session]]\nstart = 0.0\nduration = 1.0\nintensity = 0.5\nstretch = {v}\n"
+       for k, v in (("short", "0.9"), ("nan", "nan"), ("text", '"long"'))},
 }
 HUGE = "1" + "0" * 400  # a TOML integer too large for a float
 STUDY = 'geometries = ["cylinder"]\nprotocols = ["mwf"]\n'
@@ -103,6 +106,9 @@ PROTOCOL_CASES = {
     "huge_end": (["{p}", "{d}/huge_end.toml"], r"end: expected a finite number, got an integer of 401 digits"),
     "long_end": (["{p}", "{d}/long_end.toml"], r"end must be at most 87360 h \(ten years\), got 1e\+15"),
     "huge_duration": (["{p}", "{d}/huge_duration.toml"], r"duration: expected a finite number, got an integer"),
+    "stretch_short": (["{p}", "{d}/stretch_short.toml"], r"session 0: stretch: expected a number >= 1, got 0.9"),
+    "stretch_nan": (["{p}", "{d}/stretch_nan.toml"], r"session 0: stretch: expected a finite number, got nan"),
+    "stretch_text": (["{p}", "{d}/stretch_text.toml"], r"session 0: stretch: expected a number, got 'long'"),
 }
 OUTPUT_CASES = {
     "under_a_file": (["--output", "{d}/a_file/{o}"], r"a_file is a file, not a folder"),
@@ -180,6 +186,7 @@ JOBS = {
         "unknown_option": (["--bogus"], r"unrecognized arguments: --bogus"),
         **integer_cases("--sections", 0, 99),
         **DETRAINING_CASES,
+        "fiber_growth": (["--fiber-growth", "along"], r"argument --fiber-growth: invalid choice: 'along'"),
     }),
     "ensemble": (["--geometry", "cylinder", "--protocol", "mwf", "--output", "{out}"], "ensemble", {
         **{f"protocol_{k}": v for k, v in PROTOCOL_CASES.items()},
@@ -235,6 +242,13 @@ JOBS = {
         **FOLDER_OUTPUT,
         "bounds_negative": (["--fit", "kF=-1:-0.5"], r"--fit kF=-1:-0.5: kF must be >= 0, got -1"),
         "too_few_points": (["--exclude-until", "8"], r"1 data point\(s\) for 1 parameter\(s\)"),
+        # issue 35: the detraining τ as a fitted parameter: hours > 0, finite bounds
+        "detraining_zero": (["--fit", "detraining=0:100"],
+                            r"--fit detraining=0:100: detraining: expected a finite number of hours > 0, got 0"),
+        "detraining_inf": (["--fit", "detraining=5:inf"], r"--fit detraining=5:inf: expected finite bounds .* "
+                           r"detraining=24:100000"),
+        "detraining_one_point": (["--fit", "detraining", "--exclude-until", "8"],
+                                 r"1 data point\(s\) for 2 parameter\(s\)"),
         **{f"priors_{k}": (["--method", "bayes", "--priors", f"{{d}}/priors_{k}.toml"], message)
            for k, (_, message) in PRIOR_FILES.items()},
         "priors_without_bayes": (["--priors", "{d}/priors_reversed.toml"], r"--priors: only with --method bayes"),

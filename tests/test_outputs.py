@@ -177,7 +177,8 @@ def test_each_shipped_data_set_belongs_to_its_protocol():
 
 def test_the_shipped_data_say_their_muscle_and_measure():
     muscles = {name: measured.read(ROOT / "data" / name).muscle for name in measured.SHIPPED}
-    assert muscles == {"defreitas.csv": "thigh", "damas.csv": "vastus lateralis", "seynnes.csv": "quadriceps"}
+    assert muscles == {"defreitas.csv": "thigh", "damas.csv": "vastus lateralis", "seynnes.csv": "quadriceps",
+                       "narici.csv": "quadriceps"}
     assert all(measured.read(ROOT / "data" / name).measure for name in measured.SHIPPED)
 
 

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hyper.core.params import InputError, as_float, read_toml
+from hyper.core.params import InputError, as_float, positive_hours, read_toml
 from hyper.model import protocols, signaling
 from hyper.runs import plot
 
@@ -158,7 +158,10 @@ def read_priors(path: str | Path | None, bounds: dict[str, tuple[float, float]])
     for name, prior in priors.items():
         for bound in (prior.low, prior.high):  # a bound the model refuses (kM < 0) would stop the sampler
             try:
-                signaling.SignalingParams(**{name: bound})
+                if name == "detraining":  # the gain's turnover τ (h), a growth setting, not a rate
+                    positive_hours(bound, name)
+                else:
+                    signaling.SignalingParams(**{name: bound})
             except InputError as err:
                 raise InputError(f"{where}: [{name}]: {err}") from None
     noise = prior_of(NOISE, tables.get(NOISE, {}), DEFAULT_NOISE, where)

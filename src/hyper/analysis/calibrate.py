@@ -29,8 +29,13 @@ from hyper.model.protocols import Protocol
 from hyper.runs import driver, fidelity, measured, plot, runspec
 
 # Default bounds of the parameters one may fit without giving bounds: a decade either side
-# of the table value, wide enough for the published 0.01 and 0.025 1/h of kM.
-BOUNDS = {"kM": (1e-3, 0.1), "kF": (1.9e-3, 0.19)}
+# of the table value, wide enough for the published 0.01 and 0.025 1/h of kM; for the
+# detraining time constant τ (h) a day to about eleven years.
+BOUNDS = {"kM": (1e-3, 0.1), "kF": (1.9e-3, 0.19), "detraining": (24.0, 1e5)}
+# Fittable parameters that are not signaling rates: the gain's turnover time constant τ (h,
+# `hyper.model.growth.detrained`, --detraining), a growth setting of every run. It has no
+# table value, so a fit starts at the geometric mean of its bounds.
+GROWTH_PARAMETERS = ("detraining",)
 LEVEL = 0.95
 # Forward-difference step of the Jacobian, relative to the value: the RK4 solution is smooth
 # in the rates, so the truncation error (~1e-6) dominates the round-off (~1e-10).
@@ -67,19 +72,30 @@ def dataset(path: str | Path, protocol: Protocol, exclude_until: float = 0.0) ->
 # ------------------------------------------------------------------------------ models
 
 
+def split(names: list[str], x) -> tuple[dict, float | None]:
+    """The signaling rates of ``x`` (values in the order of ``names``) by name, and the
+    detraining τ (h) among them (None where it is not fitted)."""
+    values = dict(zip(names, x))
+    return {n: v for n, v in values.items() if n not in GROWTH_PARAMETERS}, values.get("detraining")
+
+
 def surrogate_model(datasets: list[Dataset], names: list[str], base: signaling.SignalingParams, *,
-                    signaling_dt: float, factor: float, feedback: str) -> Callable:
+                    signaling_dt: float, factor: float, feedback: str, growth_dt: float = 168.0) -> Callable:
     """X (m, p) -> the model's CSA/CSA0 at every data point, (m, points): one ODE batch of m
-    members per data set."""
+    members per data set, the detraining τ among ``names`` one per member too (its turnover
+    applied per growth step of at most ``growth_dt``, as the coupled model does)."""
 
     def evaluate(X: np.ndarray, times: list[np.ndarray] | None = None) -> np.ndarray:
         X = np.atleast_2d(X)
-        params = dataclasses.replace(base, **{name: X[:, j].copy() for j, name in enumerate(names)})
+        rates, tau = split(names, X.T)
+        if not rates:  # τ alone: the members are a batch by their τ, the rates the same in each
+            rates = {"kM": np.full(len(X), float(base.kM))}
+        params = dataclasses.replace(base, **{n: np.array(v, dtype=float) for n, v in rates.items()})
         out = []
         for k, d in enumerate(datasets):
             t = d.t if times is None else times[k]
             g = surrogate.grow(params, d.protocol, np.concatenate([[0.0], t]), signaling_dt=signaling_dt,
-                               feedback=feedback, factor=factor)
+                               feedback=feedback, factor=factor, detraining=tau, growth_dt=growth_dt)
             out.append(g.csa_ratio[1:].T)
         return np.concatenate(out, axis=1)
 
@@ -93,10 +109,12 @@ def coupled_model(comm, datasets: list[Dataset], names: list[str], base: signali
     def evaluate(X: np.ndarray, times: list[np.ndarray] | None = None) -> np.ndarray:
         rows = []
         for x in np.atleast_2d(X):
-            params = dataclasses.replace(base, **{name: float(v) for name, v in zip(names, x)})
+            rates, tau = split(names, x)
+            params = dataclasses.replace(base, **{name: float(v) for name, v in rates.items()})
+            run = settings if tau is None else dataclasses.replace(settings, detraining=float(tau))
             row = []
             for k, d in enumerate(datasets):
-                model, *_ = driver.build(comm, runspec.RunSpec(geometry, d.protocol, params, settings))
+                model, *_ = driver.build(comm, runspec.RunSpec(geometry, d.protocol, params, run))
                 reports = list(model.run())
                 t = np.array([r.t for r in reports])
                 csa = np.array([r.csa_ratio for r in reports])

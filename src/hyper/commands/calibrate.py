@@ -9,7 +9,10 @@ Each --data file (CSV: a time column named after its unit, week, day or hour, an
 column in any area unit) goes with the --protocol after it in order; the simulated
 CSA/CSA0 is compared with csa / csa at time 0. --fit NAME takes a parameter of
 `hyper.model.signaling.SignalingParams` with its default bounds (``BOUNDS``), NAME=LOW:HIGH with
-finite bounds of one's own. All data sets share the fitted values (a joint fit).
+finite bounds of one's own; ``detraining`` is the time constant τ (h) of the gain's turnover
+(`hyper.model.growth.detrained`, grow's --detraining), default bounds 24 h to 1e5 h, the fit
+starting at their geometric mean: data that follow a training block with a rest show how fast
+the gain decays. All data sets share the fitted values (a joint fit).
 
 Model. --accuracy (a fraction of the growth, as in `hyper.runs.fidelity`) picks the cheapest
 model that meets it: the ODE growth model `hyper.model.surrogate` (no mesh) where its measured
@@ -70,6 +73,7 @@ from hyper.analysis import bayes
 from hyper.analysis.calibrate import (
     BOUNDS,
     CURVE_POINTS,
+    GROWTH_PARAMETERS,
     LEVEL,
     Dataset,
     Fit,
@@ -79,6 +83,7 @@ from hyper.analysis.calibrate import (
     dataset,
     figure,
     fit,
+    split,
     surrogate_model,
 )
 from hyper.commands import cli
@@ -97,7 +102,7 @@ SAMPLERS = ("auto", "grid", "emcee")
 def fit_option(text: str) -> tuple[str, tuple[float, float]]:
     """NAME or NAME=LOW:HIGH of --fit: a SignalingParams field with finite bounds, LOW < HIGH."""
     name, sep, bounds = text.partition("=")
-    fields = [f.name for f in dataclasses.fields(signaling.SignalingParams)]
+    fields = [f.name for f in dataclasses.fields(signaling.SignalingParams)] + list(GROWTH_PARAMETERS)
     if name not in fields:
         raise InputError(f"--fit {text}: unknown parameter {name!r}; known: {', '.join(fields)}")
     if not sep:
@@ -111,12 +116,16 @@ def fit_option(text: str) -> tuple[str, tuple[float, float]]:
     except ValueError:
         lo = hi = math.nan
     if not colon or not (math.isfinite(lo) and math.isfinite(hi)):
-        raise InputError(f"--fit {text}: expected finite bounds NAME=LOW:HIGH, e.g. {name}=0.001:0.1")
+        example = ":".join(f"{b:g}" for b in BOUNDS.get(name, (0.001, 0.1)))
+        raise InputError(f"--fit {text}: expected finite bounds NAME=LOW:HIGH, e.g. {name}={example}")
     if not lo < hi:
         raise InputError(f"--fit {text}: need LOW < HIGH")
     for bound in (lo, hi):  # a bound the model refuses (kM < 0) would stop the fit after it started
         try:
-            signaling.SignalingParams(**{name: bound})
+            if name in GROWTH_PARAMETERS:
+                coupled.GrowthSettings(**{name: bound})
+            else:
+                signaling.SignalingParams(**{name: bound})
         except InputError as err:
             raise InputError(f"--fit {text}: {err}") from None
     return name, (lo, hi)
@@ -170,7 +179,8 @@ def run(comm, args) -> int:
         raise InputError(f"{points} data point(s) for {len(names)} parameter(s): need more points than parameters")
     bounds = np.array([fits[n] for n in names])
     base = signaling.SignalingParams()
-    x0 = np.clip([float(getattr(base, n)) for n in names], bounds[:, 0], bounds[:, 1])
+    x0 = np.clip([math.sqrt(fits[n][0] * fits[n][1]) if n in GROWTH_PARAMETERS else float(getattr(base, n))
+                  for n in names], bounds[:, 0], bounds[:, 1])
     problem, sampler = bayes_problem(args, datasets, fits)
     kind, choice, reasons = choose(args.geometry, datasets, args.accuracy)
     if problem is not None and kind != "surrogate":  # here, before any line on stdout
@@ -182,7 +192,8 @@ def run(comm, args) -> int:
         info(comm, f"calibrate: {why}")
     if kind == "surrogate":
         evaluate = surrogate_model(datasets, names, base, signaling_dt=choice.signaling_dt,
-                                   factor=surrogate.section_factor(args.geometry), feedback=args.feedback)
+                                   factor=surrogate.section_factor(args.geometry), feedback=args.feedback,
+                                   growth_dt=choice.growth_dt)
     else:
         evaluate = coupled_model(comm, datasets, names, base, geometry=args.geometry, settings=settings)
     f = fit(evaluate, datasets, names, bounds, x0)
@@ -199,11 +210,13 @@ def run(comm, args) -> int:
 
     checks = {}
     if not args.no_check:
-        fitted = dataclasses.replace(base, **{n: float(v) for n, v in zip(names, at)})
+        rates, tau = split(names, at)
+        fitted = dataclasses.replace(base, **{n: float(v) for n, v in rates.items()})
+        at_settings = settings if tau is None else dataclasses.replace(settings, detraining=float(tau))
         model_at = evaluate(at)[0]
         offset = 0
         for d in datasets:
-            spec = runspec.RunSpec(args.geometry, d.protocol, fitted, settings)
+            spec = runspec.RunSpec(args.geometry, d.protocol, fitted, at_settings)
             outputs = runspec.Outputs(args.output / f"check_{d.name}.h5")
             with locks.hold(comm, [outputs.h5]):
                 result = driver.execute(comm, spec, outputs, checkpoints=False, progress_every=1e9)

@@ -22,7 +22,7 @@ of inputs are relative to the study file's folder (the output folder to the curr
                                # fibers_unit, fibers_min_fa, fibers_radius_mm, fibers_fa)
 
     [[protocol]]               # a protocol written here (repeatable), as in a protocol file:
-    name = "twice-weekly"      # [[protocol.session]] tables (start, duration, intensity) and
+    name = "twice-weekly"      # [[protocol.session]] tables (start, duration, intensity, stretch) and
     [protocol.repeat]          # end (h), or a repeat rule:
     weekdays = ["tue", "fri"]  # days of each training week (weeks begin on a Monday), or
                                # every_days = 3
@@ -54,6 +54,9 @@ of inputs are relative to the study file's folder (the output folder to the curr
     consistent_stress = true      # false: the original code's P = Fe S
     sections = 9               # regional CSA at j/10 of the length (0: none; hyper grow --sections)
     detraining = 500.0         # h, the gain's turnover (left out: none, the paper's model)
+    fiber_growth = "stretch"   # along-fibre growth in sessions with a stretch (none: the paper's)
+    fiber_tau = 168.0          # h, its time constant τ_f (illustrative, not calibrated)
+    fiber_crit = 1.0           # its homeostatic elastic fibre stretch λ_crit
 
     [output]
     folder = "results/study"   # (the default)

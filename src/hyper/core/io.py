@@ -151,7 +151,7 @@ def versions() -> dict[str, str]:
 UNITS = {
     "t": "h", "csa_ratio": "1", "volume_ratio": "1", "kM": "1/h", "newton_iterations": "count",
     "halvings": "count", "wall_s": "s", "igf1": "1", "akt": "1", "foxo": "1", "mtor": "1", "N": "1",
-    "csa_ratio_sections": "1",
+    "csa_ratio_sections": "1", "detraining": "h",
     "final_x": "m", "final_u": "m", "final_N": "1", "final_detGbar": "1",
 }
 

@@ -86,9 +86,15 @@ def detrained(N0, dN, dt: float, tau: float):
 
     exact where f vanishes (after training: e^(−Δtg/τ) per step) and first order in Δtg/τ
     otherwise (where in the step f's pulses fall).
+
+    tau may be one τ per member (an array, as N0 and dN are): calibration fits it in a batch.
     """
-    x = dt / tau
-    kept, spread = math.exp(-x), -math.expm1(-x) / x  # (1 − e^(−x))/x without cancellation
+    if np.ndim(tau) == 0:
+        x = dt / tau
+        kept, spread = math.exp(-x), -math.expm1(-x) / x  # (1 − e^(−x))/x without cancellation
+    else:
+        x = dt / np.asarray(tau, dtype=float)
+        kept, spread = np.exp(-x), -np.expm1(-x) / x
     return 1.0 + (np.asarray(N0, dtype=float) - 1.0) * kept + np.asarray(dN, dtype=float) * spread
 
 

@@ -70,7 +70,7 @@ def grow(params: signaling.SignalingParams, protocol: Protocol, out_times, *, si
     ``backend`` and ``failures`` go to `signaling.integrate`; with ``failures="mask"`` a
     member whose trajectory fails is NaN from then on, the others are their own bits.
 
-    ``detraining`` τ (h; None: none, the paper's model): the gain's turnover of
+    ``detraining`` τ (h, or one per member; None: none, the paper's model): the gain's turnover of
     `growth.detrained`, applied as the coupled model applies it, per growth step of at most
     ``growth_dt`` (its `growth.step_times`, with the output times among the steps)."""
     if feedback not in growth.FEEDBACK_LAWS:
@@ -79,7 +79,8 @@ def grow(params: signaling.SignalingParams, protocol: Protocol, out_times, *, si
     if times.ndim != 1 or np.any(np.diff(times) <= 0) or times[0] < 0 or times[-1] > protocol.end:
         raise InputError(f"output times must increase strictly within [0, {protocol.end:g}] h")
     if detraining is not None:
-        positive_hours(detraining, "detraining")
+        for tau in np.ravel(detraining):  # one τ, or one per member
+            positive_hours(float(tau), "detraining")
         positive_hours(growth_dt, "growth_dt", signaling.SMALLEST_DT)
     n = params.size
     y = signaling.rest_state() if n is None else np.repeat(signaling.rest_state()[:, None], n, axis=1)

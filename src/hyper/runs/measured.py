@@ -69,6 +69,7 @@ SHIPPED = {
     "defreitas.csv": ("DeFreitas et al. 2011", "mwf"),
     "damas.csv": ("Damas et al. 2016", "damas.toml"),
     "seynnes.csv": ("Seynnes et al. 2007", "seynnes.toml"),
+    "narici.csv": ("Narici et al. 1989", "narici.toml"),
 }
 
 

@@ -49,9 +49,11 @@ def growth_series(results: dict[str, dict], path: str | Path, data=(), errors=No
     """CSA, volume and kM against time for several protocols (the paper's Fig. 4C–E),
     with measured CSA courses (``data``: `hyper.runs.measured.Measured`) and each protocol's
     RMSE against them (``errors``: protocol -> `hyper.runs.measured.Comparison`) where given;
-    ``title`` says what ran (geometry, fibres, protocols, CSA measure)."""
+    ``title`` says what ran (geometry, fibres, protocols, CSA measure). Where a run grew along
+    its fibres (its ``fiber_stretch`` series) a fourth panel shows the fascicle length change."""
     plt = pyplot()
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), constrained_layout=True)
+    fibre = [name for name, s in results.items() if "fiber_stretch" in s]
+    fig, axes = plt.subplots(1, 3 + bool(fibre), figsize=(13 + 4 * bool(fibre), 3.8), constrained_layout=True)
     end = 0.0
     for name, s in results.items():
         weeks = s["t"] / 168.0
@@ -62,6 +64,8 @@ def growth_series(results: dict[str, dict], path: str | Path, data=(), errors=No
         axes[0].plot(weeks, 100 * (s["csa_ratio"] - 1), label=label, color=colour)
         axes[1].plot(weeks, 100 * (s["volume_ratio"] - 1), label=name, color=colour)
         axes[2].plot(weeks, s["kM"], label=name, color=colour)
+        if name in fibre:
+            axes[3].plot(weeks, 100 * (np.asarray(s["fiber_stretch"]) - 1), label=name, color=colour)
     for i, measured in enumerate(data):
         muscle = getattr(measured, "muscle", None)
         axes[0].plot(measured.t / 168.0, 100 * (measured.csa_ratio - 1), "k" + "osD^v"[i % 5], ms=4, mfc="none",
@@ -72,6 +76,8 @@ def growth_series(results: dict[str, dict], path: str | Path, data=(), errors=No
     axes[0].set_ylabel("CSA change (%)")
     axes[1].set_ylabel("volume change (%)")
     axes[2].set_ylabel("kM (1/h)")
+    if fibre:
+        axes[3].set_ylabel("fascicle length change, a0·Ḡ a0 (%)")
     for ax in axes:
         ax.set_xlabel("time (weeks)")
         ax.grid(alpha=0.3)
