@@ -172,3 +172,40 @@ def test_two_ranks_give_the_one_rank_factors_and_series():
     # the contraction converges to Newton's tolerance on either partition
     np.testing.assert_allclose(by_original_cell(parallel), by_original_cell(serial), rtol=1e-7)
     same_series(series2, series1, rtol=1e-8)
+
+
+def test_the_study_of_a_local_run_reruns_it(tmp_path):
+    from hyper.analysis import study
+    from hyper.runs import provenance
+
+    spec = RunSpec("cylinder", short(), settings=LOCAL)
+    text = provenance.study_text(spec)
+    assert 'stimulus = "local"' in text
+    assert "stimulus" not in provenance.study_text(RunSpec("cylinder", short(), settings=SETTINGS))
+    path = tmp_path / "s.toml"
+    path.write_text(text)
+    again, _ = study.steps(study.load(path))
+    assert again == LOCAL
+    assert spec.digest() != RunSpec("cylinder", short(), settings=SETTINGS).digest()
+
+
+def test_grow_records_the_switch_and_writes_the_factor_field(tmp_path):
+    import h5py
+
+    from hyper.commands import grow
+
+    protocol = tmp_path / "short.toml"
+    protocol.write_text('name = "short"\nend = 96.0\n[[session]]\nstart = 0.0\nduration = 1.0\nintensity = 0.8\n')
+    out = tmp_path / "run.h5"
+    assert grow.main(["--geometry", "cylinder", "--protocol", str(protocol), "--stimulus", "local",
+                      "--growth-dt", "24", "--output", str(out), "--quiet"]) == 0
+    with h5py.File(out) as f:
+        assert f.attrs["stimulus_alpha"] == 0.8 and f.attrs["stimulus_newton_iterations"] > 0
+        assert 0.99 < f.attrs["stimulus_factor_min"] <= 1.0 <= f.attrs["stimulus_factor_max"] < 1.01
+        assert f["settings"].attrs["stimulus"] == "local"
+        assert 'stimulus = "local"' in f.attrs["study"]
+    with h5py.File(tmp_path / "run_fields.h5") as f:
+        factor = f["Function/stimulus_factor/0"][()].ravel()
+        assert factor.size == f["Function/detGbar/0"].shape[0]  # one per cell, as det Ḡ
+        assert 0.99 < factor.min() <= factor.max() < 1.01
+    assert "stimulus_factor" in (tmp_path / "run_fields.xdmf").read_text()

@@ -10,7 +10,7 @@ stimulus, and a uniform stress gives every cell exactly 1, the paper's model.
 
 The contraction is solved once, on the reference body before any growth, by a
 `MechanicsProblem` of its own (the model's own Newton state is left alone), with α raised
-to the protocol's session intensity by `ramp`. docs/growth-laws.md says why once.
+to the protocol's session intensity by `ramp`. docs/local-mechanosensing.md says why once.
 """
 
 from __future__ import annotations
@@ -34,10 +34,11 @@ RAMP_HALVINGS = 6
 
 
 def active_fibre_stress(problem: MechanicsProblem):
-    """a·σ_act a = α σact fact(λ/λ0) / J of ``problem``'s law (Pa), as UFL."""
+    """a·σ_act a = α σact fact(λ/λ0) / J of ``problem``'s law (Pa), as UFL; of the elastic part
+    Fe of a grown body (the law sees Fe: σ = Je⁻¹ Fe S Feᵀ)."""
     m = problem.material
-    ell = mat.fibre_stretch(problem.F, problem.a0) / m.lambda0
-    return problem.alpha * m.sigma_act * mat.f_act(ell) / ufl.det(problem.F)
+    ell = mat.fibre_stretch(problem.Fe, problem.a0) / m.lambda0
+    return problem.alpha * m.sigma_act * mat.f_act(ell) / ufl.det(problem.Fe)
 
 
 class CellAverages:
@@ -105,12 +106,15 @@ def ramp(problem: MechanicsProblem, target: float, steps: int = RAMP_STEPS,
 
 
 def local_factors(geometry, a0, intensity: float | None, *, material=None, normalize_fibres: bool = True,
-                  petsc_options: dict | None = None, linear_solver: str = "lu") -> tuple[np.ndarray, dict]:
+                  petsc_options: dict | None = None, linear_solver: str = "lu", growth=None) -> tuple[np.ndarray, dict]:
     """The stimulus factor s_c of each owned cell (module docstring) for sessions of
     ``intensity`` (None or 0: no activation, all ones), and a record of the contraction:
     the activation, its Newton iterations, the range and the volume-weighted mean of the
-    stress (Pa). Collective."""
+    stress (Pa). ``growth``: a total growth tensor Ḡ to contract the grown body with (a run's
+    `GrowthField.function`; None: the reference body, what a run uses). Collective."""
     kwargs = {} if material is None else {"material": material}
+    if growth is not None:
+        kwargs["growth"] = growth
     problem = MechanicsProblem(geometry, a0, options_prefix="stimulus_", normalize_fibres=normalize_fibres,
                                petsc_options=petsc_options, linear_solver=linear_solver, **kwargs)
     averages = CellAverages(geometry, active_fibre_stress(problem))
