@@ -25,9 +25,13 @@ def short() -> Protocol:
     return Protocol((Session(0.0, 1.0, 0.8), Session(48.0, 1.0, 0.8)), end=96.0, name="short")
 
 
-def run(name, settings, comm=MPI.COMM_SELF, protocol=None, params=GROWING):
+def build(name, settings, comm=MPI.COMM_SELF, protocol=None, params=GROWING):
     g = geo.load(name, comm)
-    model = build_model(g, fibers.fiber_field(g), protocol or short(), params=params, settings=settings)
+    return build_model(g, fibers.fiber_field(g), protocol or short(), params=params, settings=settings)
+
+
+def run(name, settings, comm=MPI.COMM_SELF, protocol=None, params=GROWING):
+    model = build(name, settings, comm, protocol, params)
     return model, list(model.run())
 
 
@@ -209,3 +213,42 @@ def test_grow_records_the_switch_and_writes_the_factor_field(tmp_path):
         assert factor.size == f["Function/detGbar/0"].shape[0]  # one per cell, as det Ḡ
         assert 0.99 < factor.min() <= factor.max() < 1.01
     assert "stimulus_factor" in (tmp_path / "run_fields.xdmf").read_text()
+
+
+def test_a_local_run_resumes_bit_for_bit_from_its_checkpoint(tmp_path):
+    """The factors reach the ODEs as a per-cell β, which the checkpoint carries with the other
+    per-cell parameters: a resumed run goes on with them."""
+    from hyper.runs import checkpoint as ckpt
+
+    def measures(model, until=None):
+        out = []
+        for r in model.run():
+            out.append((r.t, r.csa_ratio, r.volume_ratio, *r.states))
+            if r.step == until:
+                break
+        return out
+
+    comm = MPI.COMM_SELF
+    reference = measures(build("cylinder", LOCAL))
+    model = build("cylinder", LOCAL)
+    first = measures(model, until=2)
+    state = model.state()
+    assert "params.beta" in state.per_cell
+    ckpt.write(comm, tmp_path / "state.h5", state.original, state.per_cell, state.glob, series={},
+               attrs={"run_digest": "test"})
+    again = build("cylinder", LOCAL)
+    again.restore(ckpt.read(comm, tmp_path / "state.h5", "test", again.local_original_cells()))
+    np.testing.assert_array_equal(again.params.beta, model.params.beta)
+    assert first + measures(again) == reference
+
+
+def test_a_contraction_that_cannot_be_solved_fails_the_run_as_a_step_would(monkeypatch):
+    from hyper.fem.mechanics import SolverError
+    from hyper.model.failure import GrowthFailure
+
+    def diverging(problem, target, **kwargs):
+        raise SolverError("Newton did not converge")
+
+    monkeypatch.setattr(stimulus, "ramp", diverging)
+    with pytest.raises(GrowthFailure, match=r"the contraction of --stimulus local at α = 0.8: Newton did not"):
+        build("cylinder", LOCAL)

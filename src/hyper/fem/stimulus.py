@@ -24,6 +24,7 @@ from mpi4py import MPI
 from hyper.core.params import InputError
 from hyper.fem.mechanics import MechanicsProblem, SolverError
 from hyper.model import material as mat
+from hyper.model.failure import GrowthFailure
 
 STIMULI = ("global", "local")
 # Steps of the activation ramp to the session's intensity, each halved on a failed Newton
@@ -71,7 +72,7 @@ def normalised(values: np.ndarray, volumes: np.ndarray, comm) -> np.ndarray:
     A field that vanishes everywhere (no activation) gives ones: no cell is singled out."""
     values = np.asarray(values, dtype=float)
     volumes = np.asarray(volumes, dtype=float)
-    top = comm.allreduce(float(values.max()) if values.size else -np.inf, op=MPI.MAX)
+    top = comm.allreduce(float(np.max(values, initial=-np.inf)), op=MPI.MAX)
     shift = comm.allreduce(float(np.sum((values - top) * volumes)), op=MPI.SUM)
     total = comm.allreduce(float(np.sum(volumes)), op=MPI.SUM)
     mean = top + shift / total
@@ -110,8 +111,9 @@ def local_factors(geometry, a0, intensity: float | None, *, material=None, norma
     """The stimulus factor s_c of each owned cell (module docstring) for sessions of
     ``intensity`` (None or 0: no activation, all ones), and a record of the contraction:
     the activation, its Newton iterations, the range and the volume-weighted mean of the
-    stress (Pa). ``growth``: a total growth tensor Ḡ to contract the grown body with (a run's
-    `GrowthField.function`; None: the reference body, what a run uses). Collective."""
+    stress (Pa); GrowthFailure where the contraction cannot be solved. ``growth``: a total
+    growth tensor Ḡ to contract the grown body with (a run's `GrowthField.function`; None:
+    the reference body, what a run uses). Collective."""
     kwargs = {} if material is None else {"material": material}
     if growth is not None:
         kwargs["growth"] = growth
@@ -120,7 +122,12 @@ def local_factors(geometry, a0, intensity: float | None, *, material=None, norma
     averages = CellAverages(geometry, active_fibre_stress(problem))
     comm = geometry.mesh.comm
     alpha = 0.0 if intensity is None else float(intensity)
-    iterations = ramp(problem, alpha) if alpha > 0.0 else 0
+    try:
+        iterations = ramp(problem, alpha) if alpha > 0.0 else 0
+    except SolverError as err:  # before the first growth step: the run fails as a step would
+        problem.snes.destroy()
+        raise GrowthFailure(f"the contraction of --stimulus local at α = {alpha:g}: {err}", step=1, t0=0.0,
+                            t1=0.0) from err
     stress = averages()
     factors = normalised(stress, averages.volumes, comm)
     total = comm.allreduce(float(np.sum(averages.volumes)), op=MPI.SUM)
@@ -128,10 +135,10 @@ def local_factors(geometry, a0, intensity: float | None, *, material=None, norma
         "stimulus_alpha": alpha,
         "stimulus_newton_iterations": iterations,
         "stimulus_stress_mean_pa": comm.allreduce(float(np.sum(stress * averages.volumes)), op=MPI.SUM) / total,
-        "stimulus_stress_min_pa": comm.allreduce(float(stress.min()), op=MPI.MIN),
-        "stimulus_stress_max_pa": comm.allreduce(float(stress.max()), op=MPI.MAX),
-        "stimulus_factor_min": comm.allreduce(float(factors.min()), op=MPI.MIN),
-        "stimulus_factor_max": comm.allreduce(float(factors.max()), op=MPI.MAX),
+        "stimulus_stress_min_pa": comm.allreduce(float(np.min(stress, initial=np.inf)), op=MPI.MIN),
+        "stimulus_stress_max_pa": comm.allreduce(float(np.max(stress, initial=-np.inf)), op=MPI.MAX),
+        "stimulus_factor_min": comm.allreduce(float(np.min(factors, initial=np.inf)), op=MPI.MIN),
+        "stimulus_factor_max": comm.allreduce(float(np.max(factors, initial=-np.inf)), op=MPI.MAX),
     }
     problem.snes.destroy()
     return factors, record
