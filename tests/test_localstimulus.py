@@ -92,7 +92,8 @@ def test_a_uniform_stress_is_the_global_model_bit_for_bit(monkeypatch):
 
 def test_the_cylinder_contracts_uniformly_and_grows_as_the_global_model():
     """Axial fibres, flat ends on springs: the contraction is homogeneous up to the end cells'
-    discretisation (0.4 %), and the growth is the global model's to a few 1e-6."""
+    discretisation (factors 0.996 to 1.002), and the growth is the global model's: the CSA gain
+    to 9e-6 of itself, the volume gain to 5e-8 (the volume-weighted mean factor is 1)."""
     _, today = run("cylinder", SETTINGS)
     model, local = run("cylinder", LOCAL)
     record = model.stimulus_record
@@ -101,8 +102,8 @@ def test_the_cylinder_contracts_uniformly_and_grows_as_the_global_model():
     # 0.8 σact fact(λ/λ0) with fact < 1: the fibres shorten (to ℓ ≈ 0.5, fact ≈ 0.1) against the springs
     assert 0.05 * 0.8 * 3e5 < record["stimulus_stress_mean_pa"] < 0.2 * 0.8 * 3e5
     assert record["stimulus_stress_max_pa"] / record["stimulus_stress_min_pa"] < 1.01
-    assert local[-1].csa_ratio - 1 == pytest.approx(today[-1].csa_ratio - 1, rel=1e-3)
-    assert local[-1].volume_ratio - 1 == pytest.approx(today[-1].volume_ratio - 1, rel=1e-3)
+    assert local[-1].csa_ratio - 1 == pytest.approx(today[-1].csa_ratio - 1, rel=3e-5)
+    assert local[-1].volume_ratio - 1 == pytest.approx(today[-1].volume_ratio - 1, rel=3e-7)
 
 
 def test_the_switch_off_is_todays_model():
@@ -115,7 +116,7 @@ def test_the_switch_off_is_todays_model():
 
 
 def test_where_the_stress_is_higher_the_muscle_grows_more():
-    """The idealized shape's contraction is far from uniform (its thin ends shorten more):
+    """The idealized shape's contraction is far from uniform (factors 0.58 to 1.46 at α = 0.8):
     the factors average to 1 over the volume, and a cell's growth rises with its factor. The
     paper's parameters: N grows by the training alone (four daily sessions, then three days)."""
     daily = Protocol(tuple(Session(24.0 * k, 1.0, 0.8) for k in range(4)), end=168.0, name="daily")
