@@ -66,6 +66,7 @@ class Numerics:
     fiber_growth: str = GrowthSettings.fiber_growth  # along-fibre growth: none (the paper's) or stretch
     fiber_tau: float = GrowthSettings.fiber_tau  # h, its time constant
     fiber_crit: float = GrowthSettings.fiber_crit  # its homeostatic elastic fibre stretch
+    stimulus: str = GrowthSettings.stimulus  # the exercise stimulus: global (the paper's) or local
 
     def __post_init__(self):
         for name in ("growth_dt", "signaling_dt"):
@@ -98,7 +99,8 @@ class Numerics:
             if not isinstance(getattr(self, name), bool):
                 raise InputError(f"expected true or false, got {getattr(self, name)!r}", field=name)
         GrowthSettings(sections=self.sections, detraining=self.detraining, fiber_growth=self.fiber_growth,
-                       fiber_tau=self.fiber_tau, fiber_crit=self.fiber_crit)  # checks them, naming them
+                       fiber_tau=self.fiber_tau, fiber_crit=self.fiber_crit,
+                       stimulus=self.stimulus)  # checks them, naming them
 
 
 @dataclasses.dataclass(frozen=True)
@@ -334,12 +336,13 @@ def steps(study: Study) -> tuple[GrowthSettings, fidelity.Choice | None]:
         growth_dt, signaling_dt = choice.growth_dt, choice.signaling_dt
     settings = build(GrowthSettings, {k: f"numerics.{k}" for k in ("growth_dt", "signaling_dt", "max_halvings",
                                                                     "sections", "detraining", "fiber_growth",
-                                                                    "fiber_tau", "fiber_crit")},
+                                                                    "fiber_tau", "fiber_crit", "stimulus")},
                      growth_dt=GrowthSettings.growth_dt if growth_dt is None else growth_dt,
                      signaling_dt=GrowthSettings.signaling_dt if signaling_dt is None else signaling_dt,
                      max_halvings=n.max_halvings, feedback=n.feedback, grow_during_sessions=n.grow_during_sessions,
                      consistent_stress=n.consistent_stress, sections=n.sections, detraining=n.detraining,
-                     fiber_growth=n.fiber_growth, fiber_tau=n.fiber_tau, fiber_crit=n.fiber_crit)
+                     fiber_growth=n.fiber_growth, fiber_tau=n.fiber_tau, fiber_crit=n.fiber_crit,
+                     stimulus=n.stimulus)
     return settings, choice
 
 

@@ -77,7 +77,7 @@ def scene_options(p: cli.Parser) -> None:
 
 
 def model_options(p: cli.Parser) -> None:
-    """--sections, --detraining and --fiber-growth, the switches beyond the paper (issue 35) that grow,
+    """--sections, --detraining, --fiber-growth and --stimulus, the switches beyond the paper (issue 35) that grow,
     cohort and study share; left out (None): the defaults."""
     from hyper.fem.section import MAX_SECTIONS, SECTIONS  # DOLFINx, as in parser()
 
@@ -95,6 +95,11 @@ def model_options(p: cli.Parser) -> None:
                         "stretch (a protocol's [[session]] stretch = …), dϑ_f/dt = ⟨λ/ϑ_f − λ_crit⟩/τ_f "
                         "(hyper.model.growth.fibre_stretch_step), recorded as the fiber_stretch series; "
                         "'none' (the default): the paper's transverse growth")
+    p.add_argument("--stimulus", choices=("global", "local"),
+                   help="the exercise stimulus: 'local' scales each cell's β I Fmax by its active fibre stress in "
+                        "the contraction at the sessions' intensity, over its volume-weighted mean "
+                        "(hyper.fem.stimulus; one intensity per protocol), recorded as the stimulus_factor field; "
+                        "'global' (the default): the paper's one stimulus for every cell")
 
 
 def parser(ask: str = "growth") -> cli.Parser:

@@ -127,7 +127,8 @@ def parser() -> cli.Parser:
 OVERRIDES = {"output": "folder", "figures": "figures", "growth_dt": "growth_dt", "accuracy": "accuracy",
              "signaling_dt": "signaling_dt", "quadrature_degree": "quadrature_degree", "refine": "refine",
              "linear_solver": "linear_solver", "max_halvings": "max_halvings", "snapshot_every": "snapshot_every",
-             "sections": "sections", "detraining": "detraining", "fiber_growth": "fiber_growth"}
+             "sections": "sections", "detraining": "detraining", "fiber_growth": "fiber_growth",
+             "stimulus": "stimulus"}
 
 
 def from_args(args) -> Study:

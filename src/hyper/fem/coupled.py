@@ -26,7 +26,7 @@ from petsc4py import PETSc
 
 from hyper.core.params import InputError, as_float, as_int, positive_hours
 from hyper.fem import boxsection as box
-from hyper.fem import growthfield, section
+from hyper.fem import growthfield, section, stimulus
 from hyper.fem.mechanics import MechanicsProblem, SolverError
 from hyper.fem.newton import KeptFactors, LaggedJacobian, NoTiming
 from hyper.model import growth, signaling
@@ -74,6 +74,10 @@ class GrowthSettings:
     fiber_growth: str = "none"
     fiber_tau: float = 168.0
     fiber_crit: float = 1.0
+    # the exercise stimulus (stimulus.STIMULI): "global", the paper's one β I Fmax for every cell;
+    # "local", each cell's scaled by its active fibre stress in the session's contraction
+    # (`hyper.fem.stimulus`), normalised to a volume-weighted mean of 1
+    stimulus: str = "global"
     preset: str = "default"  # the --settings preset these came from (hyper.runs.presets): a label
 
     # A step cut k times is 2^k solves: beyond this a run is better stopped and looked at.
@@ -81,7 +85,7 @@ class GrowthSettings:
     # Settings added after results existed: in the digest only where they differ from their
     # defaults, so that the digests (and checkpoints) of default runs stay valid.
     DIGEST_IF_CHANGED = ("signaling_method", "growth_increment", "growth_fields", "csa_method", "sections",
-                         "detraining", "fiber_growth", "fiber_tau", "fiber_crit")
+                         "detraining", "fiber_growth", "fiber_tau", "fiber_crit", "stimulus")
 
     def __post_init__(self):
         positive_hours(self.growth_dt, "growth_dt", signaling.SMALLEST_DT)
@@ -117,6 +121,8 @@ class GrowthSettings:
                              field="fiber_growth")
         positive_hours(self.fiber_tau, "fiber_tau")
         as_float(self.fiber_crit, "fiber_crit", 1.0)
+        if self.stimulus not in stimulus.STIMULI:
+            raise InputError(f"must be one of {', '.join(stimulus.STIMULI)}, got {self.stimulus!r}", field="stimulus")
 
     def model_attributes(self) -> dict:
         """The settings that define the solution; max_halvings only decides how hard a
@@ -235,6 +241,8 @@ class CoupledModel:
     ``integrator`` advances the signaling ODEs, with the signature of
     `signaling.integrate` (default: ``settings.signaling_method``'s); ``monitor`` times
     the `PHASES` of the run (default `NoTiming`; the jacobian's should be the same).
+    ``stimulus_factors`` (one per owned cell; None: the global stimulus) scale each cell's β,
+    so that it runs its own ODE; ``stimulus_record`` says how they were had (`stimulus.local_factors`).
     """
 
     def __init__(
@@ -250,12 +258,19 @@ class CoupledModel:
         integrator: Callable | None = None,
         monitor=None,
         regional: RegionalSections | None = None,
+        stimulus_factors: np.ndarray | None = None,
+        stimulus_record: dict | None = None,
     ):
         self.geometry = problem.geometry
         self.comm = self.geometry.mesh.comm
         self.protocol = protocol
         self.params = params if params is not None else signaling.SignalingParams()
         self.settings = settings
+        # local mechanosensing: each owned cell's stimulus factor, which scales β (None: global)
+        self.stimulus_factors = stimulus_factors
+        self.stimulus_record = dict(stimulus_record or {})  # how they were had: result attributes
+        if stimulus_factors is not None:
+            self.params = dataclasses.replace(self.params, beta=self.params.beta * np.asarray(stimulus_factors))
         self.integrator = integrator if integrator is not None else signaling.integrator(settings.signaling_method)
         self.monitor = monitor if monitor is not None else NoTiming()
         self.growth = growth_field
@@ -677,7 +692,9 @@ def build_model(
     ``material`` (default: its own) with ``petsc_options`` (snes_lag_jacobian, here or
     as -mechanics_snes_lag_jacobian, goes to a `LaggedJacobian` and never reaches PETSc),
     ``linear_solver`` and ``normalize_fibres``, the Newton solver ``settings.newton``
-    names, and the section of the mesh (its tagged facets, else a `PlaneSection`).
+    names, and the section of the mesh (its tagged facets, else a `PlaneSection`); with
+    ``settings.stimulus`` "local", the stimulus factors of the protocol's contraction
+    (`stimulus.local_factors`, InputError for a protocol of several intensities).
     ``monitor`` (default `NoTiming`) times the model and its Newton solver."""
     monitor = monitor if monitor is not None else NoTiming()
     growth_field = growthfield.GrowthField(geometry.mesh, a0, geometry.quadrature_degree, settings.growth_fields)
@@ -709,5 +726,14 @@ def build_model(
         section_ = PlaneSection(problem)
     regional = (RegionalSections(problem, section.section_fractions(settings.sections)) if settings.sections
                 else None)
+    factors, record = None, {}
+    if settings.stimulus == "local":
+        try:
+            intensity = protocol.session_intensity
+        except ValueError as err:
+            raise InputError(f"--stimulus local: {err}; it takes one intensity per protocol") from None
+        factors, record = stimulus.local_factors(geometry, a0, intensity, normalize_fibres=normalize_fibres,
+                                                 petsc_options=options, linear_solver=linear_solver, **kwargs)
     return CoupledModel(problem, growth_field, section_, jacobian, protocol, params=params, settings=settings,
-                        integrator=integrator, monitor=monitor, regional=regional)
+                        integrator=integrator, monitor=monitor, regional=regional, stimulus_factors=factors,
+                        stimulus_record=record)

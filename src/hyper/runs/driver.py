@@ -206,7 +206,8 @@ def snapshot_due(kept: list[float], t: float, every: float) -> bool:
 
 class Snapshots:
     """Output fields of a run on spaces XDMF stores (P1 and DG0), updated in place:
-    u, det Ḡ, a0, and N where each cell has its own signaling.
+    u, det Ḡ, a0, and N where each cell has its own signaling; with local mechanosensing the
+    stimulus factor of each cell (which never changes: with the first snapshot, as a0).
 
     Each snapshot is also kept per owned cell so that a checkpoint carries them and a
     resumed run writes them again.
@@ -225,6 +226,11 @@ class Snapshots:
         self.a0.interpolate(a0)
         self.N = fem.Function(dg0, name="N") if np.ndim(model.y) == 2 else None
         cells = model.growth.cells
+        self.stimulus = None
+        if model.stimulus_factors is not None:
+            self.stimulus = fem.Function(dg0, name="stimulus_factor")
+            self.stimulus.x.array[dg0.dofmap.list[cells][:, 0]] = model.stimulus_factors
+            self.stimulus.x.scatter_forward()
         nlocal = len(cells) + mesh.topology.index_map(mesh.topology.dim).num_ghosts
         self._cells = cells
         self._local = np.arange(nlocal, dtype=np.int32)
@@ -237,7 +243,9 @@ class Snapshots:
 
     def fields(self) -> tuple:
         """The fields of the snapshot just kept; the fibres, which never change, with the first only."""
-        return (self.u, self.det) + ((self.a0,) if len(self.times) == 1 else ()) + \
+        first = len(self.times) == 1
+        return (self.u, self.det) + ((self.a0,) if first else ()) + \
+            ((self.stimulus,) if first and self.stimulus is not None else ()) + \
             ((self.N,) if self.N is not None else ())
 
     def update(self, t: float) -> tuple:
@@ -564,6 +572,7 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: float = SN
         "segments": segments,
         "run_digest": run_digest,
         "unknowns": model.problem.num_dofs,
+        **model.stimulus_record,
         "study": provenance.study_text(spec),
         **solver,
     }

@@ -43,7 +43,8 @@ NAMES = tuple(PRESETS)
 OPTIONS = {"signaling_method": "--signaling-method", "growth_increment": "--growth-increment",
            "grow_during_sessions": "--skip-sessions", "consistent_stress": "--fe-stress",
            "csa_method": "--csa-method", "growth_fields": "--growth-fields", "sections": "--sections",
-           "detraining": "--detraining", "fiber_growth": "--fiber-growth"}
+           "detraining": "--detraining", "fiber_growth": "--fiber-growth",
+           "stimulus": "--stimulus"}
 SHAPE_DEFAULTS = {"ends": "disks", "fibers": "auto"}  # what every geometry but the idealized one runs
 # --fibers: auto and original for the built-in geometries, these too for a mesh file
 MESH_FIBERS = ("auto", "stokes", "axial", "principal")
@@ -196,4 +197,5 @@ def chosen(args: argparse.Namespace) -> dict:
         "sections": args.sections,
         "detraining": args.detraining,
         "fiber_growth": args.fiber_growth,
+        "stimulus": args.stimulus,
     }

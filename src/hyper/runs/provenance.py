@@ -94,7 +94,7 @@ def study_text(spec) -> str:
         numerics["sections"] = settings["sections"]
     if settings["detraining"] is not None:
         numerics["detraining"] = settings["detraining"]
-    for name in ("fiber_growth", "fiber_tau", "fiber_crit"):
+    for name in ("fiber_growth", "fiber_tau", "fiber_crit", "stimulus"):
         if settings[name] != getattr(type(spec.settings), name):
             numerics[name] = settings[name]
     if spec.mesh is None and spec.quadrature_degree is not None:
