@@ -48,9 +48,9 @@ def parser() -> cli.Parser:
                    help="an end: the facets within this share of "
                    "the length from an extreme along the axis")
     p.add_argument("--end-rule", choices=hm.END_RULES, default=hm.END_RULES[0],
-                   help="surface: the band measured along the STL's own axis from its extremes (ends of one "
-                        "shape at any --cells); vertices: along the mesh vertices' axis from theirs (hyper mesh "
-                        "before; the shipped new meshes)")
+                   help="surface: the band measured along the STL's own principal axis (ends of one shape at "
+                        "any --cells); vertices: along the mesh vertices' (hyper mesh before; the shipped new "
+                        "meshes)")
     cli.vector_option(p, "--axis", help="the muscle's long axis (the first principal axis of the STL surface, or "
                       "of the mesh vertices under --end-rule vertices, by default)")
     cli.vector_option(p, "--origin-toward", default=hm.ORIGIN_TOWARD,

@@ -519,7 +519,10 @@ def carried(a0: fem.Function, geometry: geo.Geometry) -> fem.Function:
     return a0
 
 
-TRANSFER_PADDING_M = 0.01  # how far outside the flow's mesh a node may lie (m): its nearest cell's value
+# How far outside the flow's mesh a node may lie (m): its nearest cell's value. Tried in
+# turn: the search costs grow fast with the padding (32k cells onto 8k: 18 s at 1 mm, 94 s
+# at 3 mm, over 10 min at 10 mm), and most meshes of one surface need the first.
+TRANSFER_PADDINGS_M = (0.001, 0.01)
 TRANSFERRED_METHOD = ("; solved on a mesh of the same surface at {cells} cells and interpolated onto this "
                       "mesh's nodes, unit there")
 
@@ -528,19 +531,22 @@ def transferred(field: fem.Function, geometry: geo.Geometry) -> fem.Function:
     """A P1 field (vector or scalar) on another mesh of the same shape, interpolated at
     ``geometry``'s nodes. Meshes of one surface at two resolutions have different facets:
     a node outside the other mesh (by up to a few mm between coarse meshes) takes the
-    value of its nearest cell within TRANSFER_PADDING_M; one further out is an error."""
+    value of its nearest cell within the first of TRANSFER_PADDINGS_M that finds one for
+    every node; one further out than the last is an error."""
     space = fem.functionspace(geometry.mesh, ("Lagrange", 1, field.function_space.value_shape))
     out = fem.Function(space, name=field.name)
     cmap = geometry.mesh.topology.index_map(geometry.mesh.topology.dim)
     cells = np.arange(cmap.size_local + cmap.num_ghosts, dtype=np.int32)
-    out.interpolate_nonmatching(field, cells, fem.create_interpolation_data(space, field.function_space, cells,
-                                                                           padding=TRANSFER_PADDING_M))
-    out.x.scatter_forward()
-    found = bool(np.all(np.abs(out.x.array.reshape(-1, space.dofmap.index_map_bs)).max(axis=1) > 0))
-    if not geometry.comm.allreduce(found, op=MPI.LAND):
-        raise RuntimeError(f"{geometry.name}: some nodes lie further than {TRANSFER_PADDING_M:g} m from the mesh "
-                           "the field was computed on")
-    return out
+    for padding in TRANSFER_PADDINGS_M:
+        out.x.array[:] = 0.0
+        out.interpolate_nonmatching(field, cells, fem.create_interpolation_data(space, field.function_space, cells,
+                                                                               padding=padding))
+        out.x.scatter_forward()
+        found = bool(np.all(np.abs(out.x.array.reshape(-1, space.dofmap.index_map_bs)).max(axis=1) > 0))
+        if geometry.comm.allreduce(found, op=MPI.LAND):
+            return out
+    raise RuntimeError(f"{geometry.name}: some nodes lie further than {padding:g} m from the mesh "
+                       "the field was computed on")
 
 
 def compute_transferred(geometry: geo.Geometry, flow: geo.Geometry, params: StokesParams = StokesParams()

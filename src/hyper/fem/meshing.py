@@ -441,19 +441,17 @@ def boundary_facets(tets: np.ndarray) -> np.ndarray:
     return faces[first[count == 1]]
 
 
-END_RULES = ("surface", "vertices")  # `find_ends`: the end band measured in the surface's frame, or in the
-# mesh vertices' (the rule of hyper mesh before, which the shipped new meshes have)
+END_RULES = ("surface", "vertices")  # `find_ends`: the end band measured along the surface's axis, or along
+# the mesh vertices' (the rule of hyper mesh before, which the shipped new meshes have)
 
 
 def surface_frame(points: np.ndarray, triangles: np.ndarray) -> dict:
     """The frame the `surface` end rule measures in: the area centroid and first principal
-    axis of the surface (`surface_covariance`) and its points, whose extent along the axis
-    is the length: all of the STL and none of a mesh, so meshes of one surface at any
-    resolution get ends of one shape."""
+    axis of the surface (`surface_covariance`), of the STL and not of a mesh, so meshes of
+    one surface at any resolution measure along one axis."""
     area = facet_areas(points, triangles)
     centre = (area[:, None] * points[triangles].mean(axis=1)).sum(axis=0) / area.sum()
-    return {"centre": centre, "axis": np.linalg.eigh(surface_covariance(points, triangles))[1][:, -1],
-            "points": points}
+    return {"centre": centre, "axis": np.linalg.eigh(surface_covariance(points, triangles))[1][:, -1]}
 
 
 def find_ends(x: np.ndarray, facets: np.ndarray, *, band: float = END_BAND, axis=None,
@@ -461,10 +459,10 @@ def find_ends(x: np.ndarray, facets: np.ndarray, *, band: float = END_BAND, axis
     """The tag of each outward boundary facet (1 origin, 2 insertion, 3 lateral) by the
     rule of the module docstring, and what the rule used; InputError where it fails.
 
-    A facet is in a band where all three of its vertices are. ``frame`` (`surface_frame`;
-    ``axis`` replaces its axis): the `surface` rule, the band measured along the surface's
-    axis from its extremes; without it the `vertices` rule, along the mesh vertices' axis
-    from theirs. Why the first where there is a surface (docs/convergence.md): the vertices'
+    A facet is in a band where all three of its vertices are, measured from the extremes of
+    the mesh's vertices along the axis. ``frame`` (`surface_frame`; ``axis`` replaces its
+    axis): the `surface` rule, along the surface's axis; without it the `vertices` rule,
+    along the mesh vertices' first principal axis. Why the first where there is a surface (docs/convergence.md): the vertices'
     axis moves with the mesh (gmsh's tips are finer, and the share of surface vertices
     changes with the size), and the ends and the fibres' flow with it: on TA_VHF_Left the
     smoothed fibres at 8k cells are 4.6° (95th percentile) off the 64k field by the vertex
@@ -485,13 +483,8 @@ def find_ends(x: np.ndarray, facets: np.ndarray, *, band: float = END_BAND, axis
                          "it cannot tell the origin from the insertion")
     if axis @ toward < 0:
         axis = -axis  # the origin is now at the high end of the projection
-    if frame is None:
-        along = (x - x.mean(axis=0)) @ axis
-        low, high = along.min(), along.max()
-    else:
-        extent = (frame["points"] - frame["centre"]) @ axis
-        low, high = extent.min(), extent.max()
-        along = (x - frame["centre"]) @ axis
+    along = (x - (x.mean(axis=0) if frame is None else frame["centre"])) @ axis
+    low, high = along.min(), along.max()
     width = band * (high - low)
     corners = x[facets]
     normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
