@@ -464,9 +464,9 @@ def find_ends(x: np.ndarray, facets: np.ndarray, *, band: float = END_BAND, axis
     axis): the `surface` rule, along the surface's axis; without it the `vertices` rule,
     along the mesh vertices' first principal axis. Why the first where there is a surface
     (docs/convergence.md): the vertices' axis moves with the mesh (gmsh's tips are finer,
-    and the share of surface vertices changes with the size), and the ends and the fibres' flow with it: on TA_VHF_Left the
-    smoothed fibres at 8k cells are 4.6° (95th percentile) off the 64k field by the vertex
-    frame, 2.9° by the surface's."""
+    and the share of surface vertices changes with the size), and the ends and the fibres'
+    flow with it: on TA_VHF_Left the smoothed fibres at 8k cells are 4.6° (95th
+    percentile) off the 64k field by the vertex frame, 2.9° by the surface's."""
     # Below half the length no vertex can be in both bands, so the ends never touch.
     if not 0.0 < band < 0.5:
         raise InputError(f"--end-band: expected a share of the length in (0, 0.5), got {band:g}: the two ends "
