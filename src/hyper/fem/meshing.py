@@ -41,8 +41,9 @@ Steps, each of which stops the job with one ``error:`` line (exit 2) and nothing
    `fill_surface`) that gives the mesh the STL's enclosed volume.
    Quality: every cell positive with volume above 1e-9 of the bounding box's; the
    minimum dihedral angle is reported.
-4. Ends, the rule: project the vertices on the first principal axis (``--axis``
-   replaces it); an end is the boundary facets whose three vertices lie within
+4. Ends, the rule: project the vertices on the first principal axis of the STL surface
+   (``--end-rule surface``; of the mesh vertices under ``vertices``; ``--axis`` replaces
+   it); an end is the boundary facets whose three vertices lie within
    ``--end-band`` (a share of the length, 3.75 %) of an extreme of the projection,
    except facets parallel to the axis (normal within PARALLEL_DEG of perpendicular to
    it: lateral surface, as a cylinder's side is). The origin, tag 1, is the end further
@@ -52,7 +53,8 @@ Steps, each of which stops the job with one ``error:`` line (exit 2) and nothing
    to 40 % of an end's area has normals that point inward along the axis, so a rule on
    normals would not reproduce them). Refused: an end without facets, no lateral surface
    left, a band of half the length or more (the ends would touch; below it they cannot).
-5. Fibres: the Stokes flow of hyper.fibers (inflow at tag 1); statistics of hyper.meshstats.
+5. Fibres: the Stokes flow of hyper.fibers (inflow at tag 1), smoothed over
+   ``--fibre-smoothing`` (`hyper.fem.fibers.smoothed`); statistics of hyper.meshstats.
 """
 
 from __future__ import annotations
