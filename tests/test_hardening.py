@@ -332,6 +332,10 @@ JOBS = {
         "axis_two": (["--axis", "1", "0"], r"argument --axis: expected 3 arguments"),
         "end_band_half": (["--end-band", "0.5"], r"argument --end-band: expected a number in \(0, 0.5\), got 0.5"),
         "end_band_nan": (["--end-band", "nan"], r"argument --end-band: expected a finite number, got 'nan'"),
+        "end_rule": (["--end-rule", "centroid"], r"argument --end-rule: invalid choice: 'centroid'"),
+        "fibre_smoothing_negative": (["--fibre-smoothing", "-1"], r"argument --fibre-smoothing: expected a number in"),
+        "fibre_smoothing_nan": (["--fibre-smoothing", "nan"],
+                                r"argument --fibre-smoothing: expected a finite number, got 'nan'"),
         **integer_cases("--cells", 200, 2_000_000),
     }),
 }

@@ -94,9 +94,14 @@ METHOD = ("Stokes flow, Taylor-Hood P2-P1; inflow u.N = -1 on ends[0] and free s
 ELEMENT = "Lagrange P1 vector, unit length at the nodes"
 
 
+SMOOTHED_METHOD = ("; the velocity smoothed over {mm:g} mm before its direction is taken (w - l^2 lap w = u, "
+                   "zero normal gradient, P1, l = {mm:g} mm)")
+
+
 def stokes_method(params: StokesParams) -> str:
-    """METHOD with the Taylor–Hood degrees of ``params``."""
-    return METHOD.replace("P2-P1", f"P{params.degree}-P{params.degree - 1}")
+    """METHOD with the Taylor–Hood degrees and the smoothing of ``params``."""
+    method = METHOD.replace("P2-P1", f"P{params.degree}-P{params.degree - 1}")
+    return method + (SMOOTHED_METHOD.format(mm=params.smoothing_m * 1e3) if params.smoothing_m > 0 else "")
 ALIGNMENT_DEG = 30.0  # the angle the alignment statistic counts up to
 
 _prefixes = itertools.count()
@@ -110,9 +115,15 @@ class StokesParams:
     quadrature_degree: int = 4
     min_speed: float = 1.0e-6  # (1, of the inflow speed) below it a node has no fibre direction
     degree: int = 2  # of the velocity (Taylor–Hood: the pressure one less)
+    # (m) length l of the filter w - l² Δw = u applied to the velocity before its direction
+    # is taken (`smoothed`); 0: none (the paper's fibres and the shipped fibre files)
+    smoothing_m: float = 0.0
 
     def __post_init__(self):
         check_positive(self, "penalty", "min_speed")
+        if not (isinstance(self.smoothing_m, (int, float)) and math.isfinite(self.smoothing_m)
+                and 0.0 <= self.smoothing_m <= 0.05):
+            raise InputError(f"smoothing_m must be a length in [0, 0.05] m, got {self.smoothing_m!r}")
         if self.degree not in (2, 3):
             raise InputError(f"degree must be 2 or 3, got {self.degree!r}")
         q = self.quadrature_degree
@@ -214,12 +225,39 @@ class StokesFibers:
 
     def fibers(self) -> tuple[fem.Function, fem.Function]:
         """(a0, speed): the unit fibre field (vector P1) and |u| at the nodes (scalar P1)."""
+        if self.params.smoothing_m > 0:
+            return normalized(smoothed(self.solve(), self.V1, self.params.smoothing_m), self.params.min_speed,
+                              self.geometry.name)
         u1 = fem.Function(self.V1)
         u1.interpolate(self.solve())
         # Ghost copies take the owner's value: interpolating from a different cell can
         # differ in the last bit, and the stored field is the owners' values.
         u1.x.scatter_forward()
         return normalized(u1, self.params.min_speed, self.geometry.name)
+
+
+def smoothed(u: fem.Function, space: fem.FunctionSpace, length: float) -> fem.Function:
+    """The vector P1 field w with (w, v) + l² (∇w, ∇v) = (u, v) for all v in ``space``.
+
+    Why (docs/convergence.md): on a Visible Human surface the flow's direction next to the
+    lateral surface follows the surface's facets (the STLs' neighbouring triangles differ
+    by 4° in the median, 23° at the 95th percentile), and every finer mesh resolves more of
+    them, so the unsmoothed field does not converge with the mesh (on TA_VHF_Left the 8k,
+    16k and 32k fields differ from the 64k one by 9.4°, 6.3°, 3.5° at the 95th percentile).
+    The filter keeps what is longer than l and removes the facets' ripple; its natural
+    boundary condition leaves the flux and the mean direction alone.
+    """
+    mesh = space.mesh
+    w, v = ufl.TrialFunction(space), ufl.TestFunction(space)
+    ell2 = fem.Constant(mesh, float(length) ** 2)
+    problem = LinearProblem(
+        (ufl.inner(w, v) + ell2 * ufl.inner(ufl.grad(w), ufl.grad(v))) * ufl.dx, ufl.inner(u, v) * ufl.dx,
+        petsc_options_prefix=f"hyper_fibers_smooth_{next(_prefixes)}_",
+        petsc_options={"ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps"},
+    )
+    out = problem.solve()
+    out.x.scatter_forward()
+    return out
 
 
 def normalized(u: fem.Function, min_speed: float, name: str) -> tuple[fem.Function, fem.Function]:
@@ -481,7 +519,10 @@ def carried(a0: fem.Function, geometry: geo.Geometry) -> fem.Function:
     return a0
 
 
-TRANSFER_PADDING_M = 0.01  # how far outside the flow's mesh a node may lie (m): its nearest cell's value
+# How far outside the flow's mesh a node may lie (m): its nearest cell's value. Tried in
+# turn: the search costs grow fast with the padding (32k cells onto 8k: 18 s at 1 mm, 94 s
+# at 3 mm, over 10 min at 10 mm), and most meshes of one surface need the first.
+TRANSFER_PADDINGS_M = (0.001, 0.01)
 TRANSFERRED_METHOD = ("; solved on a mesh of the same surface at {cells} cells and interpolated onto this "
                       "mesh's nodes, unit there")
 
@@ -490,19 +531,22 @@ def transferred(field: fem.Function, geometry: geo.Geometry) -> fem.Function:
     """A P1 field (vector or scalar) on another mesh of the same shape, interpolated at
     ``geometry``'s nodes. Meshes of one surface at two resolutions have different facets:
     a node outside the other mesh (by up to a few mm between coarse meshes) takes the
-    value of its nearest cell within TRANSFER_PADDING_M; one further out is an error."""
+    value of its nearest cell within the first of TRANSFER_PADDINGS_M that finds one for
+    every node; one further out than the last is an error."""
     space = fem.functionspace(geometry.mesh, ("Lagrange", 1, field.function_space.value_shape))
     out = fem.Function(space, name=field.name)
     cmap = geometry.mesh.topology.index_map(geometry.mesh.topology.dim)
     cells = np.arange(cmap.size_local + cmap.num_ghosts, dtype=np.int32)
-    out.interpolate_nonmatching(field, cells, fem.create_interpolation_data(space, field.function_space, cells,
-                                                                           padding=TRANSFER_PADDING_M))
-    out.x.scatter_forward()
-    found = bool(np.all(np.abs(out.x.array.reshape(-1, space.dofmap.index_map_bs)).max(axis=1) > 0))
-    if not geometry.comm.allreduce(found, op=MPI.LAND):
-        raise RuntimeError(f"{geometry.name}: some nodes lie further than {TRANSFER_PADDING_M:g} m from the mesh "
-                           "the field was computed on")
-    return out
+    for padding in TRANSFER_PADDINGS_M:
+        out.x.array[:] = 0.0
+        out.interpolate_nonmatching(field, cells, fem.create_interpolation_data(space, field.function_space, cells,
+                                                                               padding=padding))
+        out.x.scatter_forward()
+        found = bool(np.all(np.abs(out.x.array.reshape(-1, space.dofmap.index_map_bs)).max(axis=1) > 0))
+        if geometry.comm.allreduce(found, op=MPI.LAND):
+            return out
+    raise RuntimeError(f"{geometry.name}: some nodes lie further than {padding:g} m from the mesh "
+                       "the field was computed on")
 
 
 def compute_transferred(geometry: geo.Geometry, flow: geo.Geometry, params: StokesParams = StokesParams()

@@ -41,8 +41,9 @@ Steps, each of which stops the job with one ``error:`` line (exit 2) and nothing
    `fill_surface`) that gives the mesh the STL's enclosed volume.
    Quality: every cell positive with volume above 1e-9 of the bounding box's; the
    minimum dihedral angle is reported.
-4. Ends, the rule: project the vertices on the first principal axis (``--axis``
-   replaces it); an end is the boundary facets whose three vertices lie within
+4. Ends, the rule: project the vertices on the first principal axis of the STL surface
+   (``--end-rule surface``; of the mesh vertices under ``vertices``; ``--axis`` replaces
+   it); an end is the boundary facets whose three vertices lie within
    ``--end-band`` (a share of the length, 3.75 %) of an extreme of the projection,
    except facets parallel to the axis (normal within PARALLEL_DEG of perpendicular to
    it: lateral surface, as a cylinder's side is). The origin, tag 1, is the end further
@@ -52,7 +53,8 @@ Steps, each of which stops the job with one ``error:`` line (exit 2) and nothing
    to 40 % of an end's area has normals that point inward along the axis, so a rule on
    normals would not reproduce them). Refused: an end without facets, no lateral surface
    left, a band of half the length or more (the ends would touch; below it they cannot).
-5. Fibres: the Stokes flow of hyper.fibers (inflow at tag 1); statistics of hyper.meshstats.
+5. Fibres: the Stokes flow of hyper.fibers (inflow at tag 1), smoothed over
+   ``--fibre-smoothing`` (`hyper.fem.fibers.smoothed`); statistics of hyper.meshstats.
 """
 
 from __future__ import annotations
@@ -441,16 +443,39 @@ def boundary_facets(tets: np.ndarray) -> np.ndarray:
     return faces[first[count == 1]]
 
 
+END_RULES = ("surface", "vertices")  # `find_ends`: the end band measured along the surface's axis, or along
+# the mesh vertices' (the rule of hyper mesh before, which the shipped new meshes have)
+
+
+def surface_frame(points: np.ndarray, triangles: np.ndarray) -> dict:
+    """The frame the `surface` end rule measures in: the area centroid and first principal
+    axis of the surface (`surface_covariance`), of the STL and not of a mesh, so meshes of
+    one surface at any resolution measure along one axis."""
+    area = facet_areas(points, triangles)
+    centre = (area[:, None] * points[triangles].mean(axis=1)).sum(axis=0) / area.sum()
+    return {"centre": centre, "axis": np.linalg.eigh(surface_covariance(points, triangles))[1][:, -1]}
+
+
 def find_ends(x: np.ndarray, facets: np.ndarray, *, band: float = END_BAND, axis=None,
-              origin_toward=ORIGIN_TOWARD) -> tuple[np.ndarray, dict]:
+              origin_toward=ORIGIN_TOWARD, frame: dict | None = None) -> tuple[np.ndarray, dict]:
     """The tag of each outward boundary facet (1 origin, 2 insertion, 3 lateral) by the
-    rule of the module docstring, and what the rule used; InputError where it fails."""
+    rule of the module docstring, and what the rule used; InputError where it fails.
+
+    A facet is in a band where all three of its vertices are, measured from the extremes of
+    the mesh's vertices along the axis. ``frame`` (`surface_frame`; ``axis`` replaces its
+    axis): the `surface` rule, along the surface's axis; without it the `vertices` rule,
+    along the mesh vertices' first principal axis. Why the first where there is a surface
+    (docs/convergence.md): the vertices' axis moves with the mesh (gmsh's tips are finer,
+    and the share of surface vertices changes with the size), and the ends and the fibres'
+    flow with it: on TA_VHF_Left the smoothed fibres at 8k cells are 4.6° (95th
+    percentile) off the 64k field by the vertex frame, 2.9° by the surface's."""
     # Below half the length no vertex can be in both bands, so the ends never touch.
     if not 0.0 < band < 0.5:
         raise InputError(f"--end-band: expected a share of the length in (0, 0.5), got {band:g}: the two ends "
                          "would touch")
-    centre = x.mean(axis=0)
-    axis = principal_axis(x) if axis is None else np.asarray(axis, dtype=float)
+    if axis is None:
+        axis = principal_axis(x) if frame is None else frame["axis"]
+    axis = np.asarray(axis, dtype=float)
     if not np.linalg.norm(axis) > 0:
         raise InputError("--axis: expected a nonzero direction")
     axis = axis / np.linalg.norm(axis)
@@ -460,7 +485,7 @@ def find_ends(x: np.ndarray, facets: np.ndarray, *, band: float = END_BAND, axis
                          "it cannot tell the origin from the insertion")
     if axis @ toward < 0:
         axis = -axis  # the origin is now at the high end of the projection
-    along = (x - centre) @ axis
+    along = (x - (x.mean(axis=0) if frame is None else frame["centre"])) @ axis
     low, high = along.min(), along.max()
     width = band * (high - low)
     corners = x[facets]
@@ -476,8 +501,9 @@ def find_ends(x: np.ndarray, facets: np.ndarray, *, band: float = END_BAND, axis
                              f"length from that end of the axis {tuple(axis.round(4))}; widen the band or give --axis")
     if not (tags == 3).any():
         raise InputError("the two ends cover the whole surface: no lateral surface is left; narrow --end-band")
-    return tags, {"axis": axis.tolist(), "length_mm": float(high - low), "band": band,
-                  "origin_toward": toward.tolist(), "parallel_deg": PARALLEL_DEG}
+    return tags, {"rule": "vertices" if frame is None else "surface", "axis": axis.tolist(),
+                  "length_mm": float(high - low), "band": band, "origin_toward": toward.tolist(),
+                  "parallel_deg": PARALLEL_DEG}
 
 
 def facet_areas(x: np.ndarray, facets: np.ndarray) -> np.ndarray:
