@@ -1,9 +1,11 @@
+# ruff: noqa: E402, E501, E702
+# (the experiment as it was run for docs/convergence.md; kept to rerun its numbers, not as library code)
 """Experiment of issue 32 item 2 (docs/convergence.md, "Why the fibres change"). Run from the
 repository root, 1 core:
 
-    FC_WORK=results/fibreconv python experiments/fibreconv_build.py TA_VHF_Left \
+    FC_WORK=results/fibreconv python jobs/fibreconv_build.py TA_VHF_Left \
         ../shared/surfaces/VHF_Left_Muscle_TibialisAnterior_smooth.stl 4000,8000,16000,32000,64000
-    FC_WORK=results/fibreconv python experiments/fibreconv_exp.py TA_VHF_Left \
+    FC_WORK=results/fibreconv python jobs/fibreconv_exp.py TA_VHF_Left \
         ../shared/surfaces/VHF_Left_Muscle_TibialisAnterior_smooth.stl --cells 8000,16000,32000,64000 \
         [--rule band3|stl|stlv] [--filter MM] [--normals vertex|stl] [--sigma MM]
 
@@ -13,14 +15,19 @@ them, with the vertex rule's tags; exp: re-tag (band3 the vertex rule, stlv the 
 with all three vertices in the band, stl the STL's axis and extent with facet centroids),
 solve the Stokes fibres, smooth them (--filter l, `fibers.smoothed`), and print the angle of
 each level's field to the finest one at the level's nodes (mean, p95, max)."""
+import argparse
 import os
-import sys, argparse, time
+import sys
+import time
 from pathlib import Path
+
 import numpy as np
+
 WORK = os.environ.get('FC_WORK', 'results/fibreconv')
 from hyper.commands import mesh as mj
 from hyper.commands.bench import mesh as mb
 from hyper.fem import meshing as hm
+
 name, stl = sys.argv[1], sys.argv[2]
 toward = mb.shipped(name)["toward"] if len(sys.argv) < 5 else np.array(list(map(float, sys.argv[4].split(","))))
 for cells in map(int, sys.argv[3].split(",")):

@@ -1,9 +1,11 @@
+# ruff: noqa: E402, E501, E702
+# (the experiment as it was run for docs/convergence.md; kept to rerun its numbers, not as library code)
 """Experiment of issue 32 item 2 (docs/convergence.md, "Why the fibres change"). Run from the
 repository root, 1 core:
 
-    FC_WORK=results/fibreconv python experiments/fibreconv_build.py TA_VHF_Left \
+    FC_WORK=results/fibreconv python jobs/fibreconv_build.py TA_VHF_Left \
         ../shared/surfaces/VHF_Left_Muscle_TibialisAnterior_smooth.stl 4000,8000,16000,32000,64000
-    FC_WORK=results/fibreconv python experiments/fibreconv_exp.py TA_VHF_Left \
+    FC_WORK=results/fibreconv python jobs/fibreconv_exp.py TA_VHF_Left \
         ../shared/surfaces/VHF_Left_Muscle_TibialisAnterior_smooth.stl --cells 8000,16000,32000,64000 \
         [--rule band3|stl|stlv] [--filter MM] [--normals vertex|stl] [--sigma MM]
 
@@ -13,17 +15,24 @@ them, with the vertex rule's tags; exp: re-tag (band3 the vertex rule, stlv the 
 with all three vertices in the band, stl the STL's axis and extent with facet centroids),
 solve the Stokes fibres, smooth them (--filter l, `fibers.smoothed`), and print the angle of
 each level's field to the finest one at the level's nodes (mean, p95, max)."""
+import argparse
+import math
 import os
-import argparse, json, math, time, sys
+import time
 from pathlib import Path
+
 import numpy as np
+
 WORK = os.environ.get('FC_WORK', 'results/fibreconv')
-from mpi4py import MPI
 import dolfinx_solver  # noqa
-from dolfinx import fem, la
 import ufl
-from hyper.fem import fibers, meshing as hm, geometry as geo
+from dolfinx import fem
+from mpi4py import MPI
+
 from hyper.commands.bench.convergence import angles, unit
+from hyper.fem import fibers
+from hyper.fem import geometry as geo
+from hyper.fem import meshing as hm
 
 p = argparse.ArgumentParser()
 p.add_argument("name"); p.add_argument("stl"); p.add_argument("--cells", default="4000,8000,16000,32000")
@@ -49,9 +58,10 @@ for i in range(3):
     np.add.at(vn, tris[:, i], an)
 vn /= np.linalg.norm(vn, axis=1)[:, None]
 from scipy.spatial import cKDTree
+
 tree = cKDTree(pts)
 if a.sigma > 0:
-    vw = np.zeros(len(pts)); 
+    vw = np.zeros(len(pts))
     for i in range(3):
         np.add.at(vw, tris[:, i], areas / 3)
     pairs = tree.query_ball_point(pts, 3 * a.sigma)
