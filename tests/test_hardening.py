@@ -333,9 +333,10 @@ JOBS = {
         "end_band_half": (["--end-band", "0.5"], r"argument --end-band: expected a number in \(0, 0.5\), got 0.5"),
         "end_band_nan": (["--end-band", "nan"], r"argument --end-band: expected a finite number, got 'nan'"),
         "end_rule": (["--end-rule", "centroid"], r"argument --end-rule: invalid choice: 'centroid'"),
-        "fibre_smoothing_negative": (["--fibre-smoothing", "-1"], r"argument --fibre-smoothing: expected a number in"),
-        "fibre_smoothing_nan": (["--fibre-smoothing", "nan"],
-                                r"argument --fibre-smoothing: expected a finite number, got 'nan'"),
+        "fibers_smoothing_negative": (["--fibers-smoothing", "-1"],
+                                      r"argument --fibers-smoothing: expected a number in"),
+        "fibers_smoothing_nan": (["--fibers-smoothing", "nan"],
+                                r"argument --fibers-smoothing: expected a finite number, got 'nan'"),
         **integer_cases("--cells", 200, 2_000_000),
     }),
 }

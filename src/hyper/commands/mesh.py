@@ -28,9 +28,9 @@ from hyper.fem import meshing as hm
 from hyper.runs import plot, presets
 
 ARRAYS = ("x", "tets", "facets", "tags")  # what `build` returns besides numbers
-# --fibre-smoothing (mm): on TA_VHF_Left (docs/convergence.md) 2 mm brings the 8k-cell fibres
+# --fibers-smoothing (mm): on TA_VHF_Left (docs/convergence.md) 2 mm brings the 8k-cell fibres
 # within 2.5° (95th percentile) of the 64k-cell field; 3 mm gains 0.3° more
-FIBRE_SMOOTHING_MM = 2.0
+FIBERS_SMOOTHING_MM = 2.0
 
 
 def parser() -> cli.Parser:
@@ -59,7 +59,7 @@ def parser() -> cli.Parser:
                    help="solve the fibres' Stokes flow on a second mesh of the surface at N cells (finer than "
                         "--cells) and interpolate it onto this mesh's nodes: fibres nearer the converged field "
                         "(python -m hyper.bench convergence); by default the flow is solved on this mesh")
-    p.add_argument("--fibre-smoothing", type=cli.number(0, 50), default=FIBRE_SMOOTHING_MM,
+    p.add_argument("--fibers-smoothing", type=cli.number(0, 50), default=FIBERS_SMOOTHING_MM,
                    metavar="MM", help="the Stokes velocity smoothed over this length before its direction is taken "
                    "(hyper.fem.fibers.smoothed: the fibres then converge with the mesh); 0: none, the paper's")
     p.add_argument("--method", choices=("stokes", "pennate"), default="stokes",
@@ -160,7 +160,7 @@ def run(comm, args) -> int:
         start = time.perf_counter()
         hm.write_xdmf(comm, stage / f"{name}.xdmf", *(arrays[k] for k in ARRAYS))
         geometry = geo.load_file(stage / f"{name}.xdmf", comm, name=name, scale=geo.MM)
-        params = fibers.StokesParams(smoothing_m=args.fibre_smoothing * geo.MM)
+        params = fibers.StokesParams(smoothing_m=args.fibers_smoothing * geo.MM)
         method = fibers.stokes_method(params)
         if args.flow_cells is None:
             a0, speed = fibers.compute(geometry, params)
@@ -201,7 +201,7 @@ def run(comm, args) -> int:
                       "mesher": f"gmsh {hm.gmsh_version()}", "cells_target": args.cells,
                       **({} if args.flow_cells is None else {"flow_cells_target": args.flow_cells}),
                       "surface_triangles": built["surface_triangles"], "ends": built["rule"],
-                      "fibre_smoothing_mm": args.fibre_smoothing,
+                      "fibers_smoothing_mm": args.fibers_smoothing,
                       "end_area_mm2": built["end_area_mm2"], "quality": built["quality"],
                       "statistics": {k: v for k, v in row.items() if k != "geometry"},
                       "fibers": {k: float(v) for k, v in stats.items()},

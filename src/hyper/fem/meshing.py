@@ -54,7 +54,7 @@ Steps, each of which stops the job with one ``error:`` line (exit 2) and nothing
    normals would not reproduce them). Refused: an end without facets, no lateral surface
    left, a band of half the length or more (the ends would touch; below it they cannot).
 5. Fibres: the Stokes flow of hyper.fibers (inflow at tag 1), smoothed over
-   ``--fibre-smoothing`` (`hyper.fem.fibers.smoothed`); statistics of hyper.meshstats.
+   ``--fibers-smoothing`` (`hyper.fem.fibers.smoothed`); statistics of hyper.meshstats.
 """
 
 from __future__ import annotations
