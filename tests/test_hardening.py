@@ -80,10 +80,6 @@ STUDY_FILES = {  # name -> (text, the message); the study job's rows below
     "fiber_crit": (STUDY + "[numerics]\nfiber_crit = 0.5\n", r"numerics.fiber_crit: expected a number >= 1"),
     "stimulus": (STUDY + '[numerics]\nstimulus = "regional"\n',
                  r"numerics.stimulus: must be one of global, local, got 'regional'"),
-    "stimulus_mixed": (STUDY.replace('protocols = ["mwf"]\n', "") + '[numerics]\nstimulus = "local"\n'
-                       '[[protocol]]\nname = "mixed"\nend = 96.0\n[[protocol.session]]\nstart = 0.0\nduration = 1.0\n'
-                       'intensity = 0.8\n[[protocol.session]]\nstart = 48.0\nduration = 4.0\nintensity = 0.2\n',
-                       r"--stimulus local: protocol 'mixed' has sessions of 2 intensities"),
     "sobol_names": (STUDY + '[sobol]\nnames = ["bogus"]\n',
                     r"sobol: names: expected distinct parameters of .* got bogus"),
     "sobol_names_of_ishigami": (STUDY + '[sobol]\nfunction = "ishigami"\nnames = ["kM"]\n',

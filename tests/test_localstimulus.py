@@ -75,14 +75,15 @@ def test_the_factors_have_a_volume_weighted_mean_of_one_and_keep_the_order():
 def test_a_uniform_stress_is_the_global_model_bit_for_bit(monkeypatch):
     """Every cell with the same stress: factors of exactly 1, per-cell ODEs that are the
     global ODE's bits (the RK4 gives a batch member its single run's bits), the same ϑ."""
-    def uniform(geometry, a0, intensity, **kwargs):
+    def uniform(geometry, a0, intensities, **kwargs):
         n = geometry.mesh.topology.index_map(3).size_local
-        return stimulus.normalised(np.full(n, 2.5e4), np.linspace(1.0, 2.0, n), geometry.mesh.comm), {}
+        field = stimulus.normalised(np.full(n, 2.5e4), np.linspace(1.0, 2.0, n), geometry.mesh.comm)
+        return {0.8: field}, {}
 
     _, today = run("cylinder", SETTINGS)
-    monkeypatch.setattr(stimulus, "local_factors", uniform)
+    monkeypatch.setattr(stimulus, "session_factors", uniform)
     model, local = run("cylinder", LOCAL)
-    assert model.y.ndim == 2 and np.all(model.stimulus_factors == 1.0)  # a per-cell run
+    assert model.y.ndim == 2 and np.all(model.stimulus_factors[0.8] == 1.0)  # a per-cell run
     for a, b in zip(local, today, strict=True):
         assert (a.t, a.csa_ratio, a.volume_ratio, a.kM) == (b.t, b.csa_ratio, b.volume_ratio, b.kM)
         # the cell mean of n equal states: the state to the rounding of the sum
@@ -122,7 +123,7 @@ def test_where_the_stress_is_higher_the_muscle_grows_more():
     daily = Protocol(tuple(Session(24.0 * k, 1.0, 0.8) for k in range(4)), end=168.0, name="daily")
     model, local = run("idealized", LOCAL, protocol=daily, params=signaling.SignalingParams())
     _, today = run("idealized", SETTINGS, protocol=daily, params=signaling.SignalingParams())
-    s = model.stimulus_factors
+    s = model.stimulus_factors[0.8]
     volumes = stimulus.CellAverages(model.geometry, 1.0).volumes
     assert np.sum(s * volumes) / np.sum(volumes) == pytest.approx(1.0, rel=1e-13)
     assert s.min() < 0.8 and s.max() > 1.2
@@ -146,14 +147,48 @@ def test_bad_switch_values_are_refused(value):
         GrowthSettings(stimulus=value)
 
 
-def test_a_protocol_of_several_intensities_is_refused_with_local_only():
-    mixed = Protocol((Session(0.0, 1.0, 0.8), Session(48.0, 4.0, 0.2)), end=96.0, name="mixed")
-    RunSpec("cylinder", mixed)  # global: fine
-    with pytest.raises(InputError, match=r"--stimulus local: protocol 'mixed' has sessions of 2 intensities "
-                                         r"\(0.2, 0.8\); it takes one intensity per protocol"):
-        RunSpec("cylinder", mixed, settings=LOCAL)
-    rest = Protocol((), end=96.0, name="rest")
-    assert rest.session_intensity is None and short().session_intensity == 0.8
+def mixed() -> Protocol:
+    return Protocol((Session(0.0, 1.0, 0.8), Session(48.0, 4.0, 0.2), Session(96.0, 1.0, 0.0)), end=168.0,
+                    name="mixed")
+
+
+def test_sessions_of_several_intensities_each_drive_the_cells_with_their_own_factors():
+    """β s_c(I) I Fmax in the session of intensity I: a member is the single run whose sessions
+    have intensity I s_c(I) (to the rounding of the products); equal factors for every intensity
+    give the one-field run's bits."""
+    from hyper.model.signaling import integrate
+
+    factors = {0.8: np.array([1.2, 0.7]), 0.2: np.array([0.6, 1.4])}
+    times = np.array([0.0, 24.0, 50.0, 100.0, 168.0])
+    y0 = np.repeat(signaling.start_state()[:, None], 2, axis=1)
+    beta = signaling.SignalingParams().beta
+    params = signaling.SignalingParams(beta=np.full(2, beta))
+    _, ys = stimulus.SessionFactors(integrate, beta, factors)(params, mixed(), y0, 0.0, 168.0, 0.05, out_times=times)
+    for c in range(2):
+        scaled = Protocol(tuple(Session(s.start, s.duration, s.intensity * factors.get(s.intensity, [1, 1])[c])
+                                for s in mixed().sessions), end=168.0, name="scaled")
+        _, alone = integrate(signaling.SignalingParams(), scaled, y0[:, c], 0.0, 168.0, 0.05, out_times=times)
+        np.testing.assert_allclose(ys[:, :, c], alone, rtol=1e-12)
+    assert np.abs(ys[:, :, 0] - ys[:, :, 1]).max() > 1e-3  # the members differ
+    same = {0.8: factors[0.8], 0.2: factors[0.8]}
+    _, one = integrate(signaling.SignalingParams(beta=beta * factors[0.8]), mixed(), y0, 0.0, 168.0, 0.05,
+                       out_times=times)
+    _, both = stimulus.SessionFactors(integrate, beta, same)(params, mixed(), y0, 0.0, 168.0, 0.05, out_times=times)
+    assert np.array_equal(one, both)
+
+
+def test_a_run_of_several_intensities_solves_the_contraction_at_each():
+    model = build("idealized", LOCAL, protocol=mixed(), params=signaling.SignalingParams())
+    record = model.stimulus_record
+    assert record["stimulus_alpha"] == [0.2, 0.8] and list(model.stimulus_factors) == [0.2, 0.8]
+    low, high = model.stimulus_factors[0.2], model.stimulus_factors[0.8]
+    volumes = stimulus.CellAverages(model.geometry, 1.0).volumes
+    for s in (low, high):
+        assert np.sum(s * volumes) / np.sum(volumes) == pytest.approx(1.0, rel=1e-13)
+    assert np.ptp(low) < np.ptp(high)  # a weaker contraction is the more uniform
+    np.testing.assert_array_equal(model.params.beta, signaling.SignalingParams().beta * low)  # what a checkpoint keeps
+    reports = list(model.run())
+    assert reports[-1].t == 168.0 and reports[-1].volume_ratio > 1.0
 
 
 # ------------------------------------------------------------------ parallel
@@ -166,7 +201,7 @@ def test_two_ranks_give_the_one_rank_factors_and_series():
 
     def by_original_cell(model):
         original, _ = cell_identity(model.geometry.mesh)
-        parts = model.geometry.mesh.comm.allgather((original, model.stimulus_factors))
+        parts = model.geometry.mesh.comm.allgather((original, model.stimulus_factors[0.8]))
         out = np.empty(sum(len(p[0]) for p in parts))
         for index, values in parts:
             out[index] = values

@@ -159,9 +159,6 @@ BAD_OPTIONS = {
     "fiber_growth_unknown": (["--fiber-growth", "along"], r"argument --fiber-growth: invalid choice: 'along'"),
     # issue 35 item 2: local mechanosensing
     "stimulus_unknown": (["--stimulus", "regional"], r"argument --stimulus: invalid choice: 'regional'"),
-    "stimulus_local_mixed_intensities": (["--stimulus", "local", "--protocol", "{d}/mixed.toml"],
-                                         r"--stimulus local: protocol 'mixed' has sessions of 2 intensities "
-                                         r"\(0.2, 0.8\); it takes one intensity per protocol"),
     "data_section_without_sections": (["--data", "{d}/at_section.csv", "--sections", "0"],
                                       r"at_section.csv: measured at section 0.45 of the length; the runs record no "
                                       r"regional sections \(--sections 0\)"),
@@ -233,8 +230,6 @@ def write_inputs(d: Path) -> None:
     (d / "at_section.csv").write_text("section = 0.45\nday,csa_change_percent\n0,0\n4,0.2\n")
     (d / "bad_section.csv").write_text("section = 1.5\nday,csa_change_percent\n0,0\n4,0.2\n")
     (d / "bad_setting.csv").write_text("# sectoin = 0.5\nday,csa_change_percent\n0,0\n4,0.2\n")
-    (d / "mixed.toml").write_text('name = "mixed"\nend = 96.0\n[[session]]\nstart = 0.0\nduration = 1.0\n'
-                                  'intensity = 0.8\n[[session]]\nstart = 48.0\nduration = 4.0\nintensity = 0.2\n')
     (d / "a_folder").mkdir()
     (d / "locked").mkdir()
     (d / "locked" / "run.h5.lock").mkdir()

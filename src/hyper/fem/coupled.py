@@ -241,8 +241,10 @@ class CoupledModel:
     ``integrator`` advances the signaling ODEs, with the signature of
     `signaling.integrate` (default: ``settings.signaling_method``'s); ``monitor`` times
     the `PHASES` of the run (default `NoTiming`; the jacobian's should be the same).
-    ``stimulus_factors`` (one per owned cell; None: the global stimulus) scale each cell's β,
-    so that it runs its own ODE; ``stimulus_record`` says how they were had (`stimulus.local_factors`).
+    ``stimulus_factors`` (session intensity → one factor per owned cell; None: the global
+    stimulus) scale each cell's β, so that it runs its own ODE: one intensity's in the parameters,
+    several through `stimulus.SessionFactors` around the integrator; ``stimulus_record`` says how
+    they were had (`stimulus.session_factors`).
     """
 
     def __init__(
@@ -258,7 +260,7 @@ class CoupledModel:
         integrator: Callable | None = None,
         monitor=None,
         regional: RegionalSections | None = None,
-        stimulus_factors: np.ndarray | None = None,
+        stimulus_factors: dict[float, np.ndarray] | None = None,
         stimulus_record: dict | None = None,
     ):
         self.geometry = problem.geometry
@@ -266,12 +268,18 @@ class CoupledModel:
         self.protocol = protocol
         self.params = params if params is not None else signaling.SignalingParams()
         self.settings = settings
-        # local mechanosensing: each owned cell's stimulus factor, which scales β (None: global)
+        self.integrator = integrator if integrator is not None else signaling.integrator(settings.signaling_method)
+        # local mechanosensing: each owned cell's stimulus factor per session intensity (None: global).
+        # The first one's scales β in the parameters, which makes the ODEs per cell and the
+        # checkpoint carry it; with several, the integrator swaps them in session by session.
         self.stimulus_factors = stimulus_factors
         self.stimulus_record = dict(stimulus_record or {})  # how they were had: result attributes
-        if stimulus_factors is not None:
-            self.params = dataclasses.replace(self.params, beta=self.params.beta * np.asarray(stimulus_factors))
-        self.integrator = integrator if integrator is not None else signaling.integrator(settings.signaling_method)
+        if stimulus_factors:
+            beta = self.params.beta
+            if len(stimulus_factors) > 1:
+                self.integrator = stimulus.SessionFactors(self.integrator, beta, stimulus_factors)
+            first = next(iter(stimulus_factors.values()))
+            self.params = dataclasses.replace(self.params, beta=beta * np.asarray(first))
         self.monitor = monitor if monitor is not None else NoTiming()
         self.growth = growth_field
         self.problem = problem
@@ -693,8 +701,8 @@ def build_model(
     as -mechanics_snes_lag_jacobian, goes to a `LaggedJacobian` and never reaches PETSc),
     ``linear_solver`` and ``normalize_fibres``, the Newton solver ``settings.newton``
     names, and the section of the mesh (its tagged facets, else a `PlaneSection`); with
-    ``settings.stimulus`` "local", the stimulus factors of the protocol's contraction
-    (`stimulus.local_factors`, InputError for a protocol of several intensities).
+    ``settings.stimulus`` "local", the stimulus factors of the contraction at each session
+    intensity of the protocol (`stimulus.session_factors`).
     ``monitor`` (default `NoTiming`) times the model and its Newton solver."""
     monitor = monitor if monitor is not None else NoTiming()
     growth_field = growthfield.GrowthField(geometry.mesh, a0, geometry.quadrature_degree, settings.growth_fields)
@@ -728,12 +736,9 @@ def build_model(
                 else None)
     factors, record = None, {}
     if settings.stimulus == "local":
-        try:
-            intensity = protocol.session_intensity
-        except ValueError as err:
-            raise InputError(f"--stimulus local: {err}; it takes one intensity per protocol") from None
-        factors, record = stimulus.local_factors(geometry, a0, intensity, normalize_fibres=normalize_fibres,
-                                                 petsc_options=options, linear_solver=linear_solver, **kwargs)
+        factors, record = stimulus.session_factors(geometry, a0, protocol.intensities.tolist(),
+                                                   normalize_fibres=normalize_fibres, petsc_options=options,
+                                                   linear_solver=linear_solver, **kwargs)
     return CoupledModel(problem, growth_field, section_, jacobian, protocol, params=params, settings=settings,
                         integrator=integrator, monitor=monitor, regional=regional, stimulus_factors=factors,
                         stimulus_record=record)

@@ -15,6 +15,8 @@ to the protocol's session intensity by `ramp`. docs/local-mechanosensing.md says
 
 from __future__ import annotations
 
+import dataclasses
+
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
 import numpy as np
 import ufl
@@ -28,10 +30,13 @@ from hyper.model.failure import GrowthFailure
 
 STIMULI = ("global", "local")
 # Steps of the activation ramp to the session's intensity, each halved on a failed Newton
-# solve up to RAMP_HALVINGS times: to 0.8 on BFLH_VHF_Left 51 Newton iterations in all (the
-# result's stimulus_newton_iterations); one step halved where needed took 49, eight 67.
-RAMP_STEPS = 4
+# solve up to RAMP_HALVINGS times, those before the last stopped at LOOSE_RTOL. To 0.8 on
+# BFLH_VHF_Left (measured by hand, the Newton iterations of the solves that converged and the
+# CPU time): 8 steps at 1e-3, 41 and 58 s; 4 steps at the solver's 1e-8, 51 and 76 s; 4 or 2
+# steps at 1e-4, 46 and 69 or 78 s; the factors agree to 2e-8.
+RAMP_STEPS = 8
 RAMP_HALVINGS = 6
+LOOSE_RTOL = 1e-3
 
 
 def active_fibre_stress(problem: MechanicsProblem):
@@ -84,9 +89,11 @@ def normalised(values: np.ndarray, volumes: np.ndarray, comm) -> np.ndarray:
 
 
 def ramp(problem: MechanicsProblem, target: float, steps: int = RAMP_STEPS,
-         halvings: int = RAMP_HALVINGS) -> int:
+         halvings: int = RAMP_HALVINGS, loose: float | None = LOOSE_RTOL) -> int:
     """Raise α from its value to ``target`` in ``steps`` equal steps, each halved on a failed
-    solve; the Newton iterations taken. Raises SolverError after ``halvings`` cuts."""
+    solve; the Newton iterations taken. The steps before the last stop at the relative
+    tolerance ``loose`` (None: the solver's own): they only bring Newton near the last one,
+    which stops at the solver's. Raises SolverError after ``halvings`` cuts."""
 
     def advance(a: float, b: float, left: int) -> int:
         problem.alpha.value = b
@@ -100,20 +107,30 @@ def ramp(problem: MechanicsProblem, target: float, steps: int = RAMP_STEPS,
         return advance(a, middle, left - 1) + advance(middle, b, left - 1)
 
     start = float(problem.alpha.value)
+    levels = np.linspace(start, target, steps + 1)
+    rtol = problem.snes.getTolerances()[0]
     iterations = 0
-    for a, b in zip(np.linspace(start, target, steps + 1)[:-1], np.linspace(start, target, steps + 1)[1:]):
-        iterations += advance(float(a), float(b), halvings)
+    try:
+        for k, (a, b) in enumerate(zip(levels[:-1], levels[1:])):
+            last = k == steps - 1
+            problem.snes.setTolerances(rtol=rtol if last or loose is None else max(rtol, loose))
+            iterations += advance(float(a), float(b), halvings)
+    finally:
+        problem.snes.setTolerances(rtol=rtol)
     return iterations
 
 
-def local_factors(geometry, a0, intensity: float | None, *, material=None, normalize_fibres: bool = True,
-                  petsc_options: dict | None = None, linear_solver: str = "lu", growth=None) -> tuple[np.ndarray, dict]:
-    """The stimulus factor s_c of each owned cell (module docstring) for sessions of
-    ``intensity`` (None or 0: no activation, all ones), and a record of the contraction:
-    the activation, its Newton iterations, the range and the volume-weighted mean of the
-    stress (Pa); GrowthFailure where the contraction cannot be solved. ``growth``: a total
-    growth tensor Ḡ to contract the grown body with (a run's `GrowthField.function`; None:
-    the reference body, what a run uses). Collective."""
+def session_factors(geometry, a0, intensities, *, material=None, normalize_fibres: bool = True,
+                    petsc_options: dict | None = None, linear_solver: str = "lu",
+                    growth=None) -> tuple[dict[float, np.ndarray], dict]:
+    """The stimulus factor s_c of each owned cell (module docstring) for sessions of each of
+    the ``intensities`` (none, or 0: no activation, all ones), by one ramp through them in
+    increasing order; and a record of the contraction: the activation, its Newton iterations,
+    the range and the volume-weighted mean of the stress (Pa), each a number for one
+    intensity and a list (in increasing order) for several. GrowthFailure where the
+    contraction cannot be solved. ``growth``: a total growth tensor Ḡ to contract the grown
+    body with (a run's `GrowthField.function`; None: the reference body, what a run uses).
+    Collective."""
     kwargs = {} if material is None else {"material": material}
     if growth is not None:
         kwargs["growth"] = growth
@@ -121,24 +138,73 @@ def local_factors(geometry, a0, intensity: float | None, *, material=None, norma
                                petsc_options=petsc_options, linear_solver=linear_solver, **kwargs)
     averages = CellAverages(geometry, active_fibre_stress(problem))
     comm = geometry.mesh.comm
-    alpha = 0.0 if intensity is None else float(intensity)
-    try:
-        iterations = ramp(problem, alpha) if alpha > 0.0 else 0
-    except SolverError as err:  # before the first growth step: the run fails as a step would
-        problem.snes.destroy()
-        raise GrowthFailure(f"the contraction of --stimulus local at α = {alpha:g}: {err}", step=1, t0=0.0,
-                            t1=0.0) from err
-    stress = averages()
-    factors = normalised(stress, averages.volumes, comm)
     total = comm.allreduce(float(np.sum(averages.volumes)), op=MPI.SUM)
-    record = {
-        "stimulus_alpha": alpha,
-        "stimulus_newton_iterations": iterations,
-        "stimulus_stress_mean_pa": comm.allreduce(float(np.sum(stress * averages.volumes)), op=MPI.SUM) / total,
-        "stimulus_stress_min_pa": comm.allreduce(float(np.min(stress, initial=np.inf)), op=MPI.MIN),
-        "stimulus_stress_max_pa": comm.allreduce(float(np.max(stress, initial=-np.inf)), op=MPI.MAX),
-        "stimulus_factor_min": comm.allreduce(float(np.min(factors, initial=np.inf)), op=MPI.MIN),
-        "stimulus_factor_max": comm.allreduce(float(np.max(factors, initial=-np.inf)), op=MPI.MAX),
-    }
+    factors, rows = {}, []
+    for alpha in sorted({float(i) for i in intensities if i}) or [0.0]:
+        try:
+            iterations = ramp(problem, alpha) if alpha > 0.0 else 0
+        except SolverError as err:  # before the first growth step: the run fails as a step would
+            problem.snes.destroy()
+            raise GrowthFailure(f"the contraction of --stimulus local at α = {alpha:g}: {err}", step=1, t0=0.0,
+                                t1=0.0) from err
+        stress = averages()
+        factors[alpha] = normalised(stress, averages.volumes, comm)
+        rows.append({
+            "stimulus_alpha": alpha,
+            "stimulus_newton_iterations": iterations,
+            "stimulus_stress_mean_pa": comm.allreduce(float(np.sum(stress * averages.volumes)), op=MPI.SUM) / total,
+            "stimulus_stress_min_pa": comm.allreduce(float(np.min(stress, initial=np.inf)), op=MPI.MIN),
+            "stimulus_stress_max_pa": comm.allreduce(float(np.max(stress, initial=-np.inf)), op=MPI.MAX),
+            "stimulus_factor_min": comm.allreduce(float(np.min(factors[alpha], initial=np.inf)), op=MPI.MIN),
+            "stimulus_factor_max": comm.allreduce(float(np.max(factors[alpha], initial=-np.inf)), op=MPI.MAX),
+        })
     problem.snes.destroy()
+    record = rows[0] if len(rows) == 1 else {name: [row[name] for row in rows] for name in rows[0]}
     return factors, record
+
+
+def local_factors(geometry, a0, intensity: float | None, **kwargs) -> tuple[np.ndarray, dict]:
+    """`session_factors` of one ``intensity`` (None: no activation): its factors and record."""
+    factors, record = session_factors(geometry, a0, [] if intensity is None else [intensity], **kwargs)
+    return next(iter(factors.values())), record
+
+
+class SessionFactors:
+    """A signaling integrator (the signature of `hyper.model.signaling.integrate`) whose
+    members see, while a session drives the delayed stimulus a1(t − τd), β times the factor
+    of that session's intensity: ``factors`` maps each intensity to one factor per member,
+    ``beta`` is β before any factor. [t0, t1] is integrated in pieces cut where the driving
+    session changes (at s_i + τd and e_i + τd); those are switch times, where RK4 cuts its
+    steps anyway, so a piecewise integration is the single one's bits. Between sessions any
+    β will do (a1 = a10), and intensity 0 needs no factor: the parameters' own β then."""
+
+    def __init__(self, integrator, beta, factors: dict[float, np.ndarray]):
+        self.integrator = integrator
+        self.beta = beta
+        self.factors = factors
+
+    def __call__(self, params, protocol, y0, t0, t1, dt=0.05, *, out_times=None, kM=None):
+        if np.ndim(params.tau_d):
+            raise InputError("--stimulus local with several intensities needs one stimulus delay tau_d for all cells")
+        tau_d = float(params.tau_d)
+        starts, ends, intensities = protocol.starts, protocol.ends, protocol.intensities
+        cuts = np.unique(np.concatenate([starts + tau_d, ends + tau_d]))
+        bounds = [float(t0), *cuts[(cuts > t0) & (cuts < t1)].tolist(), float(t1)]
+        times = np.array([t0, t1] if out_times is None else out_times, dtype=float)
+        states = None
+        y = y0
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            mid = 0.5 * (a + b) - tau_d
+            i = int(np.searchsorted(starts, mid, side="right")) - 1
+            intensity = float(intensities[i]) if i >= 0 and mid < ends[i] else None
+            p = params
+            if intensity in self.factors:
+                p = dataclasses.replace(params, beta=self.beta * self.factors[intensity])
+            inside = (times >= a) & (times <= b) if a == t0 else (times > a) & (times <= b)
+            wanted = np.unique(np.concatenate([[a], times[inside], [b]]))
+            _, ys = self.integrator(p, protocol, y, a, b, dt, out_times=wanted, kM=kM)
+            if states is None:
+                states = np.empty((len(times), *ys.shape[1:]))
+            states[inside] = ys[np.searchsorted(wanted, times[inside])]
+            y = ys[-1]
+        return times, states

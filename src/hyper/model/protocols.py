@@ -119,16 +119,6 @@ class Protocol:
         return np.array([s.intensity for s in self.sessions], dtype=float)
 
     @cached_property
-    def session_intensity(self) -> float | None:
-        """The one intensity > 0 of the sessions (None: no such session), or ValueError where
-        they have several: what local mechanosensing (`hyper.fem.stimulus`) solves at."""
-        values = np.unique(self.intensities[self.intensities > 0.0])
-        if values.size > 1:
-            raise ValueError(f"protocol {self.name!r} has sessions of {values.size} intensities "
-                             f"({', '.join(f'{v:g}' for v in values)})")
-        return float(values[0]) if values.size else None
-
-    @cached_property
     def stretched(self) -> bool:
         """Whether any session carries a stretch."""
         return any(s.stretch is not None for s in self.sessions)

@@ -207,7 +207,8 @@ def snapshot_due(kept: list[float], t: float, every: float) -> bool:
 class Snapshots:
     """Output fields of a run on spaces XDMF stores (P1 and DG0), updated in place:
     u, det Ḡ, a0, and N where each cell has its own signaling; with local mechanosensing the
-    stimulus factor of each cell (which never changes: with the first snapshot, as a0).
+    stimulus factor of each cell, one field per session intensity (they never change: with the
+    first snapshot, as a0).
 
     Each snapshot is also kept per owned cell so that a checkpoint carries them and a
     resumed run writes them again.
@@ -226,11 +227,14 @@ class Snapshots:
         self.a0.interpolate(a0)
         self.N = fem.Function(dg0, name="N") if np.ndim(model.y) == 2 else None
         cells = model.growth.cells
-        self.stimulus = None
-        if model.stimulus_factors is not None:
-            self.stimulus = fem.Function(dg0, name="stimulus_factor")
-            self.stimulus.x.array[dg0.dofmap.list[cells][:, 0]] = model.stimulus_factors
-            self.stimulus.x.scatter_forward()
+        # one field per session intensity: stimulus_factor, or stimulus_factor_I for several
+        self.stimulus = []
+        factors = model.stimulus_factors or {}
+        for intensity, values in factors.items():
+            f = fem.Function(dg0, name="stimulus_factor" if len(factors) == 1 else f"stimulus_factor_{intensity:g}")
+            f.x.array[dg0.dofmap.list[cells][:, 0]] = values
+            f.x.scatter_forward()
+            self.stimulus.append(f)
         nlocal = len(cells) + mesh.topology.index_map(mesh.topology.dim).num_ghosts
         self._cells = cells
         self._local = np.arange(nlocal, dtype=np.int32)
@@ -244,8 +248,7 @@ class Snapshots:
     def fields(self) -> tuple:
         """The fields of the snapshot just kept; the fibres, which never change, with the first only."""
         first = len(self.times) == 1
-        return (self.u, self.det) + ((self.a0,) if first else ()) + \
-            ((self.stimulus,) if first and self.stimulus is not None else ()) + \
+        return (self.u, self.det) + ((self.a0, *self.stimulus) if first else ()) + \
             ((self.N,) if self.N is not None else ())
 
     def update(self, t: float) -> tuple:

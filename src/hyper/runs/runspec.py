@@ -169,11 +169,6 @@ class RunSpec:
             raise InputError(f"expected an integer in [0, {MAX_REFINE}], got {self.refine!r}", field="refine")
         if (self.fibers == "data") != (self.fiber_data is not None):
             raise InputError("fibres from data (fibers = 'data') need their file, and a file makes them so")
-        if self.settings.stimulus == "local":
-            try:
-                self.protocol.session_intensity  # noqa: B018  (it checks the protocol)
-            except ValueError as err:
-                raise InputError(f"--stimulus local: {err}; it takes one intensity per protocol") from None
         if self.quadrature_degree is not None and not (isinstance(self.quadrature_degree, int)
                                                        and 1 <= self.quadrature_degree <= 12):
             raise InputError(f"expected an integer in [1, 12], got {self.quadrature_degree!r}",
