@@ -98,7 +98,7 @@ def model_options(p: cli.Parser) -> None:
     p.add_argument("--stimulus", choices=("global", "local"),
                    help="the exercise stimulus: 'local' scales each cell's β I Fmax by its active fibre stress in "
                         "the contraction at the sessions' intensity, over its volume-weighted mean "
-                        "(hyper.fem.stimulus; one intensity per protocol), recorded as the stimulus_factor field; "
+                        "(hyper.fem.stimulus; a field per intensity), recorded as the stimulus_factor field; "
                         "'global' (the default): the paper's one stimulus for every cell")
 
 

@@ -10,7 +10,9 @@ stimulus, and a uniform stress gives every cell exactly 1, the paper's model.
 
 The contraction is solved once, on the reference body before any growth, by a
 `MechanicsProblem` of its own (the model's own Newton state is left alone), with α raised
-to the protocol's session intensity by `ramp`. docs/local-mechanosensing.md says why once.
+by `ramp` through the protocol's session intensities, one factor field each
+(`session_factors`); with several, `SessionFactors` gives each session its intensity's.
+docs/local-mechanosensing.md says why once.
 """
 
 from __future__ import annotations
