@@ -253,7 +253,7 @@ def test_flow_cells_solves_the_fibres_on_a_finer_mesh_of_the_surface(meshed, tmp
                                                      "fibers.h5", "mesh.json"]
     flow_cells = json.loads((meshed / "mesh.json").read_text())["statistics"]["cells"]
     with h5py.File(out / fibers.FILE_NAME) as f:
-        params = fibers.StokesParams(smoothing_m=mesh_job.FIBRE_SMOOTHING_MM * geo.MM)
+        params = fibers.StokesParams(smoothing_m=mesh_job.FIBERS_SMOOTHING_MM * geo.MM)
         assert f.attrs["method"] == fibers.stokes_method(params) + fibers.TRANSFERRED_METHOD.format(cells=flow_cells)
     coarse = geo.load_file(out / "CYL_Y_Left.xdmf", MPI.COMM_WORLD, name="CYL_Y_Left", scale=geo.MM)
     fine = geo.load_file(meshed / "CYL_X_Left.xdmf", MPI.COMM_WORLD, name="CYL_X_Left", scale=geo.MM)

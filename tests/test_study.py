@@ -214,6 +214,8 @@ def test_shipped_studies_load():
     custom = study.load(ROOT / "studies/custom.toml")
     assert custom.meshes[0].unit == "mm" and custom.protocols[0].name == "tue-fri"
     assert [s.start for s in custom.protocols[0].sessions[:2]] == [168.0 + 24.0, 168.0 + 96.0]
+    for path in sorted((ROOT / "studies").glob("*.toml")):
+        study.steps(study.load(path))  # its accuracy, if any, is one its meshes can give
 
 
 def test_study_is_a_job():
