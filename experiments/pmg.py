@@ -87,6 +87,38 @@ else:
     ksp.setUp()
     subu, subp = ksp.getPC().getFieldSplitSubKSP()
     pc = subu.getPC()
+    if "defl" in extra:
+        # u-block PC: Z-correction, p-multigrid, Z-correction (Z: the six rigid motions)
+        nu2 = V2.dofmap.index_map.size_local
+        Z = [v for v in _rigid_body_space(V2.tabulate_dof_coordinates()[:nu2], comm).getVecs()]
+
+        class RigidCorrection:
+            def setUp(self, pc):
+                A = pc.getOperators()[1]
+                AZ = [A.createVecLeft() for _ in Z]
+                for z, az in zip(Z, AZ):
+                    A.mult(z, az)
+                self.E = np.array([[zi.dot(azj) for azj in AZ] for zi in Z])
+                if comm.rank == 0 and "verbose" in extra:
+                    print("E eig", np.linalg.eigvals(self.E), flush=True)
+
+            def apply(self, pc, x, y):
+                c = np.linalg.solve(self.E, np.array([z.dot(x) for z in Z]))
+                y.set(0.0)
+                for ci, z in zip(c, Z):
+                    y.axpy(ci, z)
+
+        pc.setType("composite")
+        pc.setCompositeType(PETSc.PC.CompositeType.SYMMETRIC_MULTIPLICATIVE if extra["defl"] == "sym"
+                            else PETSc.PC.CompositeType.MULTIPLICATIVE)
+        pc.addCompositePCType("python")
+        pc.addCompositePCType("mg")
+        shell = pc.getCompositePC(0)
+        shell.setPythonContext(RigidCorrection())
+        outer_pc = pc
+        pc = pc.getCompositePC(1)
+        pc.setOptionsPrefix("mechanics_fieldsplit_u_")
+        pc.setFromOptions()
     pc.setMGInterpolation(1, Pm)
     n1 = V1.dofmap.index_map.size_local
     coords = V1.tabulate_dof_coordinates()[:n1]
@@ -101,6 +133,8 @@ else:
         cksp.getPC().setType("gamg")
         cksp.setFromOptions()
         cksp.setUp()
+    if "defl" in extra:
+        outer_pc.setUp()
     subp.setUp()
     problem._subsolvers_read = True
     problem._multiplier_schur()

@@ -77,7 +77,7 @@ DEFAULT_PETSC_OPTIONS = {
 LINEAR_SOLVERS = ("lu", "iterative")
 # Built here, measured by `python -m hyper.bench solvers --parts amg`, offered by no job:
 # its displacement block's AMG is too weak on the anatomical meshes (docs/performance.md).
-EXPERIMENTAL_SOLVERS = ("amg",)
+EXPERIMENTAL_SOLVERS = ("amg", "pmg")
 ITERATIVE_PETSC_OPTIONS = {
     "ksp_type": "gmres",
     "ksp_gmres_restart": 100,
@@ -120,6 +120,31 @@ AMG_SUBSOLVER_OPTIONS = {
     "fieldsplit_p_ksp_type": "preonly",
     "fieldsplit_p_pc_type": "jacobi",
 }
+# "pmg": the same fieldsplit with a two-level p-multigrid on the displacement block:
+# Chebyshev/Jacobi on P2, the Galerkin P1 operator (interpolation from the P1 vector space
+# on the same mesh) by GAMG with the rigid-body near null space of the P1 nodes
+# (`_coarse_gamg`). A user's fieldsplit_u_mg_coarse_pc_type (lu, say) replaces the GAMG.
+# GMRES restarts at 200: at 60 it stagnates near 1e-10 on the idealized shape.
+PMG_PETSC_OPTIONS = {**AMG_PETSC_OPTIONS, "ksp_gmres_restart": 200}
+PMG_SUBSOLVER_OPTIONS = {
+    "fieldsplit_u_ksp_type": "preonly",
+    "fieldsplit_u_pc_type": "mg",
+    "fieldsplit_u_pc_mg_levels": 2,
+    "fieldsplit_u_pc_mg_galerkin": "both",
+    "fieldsplit_u_mg_levels_ksp_type": "chebyshev",
+    "fieldsplit_u_mg_levels_pc_type": "jacobi",
+    "fieldsplit_u_mg_levels_ksp_max_it": 2,
+    "fieldsplit_u_mg_coarse_ksp_type": "preonly",
+    "fieldsplit_u_mg_coarse_pc_gamg_threshold": 0.02,
+    "fieldsplit_u_mg_coarse_pc_gamg_aggressive_coarsening": 0,
+    "fieldsplit_u_mg_coarse_mg_levels_ksp_type": "chebyshev",
+    "fieldsplit_u_mg_coarse_mg_levels_pc_type": "jacobi",
+    "fieldsplit_u_mg_coarse_mg_levels_ksp_max_it": 2,
+    "fieldsplit_p_ksp_type": "preonly",
+    "fieldsplit_p_pc_type": "jacobi",
+}
+COARSE_PC = "fieldsplit_u_mg_coarse_pc_type"
+SUBSOLVER_OPTIONS = {"amg": AMG_SUBSOLVER_OPTIONS, "pmg": PMG_SUBSOLVER_OPTIONS}
 # The shift ε M added to the displacement block of the preconditioner where the springs
 # leave rigid motions free (its AMG hierarchy would be singular there), as a fraction of
 # the shear modulus over the squared body size: the softest elastic motion of a body is
@@ -238,15 +263,16 @@ class MechanicsProblem:
         # The sub-solvers of the fieldsplit read their options at its first set-up, long
         # after setFromOptions: they are kept here and put into the database for it.
         given = {k: v for k, v in user.items() if k.startswith(SUBSOLVER)}
-        self._subsolver_options = {**AMG_SUBSOLVER_OPTIONS, **given} if linear_solver == "amg" else {}
+        self._subsolver_options = {**SUBSOLVER_OPTIONS[linear_solver], **given} if linear_solver in SUBSOLVER_OPTIONS else {}
         self._user_subsolver_options = tuple(k for k in user if k in self._subsolver_options)
         self._subsolvers_read = False
-        preset = {"iterative": ITERATIVE_PETSC_OPTIONS, "amg": AMG_PETSC_OPTIONS}.get(linear_solver, {})
+        preset = {"iterative": ITERATIVE_PETSC_OPTIONS, "amg": AMG_PETSC_OPTIONS,
+                  "pmg": PMG_PETSC_OPTIONS}.get(linear_solver, {})
         read_now = {k: v for k, v in user.items() if k not in self._subsolver_options}
         _set_options(self.snes, options_prefix, {**DEFAULT_PETSC_OPTIONS, **preset, **read_now},
                      checked=tuple(read_now))
         self._P = self._K
-        if linear_solver == "amg":
+        if linear_solver in SUBSOLVER_OPTIONS:
             self._preconditioner(mesh)
         self.snes.setJacobian(self._snes_jacobian, self._K, self._P)
         controls = {**(blr_controls(blr_precision) if linear_solver == "iterative" else {}),
@@ -405,6 +431,13 @@ class MechanicsProblem:
         pc.setFieldSplitSchurPreType(PETSc.PC.FieldSplitSchurPreType.USER, self._schur)
         self._splits = (is_u, is_p)
         self._split_udofs = udofs
+        if self.linear_solver == "pmg":
+            # the split's rows are Vu's owned dofs in order, so its numbering is Vu's
+            V1 = fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+            self._prolongation = fem.petsc.interpolation_matrix(V1, Vu)
+            self._prolongation.assemble()
+            self._coarse_modes = _rigid_body_space(V1.tabulate_dof_coordinates()[: V1.dofmap.index_map.size_local],
+                                                   comm)
 
     def setup_linear_solver(self) -> None:
         """Set up the linear solver for the current matrix (factorise it, or build the AMG
@@ -425,6 +458,8 @@ class MechanicsProblem:
                 db.setValue(prefix + key, value)
         try:
             ksp.setUp()
+            if self.linear_solver == "pmg":
+                self._coarse_gamg(ksp.getPC().getFieldSplitSubKSP()[0].getPC(), db.hasName(prefix + COARSE_PC))
             for sub in ksp.getPC().getFieldSplitSubKSP():  # GAMG reads its levels' options here
                 sub.setUp()
             unused = [k for k in self._user_subsolver_options if not db.used(prefix + k)]
@@ -436,6 +471,25 @@ class MechanicsProblem:
         if unused:
             raise InputError(f"--petsc-option: PETSc does not read {', '.join(unused)} for the mechanics "
                              "solver's fieldsplit (misspelt, or an option of another object)")
+
+    def _coarse_gamg(self, pc, chosen: bool) -> None:
+        """Set the displacement split's p-multigrid up ("pmg"): the P1 → P2 interpolation,
+        then GAMG on the Galerkin P1 operator with the rigid motions of the P1 nodes as its
+        near null space. That operator exists only once the multigrid is set up, and it is
+        kept (values updated) when the Newton matrix changes, and its null space with it.
+        ``chosen``: the user named the coarse solver, which then stays as given."""
+        if pc.getType() != "mg":
+            return  # the options asked for another preconditioner: it wins
+        pc.setMGInterpolation(1, self._prolongation)
+        coarse = pc.getMGCoarseSolve()
+        if chosen:
+            return
+        coarse.getPC().setType("jacobi")  # a stand-in until the Galerkin operator exists
+        pc.setUp()
+        coarse.getOperators()[1].setNearNullSpace(self._coarse_modes)
+        coarse.getPC().setType("gamg")
+        coarse.setFromOptions()
+        coarse.setUp()
 
     def _multiplier_schur(self) -> None:
         """The multipliers' part of the Schur preconditioner, -bᵢᵀ Â⁻¹ bᵢ with Â⁻¹ the

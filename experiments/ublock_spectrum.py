@@ -1,0 +1,33 @@
+"""The displacement block's smallest generalized eigenvalues A x = λ M_u x at the first Newton
+iterate of the bench's growth solve (is the block definite?). python experiments/ublock_spectrum.py GEOMETRY"""
+import sys
+import dolfinx_solver  # noqa
+import numpy as np, ufl, scipy.sparse as sp, scipy.sparse.linalg as sla
+from mpi4py import MPI
+from dolfinx import fem
+import dolfinx.fem.petsc as fp
+from hyper.fem import fibers, geometry as geo
+from hyper.fem.mechanics import MechanicsProblem
+from hyper.model import growth
+comm = MPI.COMM_SELF
+g = geo.load(sys.argv[1], comm)
+a0 = fibers.fiber_field(g)
+theta = fem.Constant(g.mesh, 1.05)
+Fg = growth.transverse_growth_ufl(theta**2, a0 / ufl.sqrt(ufl.dot(a0, a0)))
+pr = MechanicsProblem(g, a0, growth=Fg)
+pr.load_state(pr.solution_vector)
+pr.assemble_jacobian(pr.solution_vector)
+Vu, udofs = pr.W.sub(0).collapse()
+udofs = np.asarray(udofs).ravel()
+ai, aj, av = pr.jacobian_matrix.getValuesCSR()
+K = sp.csr_matrix((av, aj, ai), shape=pr.jacobian_matrix.getSize())
+A = K[udofs][:, udofs]
+print("asymmetry", abs(A - A.T).max() / abs(A).max())
+A = 0.5 * (A + A.T)
+M = fp.assemble_matrix(fem.form(ufl.dot(ufl.TrialFunction(Vu), ufl.TestFunction(Vu)) * g.dx))
+M.assemble()
+mi, mj, mv = M.getValuesCSR()
+M = sp.csr_matrix((mv, mj, mi), shape=M.getSize())
+mu = 2 * (pr.material.c1 + pr.material.c2)
+vals = sla.eigsh(A.tocsc(), k=12, M=M.tocsc(), sigma=-1e-3 * mu, which="LM", return_eigenvectors=False)
+print("smallest generalized eigenvalues (x mu):", np.sort(vals) / mu)
