@@ -263,7 +263,8 @@ class MechanicsProblem:
         # The sub-solvers of the fieldsplit read their options at its first set-up, long
         # after setFromOptions: they are kept here and put into the database for it.
         given = {k: v for k, v in user.items() if k.startswith(SUBSOLVER)}
-        self._subsolver_options = {**SUBSOLVER_OPTIONS[linear_solver], **given} if linear_solver in SUBSOLVER_OPTIONS else {}
+        self._subsolver_options = ({**SUBSOLVER_OPTIONS[linear_solver], **given}
+                                   if linear_solver in SUBSOLVER_OPTIONS else {})
         self._user_subsolver_options = tuple(k for k in user if k in self._subsolver_options)
         self._subsolvers_read = False
         preset = {"iterative": ITERATIVE_PETSC_OPTIONS, "amg": AMG_PETSC_OPTIONS,
@@ -393,8 +394,10 @@ class MechanicsProblem:
         dx = self.geometry.dx
         c = np.empty(0)
         if m:
-            lo, hi = comm.allreduce(mesh.geometry.x.min(axis=0), op=MPI.MIN), comm.allreduce(
-                mesh.geometry.x.max(axis=0), op=MPI.MAX)
+            # elementwise over ranks (the pickling allreduce cannot take MIN of arrays)
+            lo, hi = np.empty(3), np.empty(3)
+            comm.Allreduce(np.ascontiguousarray(mesh.geometry.x.min(axis=0)), lo, op=MPI.MIN)
+            comm.Allreduce(np.ascontiguousarray(mesh.geometry.x.max(axis=0)), hi, op=MPI.MAX)
             eps = AMG_SHIFT * mu / float(np.sum((hi - lo) ** 2))
             c = np.array([self._sum(fem.form(ufl.dot(r, r) * dx)) for r in self.rigid.modes]) / eps
             v = ufl.TestFunction(Vu)
