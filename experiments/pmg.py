@@ -74,7 +74,9 @@ else:
     db = PETSc.Options()
     for k, v in opts.items():
         db.setValue("mechanics_" + k, v)  # in the database for the whole process
+    from hyper.model.material import MaterialParams
     problem = MechanicsProblem(g, a0, growth=Fg, linear_solver="amg",
+                               material=MaterialParams(k_tendon=float(extra.get("k", 1e5))),
                                petsc_options={"fieldsplit_u_pc_type": "mg"})
     V2 = problem.W.sub(0).collapse()[0]
     V1 = fem.functionspace(g.mesh, ("Lagrange", 1, (3,)))

@@ -432,6 +432,10 @@ class MechanicsProblem:
         pc = self.snes.getKSP().getPC()
         pc.setFieldSplitIS(("u", is_u), ("p", is_p))
         pc.setFieldSplitSchurPreType(PETSc.PC.FieldSplitSchurPreType.USER, self._schur)
+        if m:
+            # Each Newton matrix changes Â⁻¹, and its large parts cancel only with the
+            # multipliers' Schur taken anew with it: before every linear solve
+            self.snes.getKSP().setPreSolve(lambda ksp, b, x: self._multiplier_schur())
         self._splits = (is_u, is_p)
         self._split_udofs = udofs
         if self.linear_solver == "pmg":
@@ -516,6 +520,7 @@ class MechanicsProblem:
             for row, value in zip(rows, c[len(c) - self._nmult:]):
                 self._schur.setValue(row, row, -value)
         self._schur.assemble()
+        self.snes.getKSP().getPC().getFieldSplitSubKSP()[1].getPC().setUp()  # its Jacobi takes the new diagonal
 
     def _set_mumps(self, controls: dict) -> None:
         """Set MUMPS controls (``mat_mumps_icntl_N`` / ``mat_mumps_cntl_N`` keys) on the
