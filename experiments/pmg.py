@@ -1,21 +1,31 @@
-"""Prototype: P2 -> P1 p-multigrid on the displacement block of the "amg" fieldsplit.
+"""Scratch prototype (issue 33) of the p-multigrid that became linear_solver="pmg"; not part of hyper.
 
-python experiments/pmg.py GEOMETRY LEVEL VARIANT [smoother its]
+    PYTHONPATH=src python experiments/pmg.py GEOMETRY LEVEL VARIANT [KEY=VALUE ...]
+
+The bench's growth solve (ϑ = 1.05 at once) with VARIANT lu, exact (the amg fieldsplit with
+an LU displacement solve), gamg (amg as it is), pmg-lu or pmg-gamg (P2 -> P1 two-level
+multigrid on the displacement block, LU or GAMG on the Galerkin P1 operator). KEY=VALUE:
+smooth=KSP/PC and its=N (the P2 smoother), cycles_u=N, fact=full, defl=sym (a rigid-motion
+correction before and after the multigrid), k=K_TENDON, blocktest=1 (after the solve, GMRES
+to 1e-10 on the displacement block alone with the multigrid, GAMG and LU, from a random right
+side). Prints one JSON line; with a saved lu run of the same mesh, the difference from it.
+Set the outer GMRES restart with PETSC_OPTIONS="-mechanics_ksp_gmres_restart 200".
 """
+import json
+import resource
 import sys
 import time
-import resource
-import json
 
+import dolfinx.fem.petsc as fp
 import dolfinx_solver  # noqa
 import numpy as np
 import ufl
-from mpi4py import MPI
 from dolfinx import fem
-import dolfinx.fem.petsc as fp
+from mpi4py import MPI
 from petsc4py import PETSc
 
-from hyper.fem import fibers, geometry as geo
+from hyper.fem import fibers
+from hyper.fem import geometry as geo
 from hyper.fem.mechanics import MechanicsProblem, SolverError, _rigid_body_space
 from hyper.model import growth
 
@@ -172,21 +182,27 @@ if variant.startswith("pmg") and "blocktest" in extra:
     # the displacement block alone: GMRES with the u preconditioner, to 1e-10
     subu, subp = problem.snes.getKSP().getPC().getFieldSplitSubKSP()
     A, Ap = subu.getOperators()
-    print("same", A.handle == Ap.handle, A.norm(), Ap.norm())
     for what in ("mg",) if extra.get("blocktest") == "mg" else ("mg", "gamg", "lu"):
         k = PETSc.KSP().create(comm)
         k.setOperators(A, Ap)
-        k.setType("gmres"); k.setGMRESRestart(200); k.setTolerances(rtol=1e-10, max_it=500)
+        k.setType("gmres")
+        k.setGMRESRestart(200)
+        k.setTolerances(rtol=1e-10, max_it=500)
         k.setPCSide(PETSc.PC.Side.RIGHT)
         if what == "mg":
             k.setPC(subu.getPC())
         elif what == "gamg":
             k.getPC().setType("gamg")
-            A.setNearNullSpace(_rigid_body_space(V2.tabulate_dof_coordinates()[:V2.dofmap.index_map.size_local], comm))
+            nodes = V2.tabulate_dof_coordinates()[: V2.dofmap.index_map.size_local]
+            A.setNearNullSpace(_rigid_body_space(nodes, comm))
         else:
-            k.getPC().setType("lu"); k.getPC().setFactorSolverType("mumps")
-        b = A.createVecLeft(); b.setRandom(); x = b.duplicate()
+            k.getPC().setType("lu")
+            k.getPC().setFactorSolverType("mumps")
+        b = A.createVecLeft()
+        b.setRandom()
+        x = b.duplicate()
         t = time.perf_counter()
         k.solve(b, x)
         if comm.rank == 0:
-            print("u-block", what, k.getIterationNumber(), k.getConvergedReason(), f"{time.perf_counter()-t:.2f}s", flush=True)
+            print("u-block", what, k.getIterationNumber(), k.getConvergedReason(),
+                  f"{time.perf_counter() - t:.2f}s", flush=True)

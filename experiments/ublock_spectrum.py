@@ -1,14 +1,27 @@
-"""The displacement block's smallest generalized eigenvalues A x = λ M_u x at the first Newton
-iterate of the bench's growth solve (is the block definite?). python experiments/ublock_spectrum.py GEOMETRY"""
+"""Scratch diagnostic (issue 33): is the displacement block of the Newton matrix definite?
+
+    PYTHONPATH=src python experiments/ublock_spectrum.py GEOMETRY
+
+The 12 generalized eigenvalues A x = λ M_u x nearest -1e-3 μ (shift-invert), divided by μ
+(so in 1/m²), of the symmetric part of the Jacobian's displacement block at the first
+Newton iterate of the bench's growth solve (the reference state, ϑ = 1.05), 1 rank.
+"""
 import sys
-import dolfinx_solver  # noqa
-import numpy as np, ufl, scipy.sparse as sp, scipy.sparse.linalg as sla
-from mpi4py import MPI
-from dolfinx import fem
+
 import dolfinx.fem.petsc as fp
-from hyper.fem import fibers, geometry as geo
+import dolfinx_solver  # noqa
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
+import ufl
+from dolfinx import fem
+from mpi4py import MPI
+
+from hyper.fem import fibers
+from hyper.fem import geometry as geo
 from hyper.fem.mechanics import MechanicsProblem
 from hyper.model import growth
+
 comm = MPI.COMM_SELF
 g = geo.load(sys.argv[1], comm)
 a0 = fibers.fiber_field(g)

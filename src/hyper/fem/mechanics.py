@@ -42,6 +42,11 @@ multipliers of free rigid motions the Schur complement taken with the same V-cyc
 displacement solve, 11-36 iterations a Newton step on TA), its AMG is not: one V-cycle
 of GAMG on the P2 displacement block fails on the anatomical meshes; hypre is not in the
 PETSc wheel. Measured in `python -m hyper.bench solvers --parts amg` (docs/performance.md).
+"pmg" (experimental too): the same fieldsplit with a two-level P2 → P1 multigrid on the
+displacement block (`_coarse_gamg`): Chebyshev/Jacobi on P2, GAMG on the Galerkin P1
+operator. It converges where "amg" fails and with half its iterations, but needs 1.9-16
+times those of an exact displacement solve and is slower than LU at 78k unknowns
+(`python -m hyper.bench solvers --parts pmg`).
 """
 
 from __future__ import annotations
@@ -359,17 +364,16 @@ class MechanicsProblem:
         """The splits and matrices of the "amg" preconditioner (module docstring).
 
         Displacement split: the owned u dofs node by node (blocks of 3, as GAMG wants),
-        with the six rigid motions about the centroid as its near null space. Its
-        preconditioner is built from the linear elasticity of the reference body,
-        2μ ε(δu):ε(v) and the springs (μ = 2 (c1 + c2), the shear modulus), assembled
-        once: the Jacobian's displacement block itself is indefinite (the pressure's
-        geometric terms), and AMG with Chebyshev smoothing needs a definite matrix.
+        with the six rigid motions about the centroid as its near null space, in the
+        order of the collapsed P2 space (so "pmg" interpolates into it from P1 directly).
+        Its preconditioner is built from the Newton matrix's displacement block.
         Pressure split: the owned p dofs in the order of the collapsed P1 space, then
         (last rank) the multipliers, so that the Schur preconditioner
-        Sp = -(1/μ) M_p ⊕ -diag(c) is assembled on the P1 space directly. Where rigid
-        motions are free, ε M_u (ε = AMG_SHIFT μ / L²) keeps the elasticity definite and
+        Sp = -(1/μ) M_p ⊕ -diag(c) is assembled on the P1 space directly (μ = 2 (c1 + c2),
+        the shear modulus). Where rigid motions are free, ε M_u (ε = AMG_SHIFT μ / L², its
+        diagonal) added to the block keeps it non-singular and
         c_i = ∫ r_i·r_i dX / ε is the Schur complement Bᵀ (E + ε M_u)⁻¹ B of a motion r_i
-        the elasticity E does not resist.
+        the block E does not resist.
         """
         import dolfinx.fem.petsc  # noqa: F401
 
@@ -449,7 +453,7 @@ class MechanicsProblem:
     def setup_linear_solver(self) -> None:
         """Set up the linear solver for the current matrix (factorise it, or build the AMG
         hierarchy): done only where the matrix changed since the last set-up. The first
-        set-up of "amg" reads the sub-solvers' options; one of the user's it did not read
+        set-up of "amg" or "pmg" reads the sub-solvers' options; one of the user's it did not read
         is an InputError, as `_set_options` makes of the others."""
         ksp = self.snes.getKSP()
         ksp.setOperators(self._K, self._P)
@@ -598,7 +602,8 @@ class MechanicsProblem:
     @property
     def preconditioner_matrix(self) -> PETSc.Mat:
         """The matrix the linear solver's preconditioner is built from: `jacobian_matrix`,
-        or for "amg" the reference body's elasticity (`_preconditioner`), built once."""
+        or for "amg" and "pmg" with free rigid motions that matrix plus the shift ε M_u
+        (`_preconditioner`)."""
         return self._P
 
     @property
@@ -762,7 +767,7 @@ def taylor_hood_unknowns(mesh) -> int:
 # Read by MUMPS when it factorises, after setFromOptions: whether they are used cannot be
 # known when the solver is set up.
 READ_LATER = ("mat_mumps_",)
-# Read by the fieldsplit's sub-solvers at its first set-up ("amg").
+# Read by the fieldsplit's sub-solvers at its first set-up ("amg", "pmg").
 SUBSOLVER = "fieldsplit_"
 
 
