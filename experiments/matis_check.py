@@ -5,10 +5,11 @@
 A P2 vector Laplacian on the cylinder, assembled as MATIS (kind="is") and as AIJ; prints
 the type and the norm of the difference on each rank.
 """
-import dolfinx.fem.petsc as fp
+
 import dolfinx_solver  # noqa: F401
 import ufl
 from dolfinx import fem
+from dolfinx.fem import petsc as fp
 from mpi4py import MPI
 from petsc4py import PETSc
 

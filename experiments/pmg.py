@@ -16,11 +16,11 @@ import resource
 import sys
 import time
 
-import dolfinx.fem.petsc as fp
 import dolfinx_solver  # noqa
 import numpy as np
 import ufl
 from dolfinx import fem
+from dolfinx.fem import petsc as fp
 from mpi4py import MPI
 from petsc4py import PETSc
 

@@ -8,13 +8,13 @@ Newton iterate of the bench's growth solve (the reference state, ϑ = 1.05), 1 r
 """
 import sys
 
-import dolfinx.fem.petsc as fp
 import dolfinx_solver  # noqa
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 import ufl
 from dolfinx import fem
+from dolfinx.fem import petsc as fp
 from mpi4py import MPI
 
 from hyper.fem import fibers
