@@ -399,6 +399,13 @@ def test_the_experimental_pmg_solver_equals_lu_in_parallel():
     _check_pmg(MPI.COMM_WORLD)
 
 
-def test_the_pmg_solver_refuses_a_multigrid_option_petsc_does_not_read():
-    with pytest.raises(InputError, match="fieldsplit_u_mg_levels_ksp_max_iter"):
-        _grown_cylinder(linear_solver="pmg", petsc_options={"fieldsplit_u_mg_levels_ksp_max_iter": "3"})
+@pytest.mark.parametrize("option, said", [
+    ("fieldsplit_u_mg_levels_ksp_max_iter=3", "does not read fieldsplit_u_mg_levels_ksp_max_iter"),
+    ("fieldsplit_u_mg_levels_ksp_max_it=abc", "fieldsplit_u_mg_levels_ksp_max_it=abc: Input string abc"),
+    ("fieldsplit_u_mg_coarse_pc_type=bogus", "fieldsplit_u_mg_coarse_pc_type=bogus: Unable to find"),
+])
+def test_the_pmg_solver_refuses_a_bad_multigrid_option_in_one_line(option, said):
+    key, value = option.split("=")
+    with pytest.raises(InputError, match=said) as err:
+        _grown_cylinder(linear_solver="pmg", petsc_options={key: value})
+    assert "\n" not in str(err.value)

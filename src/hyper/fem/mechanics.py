@@ -474,6 +474,9 @@ class MechanicsProblem:
             for sub in ksp.getPC().getFieldSplitSubKSP():  # GAMG reads its levels' options here
                 sub.setUp()
             unused = [k for k in self._user_subsolver_options if not db.used(prefix + k)]
+        except PETSc.Error as err:
+            what = refused(db, prefix, self._subsolver_options, self._user_subsolver_options, added)
+            raise InputError(f"PETSc refused {what}: {_last_line(err)}") from None
         finally:
             for name in added:
                 db.delValue(name)
@@ -788,19 +791,23 @@ def _set_options(snes, prefix: str, options: dict, checked: tuple[str, ...] = ()
         snes.setFromOptions()
         unused = [key for key in checked if not key.startswith(READ_LATER) and not db.used(prefix + key)]
     except PETSc.Error as err:
-        # PETSc's message is its call stack; the last line says what was wrong
-        lines = [line.removeprefix("[0]").strip() for line in str(err).splitlines() if line.strip()]
         what = refused(db, prefix, options, checked, added)
         for name in list(db.getAll()):
             if name.startswith(prefix):  # the job stops: PETSc would list them as unused at exit, on stdout
                 db.delValue(name)
-        raise InputError(f"PETSc refused {what}: {lines[-1]}") from None
+        raise InputError(f"PETSc refused {what}: {_last_line(err)}") from None
     finally:
         for name in added:
             db.delValue(name)
     if unused:
         raise InputError(f"--petsc-option: PETSc does not read {', '.join(unused)} for the mechanics solver "
                          "(misspelt, or an option of another object)")
+
+
+def _last_line(err: PETSc.Error) -> str:
+    """What PETSc said was wrong: its message is its call stack, and the last line says it."""
+    lines = [line.removeprefix("[0]").strip() for line in str(err).splitlines() if line.strip()]
+    return lines[-1]
 
 
 def refused(db, prefix: str, options: dict, checked: tuple[str, ...], added: list[str]) -> str:
