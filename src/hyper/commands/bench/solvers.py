@@ -266,13 +266,14 @@ def chart(path: Path, result: dict) -> None:
         its = r["krylov_iterations"] / max(r.get("newton_iterations") or 1, 1) if ok else 0
         ax.semilogx([r["unknowns"]], [its], "v" if ok else "rx", ms=9,
                     label=f"amg, {r['variant']}, {r['geometry']}" + ("" if ok else ": fails"))
+    pmg = {}  # (variant, geometry): its per Newton step against unknowns, over the levels
     for r in result.get("pmg", []):
-        if r["solver"] == "lu":
-            continue
-        ok = "failed" not in r
-        its = r["krylov_iterations"] / max(r.get("newton_iterations") or 1, 1) if ok else 0
-        ax.semilogx([r["unknowns"]], [its], "P" if ok else "rx", ms=9,
-                    label=f"pmg part, {r['variant']}, {r['geometry']}" + ("" if ok else ": fails"))
+        if r["solver"] != "lu":
+            its = r["krylov_iterations"] / max(r.get("newton_iterations") or 1, 1) if "failed" not in r else 0
+            pmg.setdefault((r["variant"], r["geometry"]), []).append((r["unknowns"], its))
+    for (variant, geometry), points in pmg.items():
+        n, its = zip(*sorted(points))
+        ax.semilogx(n, its, "P-", ms=9, label=f"pmg part: {variant}, {geometry} (0: fails)")
     for r in result["gamg"]:
         ok = "failed" not in r
         its = r["krylov_iterations"] / max(r.get("newton_iterations") or 1, 1) if ok else 0
