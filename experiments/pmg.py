@@ -6,7 +6,8 @@ The bench's growth solve (ϑ = 1.05 at once) with VARIANT lu, exact (the amg fie
 an LU displacement solve), gamg (amg as it is), pmg-lu or pmg-gamg (P2 -> P1 two-level
 multigrid on the displacement block, LU or GAMG on the Galerkin P1 operator). KEY=VALUE:
 smooth=KSP/PC and its=N (the P2 smoother), cycles_u=N, fact=full, defl=sym (a rigid-motion
-correction before and after the multigrid), k=K_TENDON, blocktest=1 (after the solve, GMRES
+correction before and after the multigrid) or defl=eig (the same with the block's neig=8
+softest eigenvectors, by scipy, serial), k=K_TENDON, blocktest=1 (after the solve, GMRES
 to 1e-10 on the displacement block alone with the multigrid, GAMG and LU, from a random right
 side). Prints one JSON line; with a saved lu run of the same mesh, the difference from it.
 Set the outer GMRES restart with PETSC_OPTIONS="-mechanics_ksp_gmres_restart 200".
@@ -107,6 +108,18 @@ else:
         class RigidCorrection:
             def setUp(self, pc):
                 A = pc.getOperators()[1]
+                if extra["defl"] == "eig":
+                    # the block's own softest modes (serial: scipy, shift-invert), not the rigid motions
+                    import scipy.sparse as sp
+                    import scipy.sparse.linalg as sla
+                    ai, aj, av = A.getValuesCSR()
+                    S = sp.csr_matrix((av, aj, ai), shape=A.getSize())
+                    _, vecs = sla.eigsh((0.5 * (S + S.T)).tocsc(), k=int(extra.get("neig", 8)), sigma=0.0)
+                    Z[:] = []
+                    for col in vecs.T:
+                        z = A.createVecLeft()
+                        z.getArray()[:] = col
+                        Z.append(z)
                 AZ = [A.createVecLeft() for _ in Z]
                 for z, az in zip(Z, AZ):
                     A.mult(z, az)
@@ -121,7 +134,7 @@ else:
                     y.axpy(ci, z)
 
         pc.setType("composite")
-        pc.setCompositeType(PETSc.PC.CompositeType.SYMMETRIC_MULTIPLICATIVE if extra["defl"] == "sym"
+        pc.setCompositeType(PETSc.PC.CompositeType.SYMMETRIC_MULTIPLICATIVE if extra["defl"] in ("sym", "eig")
                             else PETSc.PC.CompositeType.MULTIPLICATIVE)
         pc.addCompositePCType("python")
         pc.addCompositePCType("mg")
