@@ -350,6 +350,15 @@ def _grown_cylinder(**kwargs):
 
 
 def test_the_experimental_amg_solver_equals_lu_on_a_body_with_free_rigid_motions():
+    _check_amg()
+
+
+@pytest.mark.mpi
+def test_the_experimental_amg_solver_equals_lu_in_parallel():
+    _check_amg()
+
+
+def _check_amg():
     lu, _ = _grown_cylinder()
     amg, newton = _grown_cylinder(linear_solver="amg")
     assert len(amg.rigid.modes) == 3 and newton >= 2 and amg.linear_iterations() > 10 * newton
@@ -363,3 +372,40 @@ def test_the_experimental_amg_solver_equals_lu_on_a_body_with_free_rigid_motions
 def test_the_amg_solver_refuses_a_fieldsplit_option_petsc_does_not_read():
     with pytest.raises(InputError, match="fieldsplit_u_pc_gamg_thresold"):
         _grown_cylinder(linear_solver="amg", petsc_options={"fieldsplit_u_pc_gamg_thresold": "0.1"})
+
+
+def _check_pmg(comm):
+    lu, _ = _grown_cylinder()
+    pmg, newton = _grown_cylinder(linear_solver="pmg")
+    assert len(pmg.rigid.modes) == 3 and newton >= 2 and pmg.linear_iterations() > 10 * newton
+    upc = pmg.snes.getKSP().getPC().getFieldSplitSubKSP()[0].getPC()
+    coarse = upc.getMGCoarseSolve()
+    # two levels, GAMG on the Galerkin P1 operator with the six rigid motions of its nodes
+    assert (upc.getType(), upc.getMGLevels(), coarse.getPC().getType()) == ("mg", 2, "gamg")
+    assert len(coarse.getOperators()[1].getNearNullSpace().getVecs()) == 6
+    n = lu.owned_size
+    u = np.setdiff1d(np.arange(n), lu.pressure_dofs)
+    du = np.abs(pmg.w.x.array[u] - lu.w.x.array[u]).max() / np.abs(lu.w.x.array[u]).max()
+    assert comm.allreduce(du, op=MPI.MAX) < 1e-8
+    assert abs(pmg.volume() - lu.volume()) < 1e-12 * lu.volume()
+
+
+def test_the_experimental_pmg_solver_equals_lu_on_a_body_with_free_rigid_motions():
+    _check_pmg(MPI.COMM_WORLD)
+
+
+@pytest.mark.mpi
+def test_the_experimental_pmg_solver_equals_lu_in_parallel():
+    _check_pmg(MPI.COMM_WORLD)
+
+
+@pytest.mark.parametrize("option, said", [
+    ("fieldsplit_u_mg_levels_ksp_max_iter=3", "does not read fieldsplit_u_mg_levels_ksp_max_iter"),
+    ("fieldsplit_u_mg_levels_ksp_max_it=abc", "fieldsplit_u_mg_levels_ksp_max_it=abc: Input string abc"),
+    ("fieldsplit_u_mg_coarse_pc_type=bogus", "fieldsplit_u_mg_coarse_pc_type=bogus: Unable to find"),
+])
+def test_the_pmg_solver_refuses_a_bad_multigrid_option_in_one_line(option, said):
+    key, value = option.split("=")
+    with pytest.raises(InputError, match=said) as err:
+        _grown_cylinder(linear_solver="pmg", petsc_options={key: value})
+    assert "\n" not in str(err.value)

@@ -42,6 +42,11 @@ multipliers of free rigid motions the Schur complement taken with the same V-cyc
 displacement solve, 11-36 iterations a Newton step on TA), its AMG is not: one V-cycle
 of GAMG on the P2 displacement block fails on the anatomical meshes; hypre is not in the
 PETSc wheel. Measured in `python -m hyper.bench solvers --parts amg` (docs/performance.md).
+"pmg" (experimental too): the same fieldsplit with a two-level P2 → P1 multigrid on the
+displacement block (`_coarse_gamg`): Chebyshev/Jacobi on P2, GAMG on the Galerkin P1
+operator. It converges where "amg" fails and with half its iterations, but needs 1.9-16
+times those of an exact displacement solve and is slower than LU at 78k unknowns
+(`python -m hyper.bench solvers --parts pmg`).
 """
 
 from __future__ import annotations
@@ -77,7 +82,7 @@ DEFAULT_PETSC_OPTIONS = {
 LINEAR_SOLVERS = ("lu", "iterative")
 # Built here, measured by `python -m hyper.bench solvers --parts amg`, offered by no job:
 # its displacement block's AMG is too weak on the anatomical meshes (docs/performance.md).
-EXPERIMENTAL_SOLVERS = ("amg",)
+EXPERIMENTAL_SOLVERS = ("amg", "pmg")
 ITERATIVE_PETSC_OPTIONS = {
     "ksp_type": "gmres",
     "ksp_gmres_restart": 100,
@@ -120,6 +125,31 @@ AMG_SUBSOLVER_OPTIONS = {
     "fieldsplit_p_ksp_type": "preonly",
     "fieldsplit_p_pc_type": "jacobi",
 }
+# "pmg": the same fieldsplit with a two-level p-multigrid on the displacement block:
+# Chebyshev/Jacobi on P2, the Galerkin P1 operator (interpolation from the P1 vector space
+# on the same mesh) by GAMG with the rigid-body near null space of the P1 nodes
+# (`_coarse_gamg`). A user's fieldsplit_u_mg_coarse_pc_type (lu, say) replaces the GAMG.
+# GMRES restarts at 200: at 60 it stagnates near 1e-10 on the idealized shape.
+PMG_PETSC_OPTIONS = {**AMG_PETSC_OPTIONS, "ksp_gmres_restart": 200}
+PMG_SUBSOLVER_OPTIONS = {
+    "fieldsplit_u_ksp_type": "preonly",
+    "fieldsplit_u_pc_type": "mg",
+    "fieldsplit_u_pc_mg_levels": 2,
+    "fieldsplit_u_pc_mg_galerkin": "both",
+    "fieldsplit_u_mg_levels_ksp_type": "chebyshev",
+    "fieldsplit_u_mg_levels_pc_type": "jacobi",
+    "fieldsplit_u_mg_levels_ksp_max_it": 2,
+    "fieldsplit_u_mg_coarse_ksp_type": "preonly",
+    "fieldsplit_u_mg_coarse_pc_gamg_threshold": 0.02,
+    "fieldsplit_u_mg_coarse_pc_gamg_aggressive_coarsening": 0,
+    "fieldsplit_u_mg_coarse_mg_levels_ksp_type": "chebyshev",
+    "fieldsplit_u_mg_coarse_mg_levels_pc_type": "jacobi",
+    "fieldsplit_u_mg_coarse_mg_levels_ksp_max_it": 2,
+    "fieldsplit_p_ksp_type": "preonly",
+    "fieldsplit_p_pc_type": "jacobi",
+}
+COARSE_PC = "fieldsplit_u_mg_coarse_pc_type"
+SUBSOLVER_OPTIONS = {"amg": AMG_SUBSOLVER_OPTIONS, "pmg": PMG_SUBSOLVER_OPTIONS}
 # The shift ε M added to the displacement block of the preconditioner where the springs
 # leave rigid motions free (its AMG hierarchy would be singular there), as a fraction of
 # the shear modulus over the squared body size: the softest elastic motion of a body is
@@ -238,15 +268,17 @@ class MechanicsProblem:
         # The sub-solvers of the fieldsplit read their options at its first set-up, long
         # after setFromOptions: they are kept here and put into the database for it.
         given = {k: v for k, v in user.items() if k.startswith(SUBSOLVER)}
-        self._subsolver_options = {**AMG_SUBSOLVER_OPTIONS, **given} if linear_solver == "amg" else {}
+        self._subsolver_options = ({**SUBSOLVER_OPTIONS[linear_solver], **given}
+                                   if linear_solver in SUBSOLVER_OPTIONS else {})
         self._user_subsolver_options = tuple(k for k in user if k in self._subsolver_options)
         self._subsolvers_read = False
-        preset = {"iterative": ITERATIVE_PETSC_OPTIONS, "amg": AMG_PETSC_OPTIONS}.get(linear_solver, {})
+        preset = {"iterative": ITERATIVE_PETSC_OPTIONS, "amg": AMG_PETSC_OPTIONS,
+                  "pmg": PMG_PETSC_OPTIONS}.get(linear_solver, {})
         read_now = {k: v for k, v in user.items() if k not in self._subsolver_options}
         _set_options(self.snes, options_prefix, {**DEFAULT_PETSC_OPTIONS, **preset, **read_now},
                      checked=tuple(read_now))
         self._P = self._K
-        if linear_solver == "amg":
+        if linear_solver in SUBSOLVER_OPTIONS:
             self._preconditioner(mesh)
         self.snes.setJacobian(self._snes_jacobian, self._K, self._P)
         controls = {**(blr_controls(blr_precision) if linear_solver == "iterative" else {}),
@@ -332,17 +364,16 @@ class MechanicsProblem:
         """The splits and matrices of the "amg" preconditioner (module docstring).
 
         Displacement split: the owned u dofs node by node (blocks of 3, as GAMG wants),
-        with the six rigid motions about the centroid as its near null space. Its
-        preconditioner is built from the linear elasticity of the reference body,
-        2μ ε(δu):ε(v) and the springs (μ = 2 (c1 + c2), the shear modulus), assembled
-        once: the Jacobian's displacement block itself is indefinite (the pressure's
-        geometric terms), and AMG with Chebyshev smoothing needs a definite matrix.
+        with the six rigid motions about the centroid as its near null space, in the
+        order of the collapsed P2 space (so "pmg" interpolates into it from P1 directly).
+        Its preconditioner is built from the Newton matrix's displacement block.
         Pressure split: the owned p dofs in the order of the collapsed P1 space, then
         (last rank) the multipliers, so that the Schur preconditioner
-        Sp = -(1/μ) M_p ⊕ -diag(c) is assembled on the P1 space directly. Where rigid
-        motions are free, ε M_u (ε = AMG_SHIFT μ / L²) keeps the elasticity definite and
+        Sp = -(1/μ) M_p ⊕ -diag(c) is assembled on the P1 space directly (μ = 2 (c1 + c2),
+        the shear modulus). Where rigid motions are free, ε M_u (ε = AMG_SHIFT μ / L², its
+        diagonal) added to the block keeps it non-singular and
         c_i = ∫ r_i·r_i dX / ε is the Schur complement Bᵀ (E + ε M_u)⁻¹ B of a motion r_i
-        the elasticity E does not resist.
+        the block E does not resist.
         """
         import dolfinx.fem.petsc  # noqa: F401
 
@@ -367,8 +398,10 @@ class MechanicsProblem:
         dx = self.geometry.dx
         c = np.empty(0)
         if m:
-            lo, hi = comm.allreduce(mesh.geometry.x.min(axis=0), op=MPI.MIN), comm.allreduce(
-                mesh.geometry.x.max(axis=0), op=MPI.MAX)
+            # elementwise over ranks (the pickling allreduce cannot take MIN of arrays)
+            lo, hi = np.empty(3), np.empty(3)
+            comm.Allreduce(np.ascontiguousarray(mesh.geometry.x.min(axis=0)), lo, op=MPI.MIN)
+            comm.Allreduce(np.ascontiguousarray(mesh.geometry.x.max(axis=0)), hi, op=MPI.MAX)
             eps = AMG_SHIFT * mu / float(np.sum((hi - lo) ** 2))
             c = np.array([self._sum(fem.form(ufl.dot(r, r) * dx)) for r in self.rigid.modes]) / eps
             v = ufl.TestFunction(Vu)
@@ -403,13 +436,24 @@ class MechanicsProblem:
         pc = self.snes.getKSP().getPC()
         pc.setFieldSplitIS(("u", is_u), ("p", is_p))
         pc.setFieldSplitSchurPreType(PETSc.PC.FieldSplitSchurPreType.USER, self._schur)
+        if m:
+            # Each Newton matrix changes Â⁻¹, and its large parts cancel only with the
+            # multipliers' Schur taken anew with it: before every linear solve
+            self.snes.getKSP().setPreSolve(lambda ksp, b, x: self._multiplier_schur())
         self._splits = (is_u, is_p)
         self._split_udofs = udofs
+        if self.linear_solver == "pmg":
+            # the split's rows are Vu's owned dofs in order, so its numbering is Vu's
+            V1 = fem.functionspace(mesh, ("Lagrange", 1, (3,)))
+            self._prolongation = fem.petsc.interpolation_matrix(V1, Vu)
+            self._prolongation.assemble()
+            self._coarse_modes = _rigid_body_space(V1.tabulate_dof_coordinates()[: V1.dofmap.index_map.size_local],
+                                                   comm)
 
     def setup_linear_solver(self) -> None:
         """Set up the linear solver for the current matrix (factorise it, or build the AMG
         hierarchy): done only where the matrix changed since the last set-up. The first
-        set-up of "amg" reads the sub-solvers' options; one of the user's it did not read
+        set-up of "amg" or "pmg" reads the sub-solvers' options; one of the user's it did not read
         is an InputError, as `_set_options` makes of the others."""
         ksp = self.snes.getKSP()
         ksp.setOperators(self._K, self._P)
@@ -425,9 +469,14 @@ class MechanicsProblem:
                 db.setValue(prefix + key, value)
         try:
             ksp.setUp()
+            if self.linear_solver == "pmg":
+                self._coarse_gamg(ksp.getPC().getFieldSplitSubKSP()[0].getPC(), db.hasName(prefix + COARSE_PC))
             for sub in ksp.getPC().getFieldSplitSubKSP():  # GAMG reads its levels' options here
                 sub.setUp()
             unused = [k for k in self._user_subsolver_options if not db.used(prefix + k)]
+        except PETSc.Error as err:
+            what = refused(db, prefix, self._subsolver_options, self._user_subsolver_options, added)
+            raise InputError(f"PETSc refused {what}: {_last_line(err)}") from None
         finally:
             for name in added:
                 db.delValue(name)
@@ -436,6 +485,25 @@ class MechanicsProblem:
         if unused:
             raise InputError(f"--petsc-option: PETSc does not read {', '.join(unused)} for the mechanics "
                              "solver's fieldsplit (misspelt, or an option of another object)")
+
+    def _coarse_gamg(self, pc, chosen: bool) -> None:
+        """Set the displacement split's p-multigrid up ("pmg"): the P1 → P2 interpolation,
+        then GAMG on the Galerkin P1 operator with the rigid motions of the P1 nodes as its
+        near null space. That operator exists only once the multigrid is set up, and it is
+        kept (values updated) when the Newton matrix changes, and its null space with it.
+        ``chosen``: the user named the coarse solver, which then stays as given."""
+        if pc.getType() != "mg":
+            return  # the options asked for another preconditioner: it wins
+        pc.setMGInterpolation(1, self._prolongation)
+        coarse = pc.getMGCoarseSolve()
+        if chosen:
+            return
+        coarse.getPC().setType("jacobi")  # a stand-in until the Galerkin operator exists
+        pc.setUp()
+        coarse.getOperators()[1].setNearNullSpace(self._coarse_modes)
+        coarse.getPC().setType("gamg")
+        coarse.setFromOptions()
+        coarse.setUp()
 
     def _multiplier_schur(self) -> None:
         """The multipliers' part of the Schur preconditioner, -bᵢᵀ Â⁻¹ bᵢ with Â⁻¹ the
@@ -459,6 +527,7 @@ class MechanicsProblem:
             for row, value in zip(rows, c[len(c) - self._nmult:]):
                 self._schur.setValue(row, row, -value)
         self._schur.assemble()
+        self.snes.getKSP().getPC().getFieldSplitSubKSP()[1].getPC().setUp()  # its Jacobi takes the new diagonal
 
     def _set_mumps(self, controls: dict) -> None:
         """Set MUMPS controls (``mat_mumps_icntl_N`` / ``mat_mumps_cntl_N`` keys) on the
@@ -536,7 +605,8 @@ class MechanicsProblem:
     @property
     def preconditioner_matrix(self) -> PETSc.Mat:
         """The matrix the linear solver's preconditioner is built from: `jacobian_matrix`,
-        or for "amg" the reference body's elasticity (`_preconditioner`), built once."""
+        or for "amg" and "pmg" with free rigid motions that matrix plus the shift ε M_u
+        (`_preconditioner`)."""
         return self._P
 
     @property
@@ -700,7 +770,7 @@ def taylor_hood_unknowns(mesh) -> int:
 # Read by MUMPS when it factorises, after setFromOptions: whether they are used cannot be
 # known when the solver is set up.
 READ_LATER = ("mat_mumps_",)
-# Read by the fieldsplit's sub-solvers at its first set-up ("amg").
+# Read by the fieldsplit's sub-solvers at its first set-up ("amg", "pmg").
 SUBSOLVER = "fieldsplit_"
 
 
@@ -721,19 +791,23 @@ def _set_options(snes, prefix: str, options: dict, checked: tuple[str, ...] = ()
         snes.setFromOptions()
         unused = [key for key in checked if not key.startswith(READ_LATER) and not db.used(prefix + key)]
     except PETSc.Error as err:
-        # PETSc's message is its call stack; the last line says what was wrong
-        lines = [line.removeprefix("[0]").strip() for line in str(err).splitlines() if line.strip()]
         what = refused(db, prefix, options, checked, added)
         for name in list(db.getAll()):
             if name.startswith(prefix):  # the job stops: PETSc would list them as unused at exit, on stdout
                 db.delValue(name)
-        raise InputError(f"PETSc refused {what}: {lines[-1]}") from None
+        raise InputError(f"PETSc refused {what}: {_last_line(err)}") from None
     finally:
         for name in added:
             db.delValue(name)
     if unused:
         raise InputError(f"--petsc-option: PETSc does not read {', '.join(unused)} for the mechanics solver "
                          "(misspelt, or an option of another object)")
+
+
+def _last_line(err: PETSc.Error) -> str:
+    """What PETSc said was wrong: its message is its call stack, and the last line says it."""
+    lines = [line.removeprefix("[0]").strip() for line in str(err).splitlines() if line.strip()]
+    return lines[-1]
 
 
 def refused(db, prefix: str, options: dict, checked: tuple[str, ...], added: list[str]) -> str:

@@ -1,6 +1,6 @@
 """Linear solvers side by side: MUMPS LU against GMRES with a BLR preconditioner, and GAMG.
 
-    python -m hyper.bench solvers [--levels 0 1 2] [--ranks 2] [--parts levels precision gamg amg]
+    python -m hyper.bench solvers [--levels 0 1 2] [--ranks 2] [--parts levels precision gamg amg pmg]
 
 The scene is a growth solve: the resting idealized shape (refined `level` times, every
 tetrahedron into eight) takes one transverse growth increment Fg = I + (ϑ - 1)(I - a0⊗a0)
@@ -33,7 +33,12 @@ Where it stalls:
   GAMG V-cycle and with an exact (LU) displacement solve, on the idealized shape (levels 0
   and 1) and TA_VHF_Left, 1 rank.
 
---parts runs only some of the four (levels, precision, gamg, amg); the others are kept from
+- pmg: the experimental "pmg" solver (the same fieldsplit, a P2 → P1 p-multigrid on the
+  displacement block: Chebyshev/Jacobi on P2, GAMG on the Galerkin P1 operator) side by
+  side with LU and with the exact (LU) displacement solve, on the idealized shape (levels
+  0 and 1) and TA_VHF_Left, 1 rank; its solution against LU's.
+
+--parts runs only some of the five (levels, precision, gamg, amg, pmg); the others are kept from
 an existing OUTPUT/solvers.json. Writes results/bench/solvers.json and solvers.png (memory and time against unknowns,
 iterations against unknowns and precision).
 """
@@ -72,7 +77,7 @@ GAMG_VARIANTS = {
     "exact displacement solve (LU)": {"fieldsplit_u_pc_type": "lu", "fieldsplit_u_pc_factor_mat_solver_type": "mumps"},
 }
 GAMG_CASES = (("idealized", "GAMG"), *(("TA_VHF_Left", variant) for variant in GAMG_VARIANTS))
-PARTS = ("levels", "precision", "gamg", "amg")
+PARTS = ("levels", "precision", "gamg", "amg", "pmg")
 # The mechanics' experimental "amg" solver (mass-matrix Schur preconditioner, the free
 # modes' multiplier Schur with the same V-cycle): (geometry, level, variant), the variant's
 # options over AMG_PETSC_OPTIONS; the exact displacement solve tells its Schur part from its AMG.
@@ -83,6 +88,19 @@ AMG_VARIANTS = {
 AMG_CASES = (("idealized", 0, "exact displacement solve (LU)"), ("idealized", 0, "GAMG V-cycle"),
              ("idealized", 1, "GAMG V-cycle"), ("TA_VHF_Left", 0, "exact displacement solve (LU)"),
              ("TA_VHF_Left", 0, "GAMG V-cycle"))
+# The p-multigrid part: (geometry, level, solver, variant), the variant's options over the
+# solver's own; each case's solution is compared with the LU case's of its mesh.
+PMG_VARIANTS = {
+    "LU": {},
+    "exact displacement solve (LU)": AMG_VARIANTS["exact displacement solve (LU)"],
+    "p-multigrid, GAMG coarse": {},
+    "p-multigrid, LU coarse": {"fieldsplit_u_mg_coarse_pc_type": "lu",
+                               "fieldsplit_u_mg_coarse_pc_factor_mat_solver_type": "mumps"},
+}
+PMG_SOLVERS = {"LU": "lu", "exact displacement solve (LU)": "amg"}
+PMG_CASES = (*((g, lvl, v) for g, lvl in (("idealized", 0), ("idealized", 1), ("TA_VHF_Left", 0))
+               for v in ("LU", "exact displacement solve (LU)", "p-multigrid, GAMG coarse")),
+             ("idealized", 0, "p-multigrid, LU coarse"), ("TA_VHF_Left", 0, "p-multigrid, LU coarse"))
 # The Schur-complement fieldsplit of the GAMG cases; its splits are set in `_fieldsplit`.
 GAMG_OPTIONS = {
     "ksp_type": "gmres", "ksp_gmres_restart": 200, "ksp_pc_side": "right", "ksp_rtol": 1e-10,
@@ -162,6 +180,9 @@ def run_case(case: dict, comm, save: Path | None) -> dict:
     options = {**GAMG_OPTIONS, **GAMG_VARIANTS[case["variant"]]} if solver == "gamg" else None
     if solver == "amg":
         kwargs, options = {"linear_solver": "amg"}, AMG_VARIANTS[case["variant"]] or None
+    if "pmg_case" in case:
+        kwargs = {"linear_solver": PMG_SOLVERS.get(case["variant"], "pmg")}
+        options = PMG_VARIANTS[case["variant"]] or None
     problem = MechanicsProblem(geometry, a0, growth=Fg, petsc_options=options, **kwargs)
     if solver == "gamg":
         _fieldsplit(problem, comm, options)
@@ -245,6 +266,14 @@ def chart(path: Path, result: dict) -> None:
         its = r["krylov_iterations"] / max(r.get("newton_iterations") or 1, 1) if ok else 0
         ax.semilogx([r["unknowns"]], [its], "v" if ok else "rx", ms=9,
                     label=f"amg, {r['variant']}, {r['geometry']}" + ("" if ok else ": fails"))
+    pmg = {}  # (variant, geometry): its per Newton step against unknowns, over the levels
+    for r in result.get("pmg", []):
+        if r["solver"] != "lu":
+            its = r["krylov_iterations"] / max(r.get("newton_iterations") or 1, 1) if "failed" not in r else 0
+            pmg.setdefault((r["variant"], r["geometry"]), []).append((r["unknowns"], its))
+    for (variant, geometry), points in pmg.items():
+        n, its = zip(*sorted(points))
+        ax.semilogx(n, its, "P-", ms=9, label=f"pmg part: {variant}, {geometry} (0: fails)")
     for r in result["gamg"]:
         ok = "failed" not in r
         its = r["krylov_iterations"] / max(r.get("newton_iterations") or 1, 1) if ok else 0
@@ -281,6 +310,31 @@ def parser() -> cli.Parser:
     common.add_worker_options(p)
     p.add_argument("--save", type=Path, help=argparse.SUPPRESS)
     return p
+
+
+def _pmg_part(args) -> list[dict]:
+    """The p-multigrid cases on 1 rank, each solution against LU's on the same mesh."""
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, (name, level, variant) in enumerate(PMG_CASES):
+            save = Path(tmp) / str(i)
+            save.mkdir()
+            print(f"solvers: pmg part, {variant}, on {name} level {level} …", flush=True)
+            solver = PMG_SOLVERS.get(variant, "pmg")
+            row = _run_worker({"geometry": name, "level": level, "solver": solver, "variant": variant,
+                               "pmg_case": True}, 1, args.timeout, save)
+            lu = next((j for j, (g, lvl, v) in enumerate(PMG_CASES[:i]) if (g, lvl, v) == (name, level, "LU")), None)
+            if lu is not None and "failed" not in row and "failed" not in rows[lu]:
+                row["difference_from_lu"] = {**compare(Path(tmp) / str(lu), save, 1),
+                                             "volume": abs(row["volume_ratio"] - rows[lu]["volume_ratio"])
+                                                       / (rows[lu]["volume_ratio"] - 1)}
+            rows.append(row)
+            print("  " + ("FAILED " + row["failed"] if "failed" in row else
+                          f"{row['unknowns']} unknowns, {row['newton_iterations']} Newton, "
+                          f"{row['krylov_iterations']} Krylov its, {row['solve_s']:.1f} s, "
+                          f"peak RSS {row['peak_rss_mb_sum']:.0f} MB, vs LU {row.get('difference_from_lu')}"),
+                  flush=True)
+    return rows
 
 
 def run(comm, args) -> int:
@@ -341,16 +395,17 @@ def run(comm, args) -> int:
         print(f"solvers: amg, {variant}, on {name} level {level} …", flush=True)
         amg.append(_run_worker({"geometry": name, "level": level, "solver": "amg", "variant": variant}, 1,
                                args.timeout, None))
-    measured = {"levels": rows, "precision": precision, "gamg": gamg, "amg": amg}
-    rows, precision, gamg, amg = ({**measured, **kept}[part] for part in PARTS)
+    pmg = _pmg_part(args) if "pmg" in args.parts else []
+    measured = {"levels": rows, "precision": precision, "gamg": gamg, "amg": amg, "pmg": pmg}
+    rows, precision, gamg, amg, pmg = ({**measured, **kept}[part] for part in PARTS)
     result = {"benchmark": "solvers", "machine": common.machine(), "ranks": args.ranks, "theta": THETA,
-              "levels": rows, "precision": precision, "gamg": gamg, "amg": amg, "parts_run": args.parts,
+              "levels": rows, "precision": precision, "gamg": gamg, "amg": amg, "pmg": pmg, "parts_run": args.parts,
               "memory_fit": {s: memory_fit([r for r in rows if r["solver"] == s]) for s in ("lu", "iterative")},
               "versions": io.versions(), "wall_s": time.perf_counter() - start}
     args.output.mkdir(parents=True, exist_ok=True)
     io.write_json(args.output / "solvers.json", result)
     chart(args.output / "solvers.png", result)
-    for r in precision + gamg + amg:
+    for r in precision + gamg + amg + pmg:
         print(f"{r.get('variant', r['solver']):40s} {r['geometry']:12s} level {r.get('level', 0)} "
               f"precision {r.get('precision', '-')}: " +
               (f"FAILED {r['failed']}" if "failed" in r else
