@@ -1,6 +1,6 @@
 """Scratch prototype (issue 33) of the p-multigrid that became linear_solver="pmg"; not part of hyper.
 
-    PYTHONPATH=src python experiments/pmg.py GEOMETRY LEVEL VARIANT [KEY=VALUE ...]
+    PYTHONPATH=src python jobs/solver_pmg.py GEOMETRY LEVEL VARIANT [KEY=VALUE ...]
 
 The bench's growth solve (ϑ = 1.05 at once) with VARIANT lu, exact (the amg fieldsplit with
 an LU displacement solve), gamg (amg as it is), pmg-lu or pmg-gamg (P2 -> P1 two-level

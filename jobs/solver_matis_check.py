@@ -1,6 +1,6 @@
 """Scratch check (issue 33): DOLFINx assembles a MATIS equal to the AIJ matrix.
 
-    PYTHONPATH=src mpirun -n 2 python experiments/matis_check.py
+    PYTHONPATH=src mpirun -n 2 python jobs/solver_matis_check.py
 
 A P2 vector Laplacian on the cylinder, assembled as MATIS (kind="is") and as AIJ; prints
 the type and the norm of the difference on each rank.

@@ -1,6 +1,6 @@
 """Scratch diagnostic (issue 33): is the displacement block of the Newton matrix definite?
 
-    PYTHONPATH=src python experiments/ublock_spectrum.py GEOMETRY
+    PYTHONPATH=src python jobs/solver_ublock_spectrum.py GEOMETRY
 
 The 12 generalized eigenvalues A x = λ M_u x nearest -1e-3 μ (shift-invert), divided by μ
 (so in 1/m²), of the symmetric part of the Jacobian's displacement block at the first
