@@ -23,6 +23,7 @@ import signal
 import subprocess
 import sys
 import time
+import types
 from pathlib import Path
 
 import pytest
@@ -253,3 +254,31 @@ def test_a_term_at_any_moment_of_a_grow_start_up_on_two_ranks_ends_in_143(tmp_pa
         command = [mpirun, "-n", "2", sys.executable, *ENTRIES["python -m hyper.grow"],
                    "--output", str(tmp_path / f"at_{after_s}")]
         assert_stopped(term_at(command, after_s, ranks_ready, ROOT), f"2 ranks, TERM at {after_s} s")
+
+
+def test_a_rank_of_several_waits_for_its_mpi_to_start_before_it_ends(monkeypatch):
+    """A rank that ends before its MPI has started leaves a peer inside MPI_Init (which
+    mpi4py enters holding the GIL, so the peer's TERM thread cannot run) waiting for ever:
+    the TERM waits for MPI to start, then MPI_Abort ends them all; alone, it ends at once."""
+    class FakeMPI(types.ModuleType):
+        asked = 0
+
+        def Is_initialized(self):
+            FakeMPI.asked += 1
+            return FakeMPI.asked >= 3  # MPI starts while the rank waits
+
+        def Is_finalized(self):
+            return False
+
+    monkeypatch.delenv("PMI_SIZE", raising=False)
+    monkeypatch.delenv("OMPI_COMM_WORLD_SIZE", raising=False)
+    monkeypatch.setitem(sys.modules, "mpi4py.MPI", FakeMPI("mpi4py.MPI"))
+    term._await_mpi()
+    assert FakeMPI.asked == 0  # one rank: nothing to wait for
+    monkeypatch.setenv("PMI_SIZE", "2")
+    term._await_mpi()
+    assert FakeMPI.asked == 3
+    # MPI never started (a job that does not use it): the wait ends at its limit
+    monkeypatch.setattr(term, "MPI_START_WAIT_S", 0.05)
+    monkeypatch.delitem(sys.modules, "mpi4py.MPI")
+    term._await_mpi()

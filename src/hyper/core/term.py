@@ -38,6 +38,7 @@ import os
 import signal
 import sys
 import threading
+import time
 
 EXIT_TERMINATED = 128 + signal.SIGTERM  # 143, what a shell reports for a TERM-killed job
 NO_PETSC_HANDLER = "-no_signal_handler"
@@ -92,6 +93,39 @@ def stop_at_once(signum, frame) -> None:
     os._exit(EXIT_TERMINATED)
 
 
+# How long a rank of several that takes a TERM before its MPI has started waits for it
+# (`_await_mpi`): imports reach MPI_Init within seconds, even on a loaded machine.
+MPI_START_WAIT_S = 30.0
+
+
+def _launched_ranks() -> int:
+    """How many ranks the MPI launcher started (MPICH's and Slurm's PMI, Open MPI); 1 if none."""
+    for name in ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE"):
+        with contextlib.suppress(KeyError, ValueError):
+            return int(os.environ[name])
+    return 1
+
+
+def _await_mpi() -> None:
+    """On a rank of several whose MPI has not started yet, wait until it has (at most
+    MPI_START_WAIT_S), so that `stop_at_once` ends every rank with MPI_Abort.
+
+    Ending at once instead leaves a peer that is inside MPI_Init waiting for this rank for
+    ever: mpi4py starts MPI holding the GIL, so the peer's own TERM thread cannot run, and
+    mpiexec does not end a job whose rank exits before MPI has started (seen once in about
+    40 TERMs in a 2-rank grow's first second, on a loaded machine). Waiting here, this
+    rank's imports go on to MPI_Init, which then completes on every rank."""
+    if _launched_ranks() <= 1:
+        return
+    deadline = time.monotonic() + MPI_START_WAIT_S
+    while time.monotonic() < deadline:
+        mpi = sys.modules.get("mpi4py.MPI")
+        with contextlib.suppress(AttributeError):  # a module half made: MPI not started yet
+            if mpi is not None and (mpi.Is_initialized() or mpi.Is_finalized()):
+                return
+        time.sleep(0.01)
+
+
 def _take_terms() -> None:
     """The thread that takes every SIGTERM (blocked in all the others) and does what the
     Python handler of the moment says: `stop_at_once` here and now (the main thread may be
@@ -101,6 +135,7 @@ def _take_terms() -> None:
         signum = signal.sigwait(TERM)
         handler = signal.getsignal(signum)
         if handler is stop_at_once:
+            _await_mpi()
             stop_at_once(signum, None)
         elif callable(handler):
             _thread.interrupt_main(signum)
