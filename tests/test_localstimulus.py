@@ -15,6 +15,7 @@ from hyper.model import signaling
 from hyper.model.heterogeneity import cell_identity
 from hyper.model.protocols import Protocol, Session
 from hyper.runs.runspec import RunSpec
+from test_reliability import measures  # a run's (t, CSA, V, states) per step
 
 GROWING = signaling.SignalingParams(thetaM=0.46)  # mTOR above its threshold from the first hour
 SETTINGS = GrowthSettings(growth_dt=24.0, sections=0)
@@ -255,14 +256,6 @@ def test_a_local_run_resumes_bit_for_bit_from_its_checkpoint(tmp_path):
     """The factors reach the ODEs as a per-cell β, which the checkpoint carries with the other
     per-cell parameters: a resumed run goes on with them."""
     from hyper.runs import checkpoint as ckpt
-
-    def measures(model, until=None):
-        out = []
-        for r in model.run():
-            out.append((r.t, r.csa_ratio, r.volume_ratio, *r.states))
-            if r.step == until:
-                break
-        return out
 
     comm = MPI.COMM_SELF
     reference = measures(build("cylinder", LOCAL))
