@@ -170,3 +170,26 @@ def test_detraining_is_a_fittable_parameter_with_checked_bounds():
     assert calibrate_job.fit_option("detraining=100:1000") == ("detraining", (100.0, 1000.0))
     with pytest.raises(InputError, match="detraining"):
         calibrate_job.fit_option("detraining=0:1000")  # τ must be a positive time
+
+
+def test_the_ogasawara_detraining_weeks_are_fitted_better_with_the_turnover():
+    """Issue 35 item 4 on published data (data/ogasawara*.csv, docs/growth-laws.md): jointly on
+    the detraining and the continuous group, kM with τ fits better than kM alone, and τ is
+    bounded by the data (its interval ends below the upper bound)."""
+    from hyper.core import resources
+    from hyper.runs import measured
+
+    folder = resources.folder("data")
+    sets = [measured.read(folder / f"{name}.csv") for name in ("ogasawara", "ogasawara-continuous")]
+    data = [calibrate.Dataset(m.path.stem, m.t, m.csa_ratio, protocols.load(folder / f"{m.path.stem}.toml"))
+            for m in sets]
+
+    def fitted(names):
+        evaluate = calibrate.surrogate_model(data, names, signaling.SignalingParams(), signaling_dt=0.125,
+                                             factor=FACTOR, feedback="hill", growth_dt=168.0)
+        bounds = np.array([calibrate.BOUNDS[n] for n in names])
+        return calibrate.fit(evaluate, data, names, bounds, np.sqrt(bounds.prod(axis=1)))
+
+    alone, turnover = fitted(["kM"]), fitted(["kM", "detraining"])
+    assert turnover.rmse < 0.8 * alone.rmse
+    assert turnover.high[1] < 0.1 * calibrate.BOUNDS["detraining"][1] and "detraining" not in turnover.at_bound

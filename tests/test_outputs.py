@@ -178,8 +178,29 @@ def test_each_shipped_data_set_belongs_to_its_protocol():
 def test_the_shipped_data_say_their_muscle_and_measure():
     muscles = {name: measured.read(ROOT / "data" / name).muscle for name in measured.SHIPPED}
     assert muscles == {"defreitas.csv": "thigh", "damas.csv": "vastus lateralis", "seynnes.csv": "quadriceps",
-                       "narici.csv": "quadriceps"}
+                       "narici.csv": "quadriceps", "ogasawara.csv": "triceps brachii",
+                       "ogasawara-continuous.csv": "triceps brachii"}
     assert all(measured.read(ROOT / "data" / name).measure for name in measured.SHIPPED)
+
+
+def test_the_ogasawara_course_is_its_abstracts_phase_changes_on_its_schedule():
+    """Issue 35 item 4: a training (6 weeks), detraining (3), retraining (6) course. The files
+    compose the abstract's per-phase changes, each relative to its phase's start."""
+    week = protocols.WEEK
+    rest = protocols.load(ROOT / "data" / "ogasawara.toml")
+    starts = np.array([s.start for s in rest.sessions])
+    assert len(starts) == 36 and rest.end == 15 * week
+    assert not np.any((starts >= 6 * week) & (starts < 9 * week))  # weeks 7-9 without a session
+    assert [int(np.sum((starts >= w * week) & (starts < (w + 1) * week))) for w in (0, 5, 9, 14)] == [3] * 4
+    continuous = protocols.load(ROOT / "data" / "ogasawara-continuous.toml")
+    assert len(continuous.sessions) == 45 and continuous.end == rest.end
+    data = measured.read(ROOT / "data" / "ogasawara.csv")
+    np.testing.assert_allclose(data.t, [6 * week, 9 * week, 15 * week])
+    np.testing.assert_allclose(data.csa_ratio, [1.08, 1.08 * 0.97, 1.08 * 0.97 * 1.07], atol=5e-5)
+    steady = measured.read(ROOT / "data" / "ogasawara-continuous.csv")
+    np.testing.assert_allclose(steady.csa_ratio, [1.09, 1.09 * 1.04, 1.09 * 1.04 * 1.02], atol=5e-5)
+    assert measured.of_protocol(rest, "idealized").label == "Ogasawara et al. 2010"
+    assert measured.of_protocol(rest, "TA_VHF_Left") is None  # a triceps is compared on generic shapes only
 
 
 @pytest.mark.parametrize("geometry, compared", [

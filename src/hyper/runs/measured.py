@@ -58,6 +58,7 @@ MUSCLES = {
     "rectus femoris": ("RF",), "vastus lateralis": ("VL",), "vastus medialis": ("VM",),
     "vastus intermedius": ("VI",), "biceps femoris long head": ("BFLH",), "semitendinosus": ("ST",),
     "tibialis anterior": ("TA",), "gastrocnemius medialis": ("GM",),
+    "triceps brachii": (),  # no mesh of it: compared on the generic shapes only
 }
 GENERIC = ("idealized", "cylinder")  # shapes of no particular muscle
 TIME_UNITS = {"week": protocols.WEEK, "day": 24.0, "hour": 1.0}  # h per unit
@@ -70,6 +71,8 @@ SHIPPED = {
     "damas.csv": ("Damas et al. 2016", "damas.toml"),
     "seynnes.csv": ("Seynnes et al. 2007", "seynnes.toml"),
     "narici.csv": ("Narici et al. 1989", "narici.toml"),
+    "ogasawara.csv": ("Ogasawara et al. 2010", "ogasawara.toml"),
+    "ogasawara-continuous.csv": ("Ogasawara et al. 2010, continuous", "ogasawara-continuous.toml"),
 }
 
 
