@@ -52,6 +52,7 @@ times those of an exact displacement solve and is slower than LU at 78k unknowns
 from __future__ import annotations
 
 import dataclasses
+import weakref
 
 import basix.ufl
 import dolfinx_solver  # noqa: F401  (must precede dolfinx and petsc4py)
@@ -166,6 +167,19 @@ FREE_MODE_RATIO = 1e-8
 _REASONS = {v: k for k, v in vars(PETSc.SNES.ConvergedReason).items() if isinstance(v, int)}
 
 
+def weak_callback(method):
+    """``method`` (bound) called through a weak reference to its object. PETSc keeps the
+    callbacks it is given where Python's collector cannot see them: a bound method handed
+    to an SNES or KSP its object owns would keep the object, its mesh and their duplicated
+    communicators alive for ever (MPICH has about 2000; a test suite ran out of them)."""
+    ref = weakref.WeakMethod(method)
+
+    def call(*args):
+        return ref()(*args)
+
+    return call
+
+
 class SolverError(RuntimeError):
     """Newton did not converge; the problem holds the solution it had before the solve."""
 
@@ -262,7 +276,7 @@ class MechanicsProblem:
         self.multipliers = np.zeros(len(self.rigid.modes))
 
         self.snes = PETSc.SNES().create(self.comm)
-        self.snes.setFunction(self._assemble_residual, self._F)
+        self.snes.setFunction(weak_callback(self._assemble_residual), self._F)
         self.snes.setOptionsPrefix(options_prefix)
         user = dict(petsc_options or {})
         # The sub-solvers of the fieldsplit read their options at its first set-up, long
@@ -280,7 +294,7 @@ class MechanicsProblem:
         self._P = self._K
         if linear_solver in SUBSOLVER_OPTIONS:
             self._preconditioner(mesh)
-        self.snes.setJacobian(self._snes_jacobian, self._K, self._P)
+        self.snes.setJacobian(weak_callback(self._snes_jacobian), self._K, self._P)
         controls = {**(blr_controls(blr_precision) if linear_solver == "iterative" else {}),
                     **{k: v for k, v in user.items() if k.startswith(READ_LATER)}}
         self._set_mumps(controls)
@@ -439,7 +453,7 @@ class MechanicsProblem:
         if m:
             # Each Newton matrix changes Â⁻¹, and its large parts cancel only with the
             # multipliers' Schur taken anew with it: before every linear solve
-            self.snes.getKSP().setPreSolve(lambda ksp, b, x: self._multiplier_schur())
+            self.snes.getKSP().setPreSolve(weak_callback(self._multiplier_presolve))
         self._splits = (is_u, is_p)
         self._split_udofs = udofs
         if self.linear_solver == "pmg":
@@ -504,6 +518,9 @@ class MechanicsProblem:
         coarse.getPC().setType("gamg")
         coarse.setFromOptions()
         coarse.setUp()
+
+    def _multiplier_presolve(self, ksp, b, x) -> None:
+        self._multiplier_schur()
 
     def _multiplier_schur(self) -> None:
         """The multipliers' part of the Schur preconditioner, -bᵢᵀ Â⁻¹ bᵢ with Â⁻¹ the

@@ -52,7 +52,7 @@ import numpy as np
 from dolfinx import fem
 from mpi4py import MPI
 
-from hyper.fem.mechanics import SolverError
+from hyper.fem.mechanics import SolverError, weak_callback
 
 DEPTH = 10  # secant pairs kept, over this and earlier solves
 # The first iterate extrapolates ORDER + 1 solutions, as polynomials in the growth amount
@@ -330,8 +330,8 @@ class LaggedJacobian:
         self.point: tuple[np.ndarray, np.ndarray] | None = None  # (w, Ḡ) local arrays
         self._refresh = False
         K = problem.jacobian_matrix
-        problem.snes.setJacobian(self._jacobian, K, K)
-        problem.snes.setFunction(self._residual, problem.snes.getFunction()[0])
+        problem.snes.setJacobian(weak_callback(self._jacobian), K, K)
+        problem.snes.setFunction(weak_callback(self._residual), problem.snes.getFunction()[0])
 
     def _residual(self, snes, x, f) -> None:
         with self.monitor.track("residual assembly"):
