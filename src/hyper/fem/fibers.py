@@ -553,10 +553,16 @@ def compute_transferred(geometry: geo.Geometry, flow: geo.Geometry, params: Stok
                         ) -> tuple[fem.Function, fem.Function]:
     """The Stokes fibres of ``geometry`` solved on ``flow``, a finer mesh of the same
     surface, and carried onto ``geometry``'s nodes: (a0 unit at the nodes, speed)."""
-    a0, speed = StokesFibers(flow, params).fibers()
+    return carried_over(*StokesFibers(flow, params).fibers(), geometry, params.min_speed)
+
+
+def carried_over(a0: fem.Function, speed: fem.Function, geometry: geo.Geometry, min_speed: float
+                 ) -> tuple[fem.Function, fem.Function]:
+    """Fibres (a0, speed) of another mesh of the same surface on ``geometry``'s nodes: the
+    velocity a0·speed interpolated there (`transferred`), unit there, and its speed."""
     u = transferred(a0, geometry)
     u.x.array[:] *= np.repeat(transferred(speed, geometry).x.array, 3)
-    return normalized(u, params.min_speed, geometry.name)
+    return normalized(u, min_speed, geometry.name)
 
 
 def store(path: str | Path, geometry: geo.Geometry, a0: fem.Function, speed: fem.Function,
