@@ -306,9 +306,9 @@ def fibre_level(comm, stl: Path, extra: list[str], cells: int, scratch: Path, sm
     """The surface meshed as `hyper mesh --cells CELLS` does, its Stokes flow solved once and
     smoothed over each length of ``smoothings`` (mm): (geometry, {l: (a0, speed)}, timings)."""
     options = mesh_job.parser().parse_args([str(stl), "--output", str(scratch / "unused"), "--cells", str(cells),
-                                           "--flow-cells", str(cells), *extra])
+                                           *extra])
     start = time.perf_counter()
-    geometry = mesh_job.flow_mesh(comm, options, scratch / f"c{cells}" / f"c{cells}.xdmf")
+    geometry = mesh_job.flow_mesh(comm, options, scratch / f"c{cells}" / f"c{cells}.xdmf", cells)
     meshed = time.perf_counter()
     stokes = fibers.StokesFibers(geometry)
     u = stokes.solve()
@@ -433,6 +433,38 @@ def fibre_chart(path: Path, result: dict) -> None:
     plot.save(fig, path, dpi=120)
 
 
+def fibre_cost_s(record: dict, row: dict) -> float:
+    """Seconds `hyper mesh` spends on the mesh and its fibres under ``row``'s setting: the
+    mesh at --cells, and the flow's mesh, Stokes solve, smoothing and carrying over."""
+    own = record["levels"][str(record["settings"]["cells"])]
+    flow = record["levels"][str(row["cells_target"])]
+    length = f"{row['smoothing_mm']:g}"
+    return own["mesh_s"] + (flow["mesh_s"] if row["fibres"] == "flow" else 0.0) + flow["stokes_s"] \
+        + flow["smoothing_s"][length] + row["carry_s"]
+
+
+def fibre_table(result: dict) -> list[str]:
+    """The markdown table of docs/convergence.md: per muscle and setting at --cells, mean /
+    p95 angle to the reference (°) and the seconds of the mesh with its fibres."""
+    cases = sorted({(r["smoothing_mm"], r["fibres"], r["cells_target"]) for m in result["muscles"]
+                    for r in m["rows"] if r["cells_target"] == result["cells"] or r["fibres"] == "flow"})
+    head = " | ".join(f"l = {length:g} mm, {'flow at ' + str(n) if kind == 'flow' else 'own flow'}"
+                      for length, kind, n in cases)
+    lines = [f"| muscle | cells | {head} | seconds: {' / '.join(str(i + 1) for i in range(len(cases)))} |",
+             "|---|---|" + "---|" * (len(cases) + 1)]
+    for m in result["muscles"]:
+        rows = {(r["smoothing_mm"], r["fibres"], r["cells_target"]): r for r in m["rows"]}
+        cells = m["levels"][str(result["cells"])]["cells"]
+        angles_ = " | ".join(f"{rows[c]['mean_deg']:.2f} / {rows[c]['p95_deg']:.2f}" for c in cases)
+        seconds = " / ".join(f"{fibre_cost_s(m, rows[c]):.0f}" for c in cases)
+        lines.append(f"| {m['muscle']} | {cells} | {angles_} | {seconds} |")
+    meeting = [sum(rows["p95_deg"] <= FIBRES_GOAL_DEG for m in result["muscles"] for rows in m["rows"]
+                   if (rows["smoothing_mm"], rows["fibres"], rows["cells_target"]) == c) for c in cases]
+    lines.append(f"| within {FIBRES_GOAL_DEG:g}° (p95), of {len(result['muscles'])} | | "
+                 + " | ".join(map(str, meeting)) + " | |")
+    return lines
+
+
 def fibres_all(comm, args) -> int:
     muscles = args.fibres_all or fibre_muscles(args.surfaces)
     for name in muscles:
@@ -464,6 +496,7 @@ def fibres_all(comm, args) -> int:
     if comm.rank == 0:
         io.write_json(args.output / "fibres_all.json", result)
         fibre_chart(args.output / "fibres_all.png", result)
+        print("\n".join(fibre_table(result)))
     info(comm, f"wrote {args.output / 'fibres_all'}.json and .png")
     return cli.EXIT_OK
 
