@@ -40,9 +40,8 @@ test-mpi: venv
 # The 19 meshes/M_S_side/ of geometry.NEW from the Visible Human surfaces (docs/meshing.md "A mesh from
 # a surface"). The VHM frame's z axis points distally (its TA lies below its thigh), the VHF
 # frame's proximally: the origin (tag 1) is the end toward +z for VHF and toward -z for VHM.
-# --end-rule vertices --fibers-smoothing 0 --flow-cells 8000 (the flow on the mesh itself): as the
-# shipped ones were made, before hyper mesh's converging defaults (docs/convergence.md); without
-# them the fibres differ.
+# --end-rule vertices --fibers-smoothing 0: as the shipped ones were made, before hyper mesh's
+# converging defaults (docs/convergence.md); without them the fibres differ.
 SURFACES ?= ../shared/surfaces
 NEW_MUSCLES := RectusFemoris:RF VastusLateralis:VL VastusMedialis:VM VastusIntermedius:VI GastrocnemiusMedial:GM
 new-meshes: venv
@@ -50,7 +49,7 @@ new-meshes: venv
 	  base=$$(basename $$stl); subject=$${base%%_*}; rest=$${base#*_}; side=$${rest%%_*}; \
 	  toward="0 0 1"; [ $$subject = VHM ] && toward="0 0 -1"; \
 	  $(PY) -m hyper.mesh $$stl --output meshes/$${pair##*:}_$${subject}_$$side --origin-toward $$toward --force \
-	    --end-rule vertices --fibers-smoothing 0 --flow-cells 8000 \
+	    --end-rule vertices --fibers-smoothing 0 \
 	    || exit 1; done; done
 
 lint: venv

@@ -31,9 +31,6 @@ ARRAYS = ("x", "tets", "facets", "tags")  # what `build` returns besides numbers
 # --fibers-smoothing (mm): on TA_VHF_Left (docs/convergence.md) 2 mm brings the 8k-cell fibres
 # within 2.5° (95th percentile) of the 64k-cell field; 3 mm gains 0.3° more
 FIBERS_SMOOTHING_MM = 2.0
-# The fibres' flow is solved on a mesh of the surface this many times finer than --cells and
-# carried onto its nodes (docs/convergence.md, `bench convergence --fibres-all`): RULE
-FLOW_CELLS_FACTOR = 2
 
 
 def parser() -> cli.Parser:
@@ -59,10 +56,9 @@ def parser() -> cli.Parser:
     cli.vector_option(p, "--origin-toward", default=hm.ORIGIN_TOWARD,
                       help="the origin (tag 1) is the end further along this direction")
     p.add_argument("--flow-cells", type=cli.integer(200, hm.MAX_CELLS), metavar="N",
-                   help=f"the fibres' Stokes flow is solved on a second mesh of the surface at N cells and "
-                        f"interpolated onto this mesh's nodes: fibres nearer the converged field (python -m "
-                        f"hyper.bench convergence --fibres-all); by default {FLOW_CELLS_FACTOR} × --cells; N equal "
-                        f"to --cells: the flow on this mesh itself (hyper mesh before; the shipped new meshes)")
+                   help="solve the fibres' Stokes flow on a second mesh of the surface at N cells (finer than "
+                        "--cells) and interpolate it onto this mesh's nodes: fibres nearer the converged field "
+                        "(python -m hyper.bench convergence --fibres-all); by default the flow is solved on this mesh")
     p.add_argument("--fibers-smoothing", type=cli.number(0, 50), default=FIBERS_SMOOTHING_MM,
                    metavar="MM", help="the Stokes velocity smoothed over this length before its direction is taken "
                    "(hyper.fem.fibers.smoothed: the fibres then converge with the mesh); 0: none, the paper's")
@@ -107,11 +103,6 @@ def build(args) -> dict:
             "mesh_s": time.perf_counter() - checked,
             "end_area_mm2": [float(areas[tags == 1].sum()), float(areas[tags == 2].sum())],
             "sha256": hashlib.sha256(path.read_bytes()).hexdigest()}
-
-
-def flow_cells(args) -> int:
-    """The cells of the mesh the fibres' flow is solved on: --flow-cells, or FLOW_CELLS_FACTOR × --cells."""
-    return args.flow_cells if args.flow_cells is not None else min(FLOW_CELLS_FACTOR * args.cells, hm.MAX_CELLS)
 
 
 def flow_mesh(comm, args, path: Path, cells: int) -> geo.Geometry:
@@ -171,11 +162,10 @@ def run(comm, args) -> int:
         geometry = geo.load_file(stage / f"{name}.xdmf", comm, name=name, scale=geo.MM)
         params = fibers.StokesParams(smoothing_m=args.fibers_smoothing * geo.MM)
         method = fibers.stokes_method(params)
-        on_flow_mesh = flow_cells(args) != args.cells
-        if not on_flow_mesh:
+        if args.flow_cells is None:
             a0, speed = fibers.compute(geometry, params)
         else:
-            flow = flow_mesh(comm, args, stage / "flow" / f"{name}.xdmf", flow_cells(args))
+            flow = flow_mesh(comm, args, stage / "flow" / f"{name}.xdmf", args.flow_cells)
             a0, speed = fibers.compute_transferred(geometry, flow, params)
             method += fibers.TRANSFERRED_METHOD.format(cells=flow.num_cells())
             del flow
@@ -205,11 +195,11 @@ def run(comm, args) -> int:
                                 "ranks": comm.size, **stats},
                          groups={"parameters": as_attributes(params)})
         if comm.rank == 0:
-            if on_flow_mesh:
+            if args.flow_cells is not None:
                 shutil.rmtree(stage / "flow")
             record = {"source": str(args.surface), "source_sha256": built["sha256"], "unit": args.unit,
                       "mesher": f"gmsh {hm.gmsh_version()}", "cells_target": args.cells,
-                      **({"flow_cells_target": flow_cells(args)} if on_flow_mesh else {}),
+                      **({} if args.flow_cells is None else {"flow_cells_target": args.flow_cells}),
                       "surface_triangles": built["surface_triangles"], "ends": built["rule"],
                       "fibers_smoothing_mm": args.fibers_smoothing,
                       "end_area_mm2": built["end_area_mm2"], "quality": built["quality"],
