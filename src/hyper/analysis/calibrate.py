@@ -232,7 +232,8 @@ def figure(path: Path, datasets: list[Dataset], f: Fit, times: list[np.ndarray],
     label = ", ".join(f"{n} = {v:.4g} [{lo:.4g}, {hi:.4g}]" for n, v, lo, hi in zip(f.names, f.x, f.low, f.high))
     for d, t in zip(datasets, times):
         c = curve[offset:offset + len(t)]
-        line, = ax.plot(t / protocols.WEEK, 100 * (c - 1), label=f"{d.name} ({d.protocol.name}) fit")
+        name = d.name if d.protocol.name == d.name else f"{d.name} ({d.protocol.name})"
+        line, = ax.plot(t / protocols.WEEK, 100 * (c - 1), label=f"{name} fit")
         if half is not None:
             h = half[offset:offset + len(t)]
             ax.fill_between(t / protocols.WEEK, 100 * (c - h - 1), 100 * (c + h - 1), color=line.get_color(),
