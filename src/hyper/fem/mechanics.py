@@ -36,7 +36,7 @@ residual of 1e-10: the factors of the off-diagonal blocks of every front are sto
 low-rank products, which saves memory (the bench `solvers` measures how much) and the
 Krylov iterations recover the accuracy. "amg" (experimental: no job offers it): GMRES
 right-preconditioned by an upper Schur factorisation, GAMG on the displacement block
-(the rigid-body near null space, block size 3), -(1/μ) M_p for the pressure, and for the
+(the rigid-body near null space, block size 3), +(1/μ) M_p for the pressure, and for the
 multipliers of free rigid motions the Schur complement taken with the same V-cycle
 (`_preconditioner`, `_multiplier_schur`). Its Schur part is adequate (with an exact
 displacement solve, 11-36 iterations a Newton step on TA), its AMG is not: one V-cycle
@@ -383,7 +383,7 @@ class MechanicsProblem:
         Its preconditioner is built from the Newton matrix's displacement block.
         Pressure split: the owned p dofs in the order of the collapsed P1 space, then
         (last rank) the multipliers, so that the Schur preconditioner
-        Sp = -(1/μ) M_p ⊕ -diag(c) is assembled on the P1 space directly (μ = 2 (c1 + c2),
+        Sp = +(1/μ) M_p ⊕ -diag(c) is assembled on the P1 space directly (μ = 2 (c1 + c2),
         the shear modulus). Where rigid motions are free, ε M_u (ε = AMG_SHIFT μ / L², its
         diagonal) added to the block keeps it non-singular and
         c_i = ∫ r_i·r_i dX / ε is the Schur complement Bᵀ (E + ε M_u)⁻¹ B of a motion r_i
@@ -442,7 +442,9 @@ class MechanicsProblem:
         NQ = Q.dofmap.index_map.size_global
         indptr = np.concatenate([indptr, indptr[-1] + np.arange(1, self._nmult + 1)]).astype(PETSc.IntType)
         indices = np.concatenate([indices, NQ + np.arange(self._nmult)]).astype(PETSc.IntType)
-        values = np.concatenate([-values / mu, -c[: self._nmult]])
+        # +M_p/μ: the coupling blocks are nearly antisymmetric, so S = -K[p,u] A⁻¹ K[u,p] ≈ +M_p/μ
+        # (the opposite sign doubles the GMRES count: docs/performance.md)
+        values = np.concatenate([values / mu, -c[: self._nmult]])
         n = nq + self._nmult
         self._schur = PETSc.Mat().createAIJ(((n, NQ + m), (n, NQ + m)), comm=comm)
         self._schur.setPreallocationCSR((indptr, indices, values))
