@@ -46,7 +46,7 @@ PETSc wheel. Measured in `python -m hyper.bench solvers --parts amg` (docs/perfo
 displacement block (`_coarse_gamg`): Chebyshev/Jacobi on P2, GAMG on the Galerkin P1
 operator. It converges where "amg" fails and with half its iterations, but needs 1.9-16
 times those of an exact displacement solve and is slower than LU at 78k unknowns
-(`python -m hyper.bench solvers --parts pmg`).
+(`python -m hyper.bench solvers --parts pmg`; with the Schur sign fixed 1.16× LU at 78k, docs/performance.md).
 """
 
 from __future__ import annotations
