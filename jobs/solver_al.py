@@ -14,7 +14,7 @@ W = diag(M_p) on the P1 pressure rows (multiplier rows are not augmented): the u
 solution is unchanged. Solved by GMRES (right, restart 200, rtol 1e-10) with the upper Schur
 fieldsplit of MechanicsProblem's "amg"/"pmg" (multipliers' Schur -bᵢᵀ Â⁻¹ bᵢ with the same Â⁻¹),
 the pressure part Ŝ⁻¹ = -a M_p⁻¹ - b W⁻¹:
-    SCHUR "lump": a = 0, b = μ + γ        (γ = 0: the existing -(1/μ) M_p with Jacobi)
+    SCHUR "lump": a = 0, b = μ + γ        (γ = 0: the amg/pmg solvers before 3058d11, -(1/μ) M_p with Jacobi)
     SCHUR "mass": a = μ, b = γ            (the exact-AL identity S_γ⁻¹ = S⁻¹ - γ W⁻¹ with S ≈ -M_p/μ)
     SCHUR "lump+", "mass+": the same with the opposite sign, Ŝ⁻¹ = +a M_p⁻¹ + b W⁻¹: K's coupling
     blocks are K[u, p] ≈ -K[p, u]ᵀ (printed: coupling_antisym), so S = -B A⁻¹ K[u, p] ≈ +M_p/μ and
