@@ -44,9 +44,9 @@ of GAMG on the P2 displacement block fails on the anatomical meshes; hypre is no
 PETSc wheel. Measured in `python -m hyper.bench solvers --parts amg` (docs/performance.md).
 "pmg" (experimental too): the same fieldsplit with a two-level P2 → P1 multigrid on the
 displacement block (`_coarse_gamg`): Chebyshev/Jacobi on P2, GAMG on the Galerkin P1
-operator. It converges where "amg" fails and with half its iterations, but needs 1.9-16
-times those of an exact displacement solve and is slower than LU at 78k unknowns
-(`python -m hyper.bench solvers --parts pmg`; with the Schur sign fixed 1.16× LU at 78k, docs/performance.md).
+operator. It converges where "amg" fails, but needs 1.9-7.3 times the iterations of an
+exact displacement solve and 1.16 times LU's time at 78k unknowns
+(`python -m hyper.bench solvers --parts pmg`, docs/performance.md).
 """
 
 from __future__ import annotations
