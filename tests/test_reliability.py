@@ -406,6 +406,40 @@ def test_iterative_linear_solver_run_lands_on_the_lu_run(inputs, reference, tmp_
         assert f.attrs["unknowns"] == g.attrs["unknowns"] > 1000
 
 
+def test_pmg_linear_solver_run_lands_on_the_lu_run(inputs, reference, tmp_path):
+    """--linear-solver pmg: each kept-factor iteration a GMRES solve with the kept multigrid;
+    the CSA and volume series within 1e-6 of the growth of LU's (the issue's tolerance)."""
+    out = tmp_path / "pmg.h5"
+    assert grow.main(command(inputs, out, "--linear-solver", "pmg")) == 0
+    s, ref = io.read_series(out), io.read_series(reference)
+    for name in ("csa_ratio", "volume_ratio"):
+        growth = ref[name][-1] - 1.0
+        assert growth > 5e-3
+        assert np.max(np.abs(np.asarray(s[name]) - ref[name])) < 1e-6 * growth
+    with h5py.File(out) as f:
+        assert f.attrs["linear_solver"] == "pmg"
+
+
+def test_a_pmg_run_killed_and_rerun_continues_bit_for_bit(inputs, tmp_path):
+    """The multigrid is rebuilt on resume from the Newton matrix at the checkpoint's point,
+    as the uninterrupted run built it: the same series to the last bit, on one rank."""
+    whole = tmp_path / "whole.h5"
+    assert grow.main(command(inputs, whole, "--linear-solver", "pmg")) == 0
+    out = tmp_path / "run.h5"
+    proc = start(inputs, out, "--linear-solver", "pmg", "--checkpoint-every", "3")
+    try:
+        wait_for(runspec.Outputs(out).checkpoint, proc)
+        proc.send_signal(signal.SIGKILL)
+        assert proc.wait(60) == -signal.SIGKILL
+    finally:
+        proc.kill()
+        proc.wait()
+    assert attrs(runspec.Outputs(out).checkpoint)["step"] == 3
+    assert grow.main(command(inputs, out, "--linear-solver", "pmg", "--checkpoint-every", "3")) == 0
+    for name in ("csa_ratio", "volume_ratio", "newton_iterations"):
+        np.testing.assert_array_equal(io.read_series(out)[name], io.read_series(whole)[name], err_msg=name)
+
+
 def test_accuracy_takes_lu_while_it_fits_and_the_iterative_solver_when_memory_is_short(inputs, tmp_path, monkeypatch):
     runs = {}
     for name, available in (("roomy", None), ("short", 1.0)):

@@ -80,10 +80,10 @@ DEFAULT_PETSC_OPTIONS = {
     "pc_factor_mat_solver_type": "mumps",
 }
 
-LINEAR_SOLVERS = ("lu", "iterative")
+LINEAR_SOLVERS = ("lu", "iterative", "pmg")
 # Built here, measured by `python -m hyper.bench solvers --parts amg`, offered by no job:
 # its displacement block's AMG is too weak on the anatomical meshes (docs/performance.md).
-EXPERIMENTAL_SOLVERS = ("amg", "pmg")
+EXPERIMENTAL_SOLVERS = ("amg",)
 ITERATIVE_PETSC_OPTIONS = {
     "ksp_type": "gmres",
     "ksp_gmres_restart": 100,
@@ -165,6 +165,7 @@ def blr_controls(precision: float) -> dict:
 # Free rigid modes are those whose spring stiffness is below this fraction of the largest.
 FREE_MODE_RATIO = 1e-8
 _REASONS = {v: k for k, v in vars(PETSc.SNES.ConvergedReason).items() if isinstance(v, int)}
+_KSP_REASONS = {v: k for k, v in vars(PETSc.KSP.ConvergedReason).items() if isinstance(v, int)}
 
 
 def weak_callback(method):
@@ -274,6 +275,7 @@ class MechanicsProblem:
         self.rigid = rigid_modes(geometry)
         self._build_system([fem.form(ufl.dot(r, v) * dx) for r in self.rigid.modes])
         self.multipliers = np.zeros(len(self.rigid.modes))
+        self.krylov_iterations = 0  # over every solve (SNES's and `apply_inverse`'s); LU counts one a step
 
         self.snes = PETSc.SNES().create(self.comm)
         self.snes.setFunction(weak_callback(self._assemble_residual), self._F)
@@ -579,6 +581,25 @@ class MechanicsProblem:
         """Krylov iterations of the last solve (one per Newton step with LU)."""
         return self.snes.getLinearSolveIterations()
 
+    def apply_inverse(self, r: PETSc.Vec, f: PETSc.Vec) -> None:
+        """f = K⁻¹ r with the linear solver as last set up (`setup_linear_solver`), for
+        Newton iterations outside SNES (`hyper.fem.newton.KeptFactors`). LU and
+        "iterative" apply their factors once (the BLR factors are inexact: the kept-factor
+        iteration's secants correct them as they correct old factors). "pmg" (and "amg")
+        run their GMRES to its tolerance: one application of the fieldsplit is far from
+        K⁻¹, and the kept iteration converges as with LU only with K solved as well."""
+        ksp = self.snes.getKSP()
+        if ksp.getType() == PETSc.KSP.Type.PREONLY:
+            ksp.getPC().apply(r, f)
+            self.krylov_iterations += 1
+            return
+        ksp.solve(r, f)
+        self.krylov_iterations += ksp.getIterationNumber()
+        reason = ksp.getConvergedReason()
+        if reason <= 0:
+            raise SolverError(f"the linear solver ({self.linear_solver}, {ksp.getType()}) did not converge "
+                              f"({_KSP_REASONS.get(reason, reason)}) after {ksp.getIterationNumber()} iterations")
+
     def mumps_memory(self) -> dict:
         """MUMPS's account of the last factorisation, summed over ranks: memory its
         analysis estimated and the memory it used (MB, INFOG 17 and 22), the entries a
@@ -721,6 +742,7 @@ class MechanicsProblem:
         except PETSc.Error as err:
             reason = f"PETSc error {err}"
         iterations = self.snes.getIterationNumber()
+        self.krylov_iterations += self.snes.getLinearSolveIterations()
         if not isinstance(reason, int) or reason <= 0:
             self.w.x.array[:] = previous[0]
             self.w.x.scatter_forward()

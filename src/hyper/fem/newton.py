@@ -108,12 +108,8 @@ class KeptFactors:
         self.point: tuple[np.ndarray, np.ndarray] | None = None  # (w, Ḡ) local arrays of the last assembly
         # the last solutions: (growth amount, w local array, multipliers), oldest first
         self.history: list[tuple[float, np.ndarray, np.ndarray]] = []
-        K = problem.jacobian_matrix
-        ksp = problem.snes.getKSP()
-        ksp.setOperators(K, K)
-        self.pc = ksp.getPC()
         self.x = problem.solution_vector
-        self._r = K.createVecLeft()
+        self._r = problem.jacobian_matrix.createVecLeft()
         self.secants = Secants(problem.comm, depth)
 
     def _assemble(self, x) -> None:
@@ -126,9 +122,9 @@ class KeptFactors:
         self.secants.clear()
 
     def _factorise(self) -> None:
-        # PETSc factorises only a matrix whose state changed since the last set-up
+        # PETSc factorises (or builds the multigrid) only where the matrix changed since
         with self.monitor.track("factorisation"):
-            self.pc.setUp()
+            self.problem.setup_linear_solver()
 
     def rebuild(self, count: int, point: tuple[np.ndarray, np.ndarray] | None) -> None:
         """Take over a saved state: the count and the matrix assembled at ``point``."""
@@ -144,7 +140,7 @@ class KeptFactors:
 
     def _correction(self, r, f) -> None:
         with self.monitor.track("back-solves"):
-            self.pc.apply(r, f)
+            self.problem.apply_inverse(r, f)
         f.scale(-1.0)
 
     def solve(self, amount: float) -> int:

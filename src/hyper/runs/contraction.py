@@ -11,6 +11,7 @@ fails as two half steps.
 
 from __future__ import annotations
 
+import resource
 import time
 from pathlib import Path
 
@@ -30,9 +31,9 @@ from hyper.runs import checkpoint as ckpt
 from hyper.runs import driver, plot, runspec
 
 SERIES = ("alpha", "end_force", "spring_force", "reaction_force_original", "reaction_force_current",
-          "newton_iterations", "volume_ratio", "stretch_min", "stretch_max", "wall_s")
+          "newton_iterations", "krylov_iterations", "volume_ratio", "stretch_min", "stretch_max", "wall_s")
 UNITS = {"alpha": "1", "end_force": "N", "spring_force": "N", "reaction_force_original": "N",
-         "reaction_force_current": "N", "newton_iterations": "count",
+         "reaction_force_current": "N", "newton_iterations": "count", "krylov_iterations": "count",
          "volume_ratio": "1", "stretch_min": "1", "stretch_max": "1", "wall_s": "s"}
 
 
@@ -59,6 +60,11 @@ class Fields:
         values = self.stretch.x.array[: self._ncells]
         comm = self.problem.comm
         return comm.allreduce(values.min(), op=MPI.MIN), comm.allreduce(values.max(), op=MPI.MAX)
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory so far (MB; Linux reports KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def advance(problem, target: float, max_halvings: int) -> tuple[int, int]:
@@ -122,7 +128,8 @@ def contract(comm, args) -> dict:
             "fibers_sha256": on_rank0(comm, lambda: ckpt.file_digest(fibre_file)) if fibre_file else "",
         }
     material = args.material
-    problem = MechanicsProblem(geometry, a0, material, normalize_fibres=not original)
+    solver = getattr(args, "linear_solver", "lu")
+    problem = MechanicsProblem(geometry, a0, material, normalize_fibres=not original, linear_solver=solver)
     info(comm, f"{args.geometry}: {geometry.num_cells()} cells, {problem.num_dofs} unknowns, "
                f"{comm.size} rank(s); rigid motions: {problem.rigid.description}")
     fields = Fields(problem)
@@ -135,17 +142,20 @@ def contract(comm, args) -> dict:
     with io.atomic_xdmf(comm, xdmf_path) as xdmf:
         xdmf.write_mesh(geometry.mesh)
         for k, alpha in enumerate(np.linspace(0.0, 1.0, args.steps + 1)):
+            krylov = problem.krylov_iterations
             iterations, halvings = advance(problem, float(alpha), args.max_halvings)
             for f in fields.update():
                 xdmf.write_function(f, float(alpha))
             lo, hi = fields.stretch_range()
             values = (float(alpha), problem.end_force(), problem.spring_force(), problem.reaction_force_original(),
-                      problem.reaction_force_current(), iterations, problem.volume() / volume0, lo, hi,
+                      problem.reaction_force_current(), iterations, problem.krylov_iterations - krylov,
+                      problem.volume() / volume0, lo, hi,
                       time.perf_counter() - start)
             for name, value in zip(SERIES, values):
                 series[name].append(value)
             progress.update(k, f"α = {alpha:.3f}: end force {values[1]:.4e} N, original R {values[3]:.4e} N, "
                                f"λ in [{lo:.4f}, {hi:.4f}], {iterations} Newton its"
+                               + (f" ({values[6]} {solver} Krylov its)" if solver != "lu" else "")
                                + (f" ({halvings} halvings)" if halvings else ""), force=True)
     attrs = {
         "geometry": args.geometry,
@@ -163,7 +173,10 @@ def contract(comm, args) -> dict:
         "unknowns": problem.num_dofs,
         "ranks": comm.size,
         "quadrature_degree": geometry.quadrature_degree,
-        "linear_solver": "lu",
+        "linear_solver": solver,
+        # the largest resident set of any rank, and their sum: what a node must hold
+        "peak_rss_mb": comm.allreduce(peak_rss_mb(), op=MPI.MAX),
+        "peak_rss_mb_sum": comm.allreduce(peak_rss_mb(), op=MPI.SUM),
         "rigid_motions": problem.rigid.description,
         "fields_xdmf": xdmf_path.name,
     }

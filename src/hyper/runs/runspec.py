@@ -21,7 +21,7 @@ from hyper.model.protocols import Protocol
 from hyper.runs import checkpoint as ckpt
 from hyper.runs import fidelity
 
-LINEAR_SOLVERS = ("lu", "iterative", "auto")
+LINEAR_SOLVERS = ("lu", "iterative", "pmg", "auto")
 # the fibre kinds of a mesh file (--fibers, hyper.runs.presets.MESH_FIBERS) that are its
 # Stokes fibres: the file beside it, else computed
 MESH_FIBERS_STOKES = ("auto", "stokes")
@@ -136,7 +136,7 @@ class RunSpec:
     # per-cell signaling parameters: p0 (1 + ε ξ) drawn from this model with this seed
     heterogeneity: object = None  # hyper.model.heterogeneity.Heterogeneity
     seed: int | None = None
-    # how the Newton steps are solved: "lu", "iterative" or "auto" (by memory); all give
+    # how the Newton steps are solved: "lu", "iterative", "pmg" or "auto" (by memory); all give
     # the answer to the Newton tolerance, so the choice is not part of the digest
     linear_solver: str = "lu"
     # the fidelity choice (--accuracy) that set the steps; "auto" completes it with the solver
