@@ -6,6 +6,7 @@ The bench's growth solve (ϑ = 1.05 at once) with VARIANT lu, exact (the amg fie
 an LU displacement solve), gamg (amg as it is), pmg-lu or pmg-gamg (P2 -> P1 two-level
 multigrid on the displacement block, LU or GAMG on the Galerkin P1 operator). KEY=VALUE:
 smooth=KSP/PC and its=N (the P2 smoother), cycles_u=N, pits=N (N Chebyshev/Jacobi
+iterations on the Schur complement, each with a displacement solve), pm=N (N Chebyshev/Jacobi
 iterations on the Schur preconditioner's mass matrix instead of one Jacobi), fact=full, defl=sym (a rigid-motion
 correction before and after the multigrid) or defl=eig (the same with the block's neig=8
 softest eigenvectors, by scipy, serial), k=K_TENDON, blocktest=1 (after the solve, GMRES
@@ -62,8 +63,12 @@ else:
     if "cycles_u" in extra:
         opts.update({"fieldsplit_u_ksp_type": "richardson", "fieldsplit_u_ksp_max_it": int(extra["cycles_u"]),
                      "fieldsplit_u_ksp_norm_type": "none"})
-    if "pits" in extra:  # the Schur preconditioner's mass matrix solved by Chebyshev/Jacobi, not one Jacobi
+    if "pits" in extra:  # Chebyshev/Jacobi on the Schur complement itself (each iteration a u solve)
         opts.update({"fieldsplit_p_ksp_type": "chebyshev", "fieldsplit_p_ksp_max_it": int(extra["pits"])})
+    if "pm" in extra:  # the Schur preconditioner's mass matrix solved by pm Chebyshev/Jacobi steps, not one Jacobi
+        opts.update({"fieldsplit_p_pc_type": "ksp", "fieldsplit_p_ksp_ksp_type": "chebyshev",
+                     "fieldsplit_p_ksp_pc_type": "jacobi", "fieldsplit_p_ksp_ksp_max_it": int(extra["pm"]),
+                     "fieldsplit_p_ksp_ksp_convergence_test": "skip"})
     if "fact" in extra:
         opts["pc_fieldsplit_schur_fact_type"] = extra["fact"]
     if pc_s == "sor":

@@ -45,8 +45,9 @@ def test_parts_not_run_are_kept_from_the_previous_results(tmp_path, capsys):
     assert solvers.main(["--parts", "levels", "--levels", "0", "--output", str(tmp_path)]) == 0
     new = json.loads((tmp_path / "solvers.json").read_text())
     assert new["precision"] == old["precision"] and new["gamg"] == old["gamg"]
-    assert [r["solver"] for r in new["levels"]] == ["lu", "iterative"]
+    assert [r["solver"] for r in new["levels"]] == ["lu", "iterative", "pmg"]
     assert new["levels"][1]["difference_from_lu"]["u"] < 1e-9
+    assert new["levels"][2]["difference_from_lu"]["u"] < 1e-9 and new["levels"][2]["krylov_iterations"] > 10
     capsys.readouterr()
     assert solvers.main(["--parts", "levels", "bogus", "--output", str(tmp_path)]) == 2
     assert "error:" in capsys.readouterr().err
