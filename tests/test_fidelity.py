@@ -158,7 +158,7 @@ def test_lu_memory_law_passes_through_its_measurements_and_grows_faster_than_the
     assert 1.0 < exponent < 2.0  # 3-D nested dissection: n^(4/3) in theory
 
 
-def test_the_linear_solver_is_lu_while_it_fits_and_iterative_beyond():
+def test_the_linear_solver_is_lu_while_it_fits_and_pmg_beyond():
     gib = 1024.0
     solver, why = fidelity.linear_solver(78120, 22 * gib)
     assert solver == "lu" and "MUMPS LU" in why
@@ -168,9 +168,11 @@ def test_the_linear_solver_is_lu_while_it_fits_and_iterative_beyond():
              / math.log(fidelity.LU_MEMORY_MB[1][0] / fidelity.LU_MEMORY_MB[0][0])))
     assert fidelity.linear_solver(int(limit * 0.99), 22 * gib)[0] == "lu"
     solver, why = fidelity.linear_solver(int(limit * 1.01), 22 * gib)
-    assert solver == "iterative" and "GMRES" in why and "may not fit" not in why
+    assert solver == "pmg" and "GMRES" in why and "may not fit" not in why
+    solver, why = fidelity.linear_solver(1_500_000, 22 * gib)
+    assert solver == "pmg" and "may not fit" not in why
     solver, why = fidelity.linear_solver(20_000_000, 22 * gib)
-    assert solver == "iterative" and "may not fit" in why
+    assert solver == "pmg" and "may not fit" in why
 
 
 def test_grow_takes_the_linear_solver_asked_for_or_auto_with_accuracy(tmp_path):

@@ -440,7 +440,7 @@ def test_a_pmg_run_killed_and_rerun_continues_bit_for_bit(inputs, tmp_path):
         np.testing.assert_array_equal(io.read_series(out)[name], io.read_series(whole)[name], err_msg=name)
 
 
-def test_accuracy_takes_lu_while_it_fits_and_the_iterative_solver_when_memory_is_short(inputs, tmp_path, monkeypatch):
+def test_accuracy_takes_lu_while_it_fits_and_pmg_when_memory_is_short(inputs, tmp_path, monkeypatch):
     runs = {}
     for name, available in (("roomy", None), ("short", 1.0)):
         if available is not None:
@@ -455,5 +455,6 @@ def test_accuracy_takes_lu_while_it_fits_and_the_iterative_solver_when_memory_is
             assert chosen["growth_dt"] > 0 and chosen["signaling_dt"] > 0 and chosen["accuracy"] == 1e-3
         runs[name] += (io.read_series(out)["csa_ratio"],)
     assert runs["roomy"][0] == "lu" and "MUMPS LU" in runs["roomy"][1]
-    assert runs["short"][0] == "iterative" and "may not fit" in runs["short"][1]
-    np.testing.assert_allclose(runs["short"][2], runs["roomy"][2], rtol=1e-10)
+    assert runs["short"][0] == "pmg" and "may not fit" in runs["short"][1]
+    growth = runs["roomy"][2][-1] - 1.0  # pmg: GMRES to 1e-10, so the series agree to 1e-6 of the growth
+    assert growth > 5e-3 and np.max(np.abs(runs["short"][2] - runs["roomy"][2])) < 1e-6 * growth

@@ -31,8 +31,9 @@ accuracy below them is refused with what the mesh can give.
 
 The linear solver is chosen once the mesh is known (`linear_solver`): MUMPS's LU while
 its memory, predicted from the measured growth with the number of unknowns, fits in the
-memory available; GMRES with a block low-rank preconditioner beyond. Both answer to the
-Newton tolerance, so the choice changes the cost, not the answer.
+memory available; "pmg" (GMRES, a Schur fieldsplit with a P2 -> P1 multigrid, memory about
+linear in the mesh) beyond. Both answer to the Newton tolerance, so the choice changes the
+cost, not the answer.
 """
 
 from __future__ import annotations
@@ -105,7 +106,7 @@ class Choice:
     accuracy: float | None = None  # asked for; None: the steps were given, not chosen
     refine: int | None = None  # uniform refinements chosen for the accuracy (`choose_on_mesh`); None: not chosen
     spatial_error: float | None = None  # the mesh's share of predicted_error; None: not counted
-    linear_solver: str | None = None  # "lu" or "iterative" once the mesh is known
+    linear_solver: str | None = None  # "lu" or "pmg" once the mesh is known
     linear_solver_reason: str | None = None
 
     def with_linear_solver(self, unknowns: int, available_mb: float) -> Choice:
@@ -270,10 +271,11 @@ def assess(scene: Scene, growth_dt: float | None, signaling_dt: float) -> Choice
 # refined once and twice, in the growth solve of `python -m hyper.bench solvers`
 # (results/bench/solvers.json, levels[]): a power law through the two, m = a n^b.
 LU_MEMORY_MB = ((78120, 871.0), (577993, 11946.0))  # exponent 1.31
-# The BLR preconditioned GMRES's memory against LU's at the larger of the two (7177 MB
-# against 11946 MB; 0.91 at the smaller: compression pays on large fronts, so 0.6 is
-# conservative for larger meshes).
-ITERATIVE_MEMORY_RATIO = 0.60
+# "pmg" (GMRES, Schur fieldsplit, P2 -> P1 multigrid): its peak resident memory (MB, summed
+# over 2 ranks) in the same growth solve, at 578k unknowns; it grows as n^0.89 from 78k
+# (python -m hyper.bench solvers --parts levels --solvers lu pmg; results/bench/scalable):
+# taken as linear through the measurement, which overestimates below it and is exact at it.
+PMG_MEMORY_MB = (577993, 5464.0)
 # LU runs while its predicted memory is within this share of the memory available: the
 # mesh, forms, fields and MUMPS's own workspace estimate (up to 20 % above its use) need the rest.
 LU_MEMORY_SHARE = 0.7
@@ -286,17 +288,24 @@ def lu_memory_mb(unknowns: int) -> float:
     return m1 * (unknowns / n1) ** exponent
 
 
+def pmg_memory_mb(unknowns: int) -> float:
+    """The "pmg" solver's peak memory (MB, all ranks together) for ``unknowns``."""
+    n, m = PMG_MEMORY_MB
+    return m * unknowns / n
+
+
 def linear_solver(unknowns: int, available_mb: float) -> tuple[str, str]:
-    """LU while it fits in the memory available, else the iterative solver; and why."""
+    """LU while it fits in the memory available, else the pmg solver (at 578k unknowns 0.24x
+    LU's time and 0.34x its memory, in a growth solve on 2 ranks); and why."""
     lu = lu_memory_mb(unknowns)
     if lu <= LU_MEMORY_SHARE * available_mb:
         return "lu", (f"MUMPS LU: {unknowns} unknowns need about {lu / 1024:.2g} GiB, within "
                       f"{LU_MEMORY_SHARE:g} x {available_mb / 1024:.3g} GiB available")
-    iterative = ITERATIVE_MEMORY_RATIO * lu
-    fits = "" if iterative <= LU_MEMORY_SHARE * available_mb else "; it may not fit either: use more nodes"
-    return "iterative", (f"GMRES with a BLR preconditioner: LU would need about {lu / 1024:.3g} GiB for {unknowns} "
-                         f"unknowns, more than {LU_MEMORY_SHARE:g} x {available_mb / 1024:.3g} GiB available; "
-                         f"the iterative solver about {iterative / 1024:.3g} GiB{fits}")
+    pmg = pmg_memory_mb(unknowns)
+    fits = "" if pmg <= LU_MEMORY_SHARE * available_mb else "; it may not fit either: use more nodes"
+    return "pmg", (f"GMRES with a multigrid fieldsplit (pmg): LU would need about {lu / 1024:.3g} GiB for "
+                   f"{unknowns} unknowns, more than {LU_MEMORY_SHARE:g} x {available_mb / 1024:.3g} GiB available; "
+                   f"pmg about {pmg / 1024:.3g} GiB{fits}")
 
 
 # ------------------------------------------------------------------------ the mesh
