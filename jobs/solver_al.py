@@ -85,8 +85,8 @@ Wd = Mp_sp.diagonal()  # W = diag(M_p), in the collapsed-Q order = K's qdofs ord
 Mp_lu = sla.splu(Mp_sp.tocsc())
 shift_sp = None
 if nm:
-    si, sj, sv = problem._shift.getValuesCSR()
-    shift_sp = sp.csr_matrix((sv, sj, si), shape=(N, N))
+    # the problem's shift ε diag(M_u), on the u dofs of K's numbering (serial: first row 0)
+    shift_sp = sp.csr_matrix((problem._shift.getArray(), (udofs, udofs)), shape=(N, N))
 
 
 def to_scipy(M):

@@ -104,7 +104,7 @@ else:
     problem.load_state(problem._x)
     problem.assemble_jacobian(problem._x)
     ksp = problem.snes.getKSP()
-    ksp.setOperators(problem._K, problem._P)
+    ksp.setOperators(problem._K, problem._K)
     ksp.setUp()
     subu, subp = ksp.getPC().getFieldSplitSubKSP()
     pc = subu.getPC()

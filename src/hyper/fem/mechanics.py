@@ -305,10 +305,10 @@ class MechanicsProblem:
         read_now = {k: v for k, v in user.items() if k not in self._subsolver_options}
         _set_options(self.snes, options_prefix, {**DEFAULT_PETSC_OPTIONS, **preset, **read_now},
                      checked=tuple(read_now))
-        self._P = self._K
+        self._shift = None
         if linear_solver in SUBSOLVER_OPTIONS:
             self._preconditioner(mesh)
-        self.snes.setJacobian(weak_callback(self._snes_jacobian), self._K, self._P)
+        self.snes.setJacobian(weak_callback(self._snes_jacobian), self._K, self._K)
         controls = {**(blr_controls(blr_precision) if linear_solver == "iterative" else {}),
                     **{k: v for k, v in user.items() if k.startswith(READ_LATER)}}
         self._set_mumps(controls)
@@ -355,12 +355,11 @@ class MechanicsProblem:
         bs = self.W.dofmap.index_map_bs
         self._nowned = imap.size_local * bs
         self._b = fem.petsc.create_vector(self.W)
-        A = fem.petsc.create_matrix(self._jacobian_form)
         m = len(constraint_forms)
         self._mult_rank = self.comm.size - 1
         self._nmult = m if self.comm.rank == self._mult_rank else 0
         if m == 0:
-            self._K = A
+            self._K = fem.petsc.create_matrix(self._jacobian_form)
             self._B = np.empty((0, self._nowned))
         else:
             cols = []
@@ -371,22 +370,45 @@ class MechanicsProblem:
                 vec.destroy()
             self._B = np.array(cols)  # (modes, owned dofs)
             N = imap.size_global * bs
-            self._rows = np.arange(*A.getOwnershipRange(), dtype=np.int32)
-            self._mult_index = np.arange(N, N + m, dtype=np.int32)
-            # The sparsity of [[A, B], [Bᵀ, 0]] comes from a nest converted once to AIJ;
-            # A must be assembled for its pattern to survive the conversion.
-            fem.petsc.assemble_matrix(A, self._jacobian_form)
-            A.assemble()
-            B = PETSc.Mat().createAIJ(((self._nowned, N), (self._nmult, m)), nnz=(m, m), comm=self.comm)
-            B.setValues(self._rows, np.arange(m, dtype=np.int32), self._B.T.copy())
-            B.assemble()
-            BT = B.transpose(PETSc.Mat())
-            nest = PETSc.Mat().createNest([[A, B], [BT, None]], comm=self.comm)
-            self._K = nest.convert(PETSc.Mat.Type.AIJ)
-            self._K.setLGMap(*A.getLGMap())
-            # The nest's layouts are shared with K: keep its blocks alive with it.
-            self._blocks = (nest, A, B, BT)
+            first = imap.local_range[0] * bs
+            self._rows = np.arange(first, first + self._nowned, dtype=PETSc.IntType)
+            self._mult_index = np.arange(N, N + m, dtype=PETSc.IntType)
+            self._K = self._bordered_matrix(N, m)
         self._x, self._F = self._K.createVecs()
+
+    def _bordered_matrix(self, N: int, m: int) -> PETSc.Mat:
+        """An AIJ matrix for [[J, B], [Bᵀ, 0]], preallocated exactly: the Jacobian form's
+        entries (counted from DOLFINx's sparsity pattern), a column per multiplier in
+        every row of w, and dense multiplier rows (last rank). Its first assembly
+        (`assemble_jacobian`) fixes the pattern. No Jacobian-sized matrix is made on
+        the way: a copy of J would be the largest object of a Krylov solve."""
+        pattern = fem.create_sparsity_pattern(self._jacobian_form)
+        pattern.finalize()
+        local_cols, offsets = pattern.graph
+        cmap = pattern.index_map(1)
+        if self.W.dofmap.index_map_bs != 1:
+            raise RuntimeError(f"the mixed space's dofmap has block size {self.W.dofmap.index_map_bs}, expected 1")
+        nrows = self._nowned
+        starts = np.asarray(offsets[:nrows], dtype=np.int64)
+        counts = np.diff(np.asarray(offsets[: nrows + 1], dtype=np.int64))
+        ghost_cols = np.add.reduceat(np.asarray(local_cols[: offsets[nrows]]) >= cmap.size_local, starts) \
+            if nrows else np.empty(0, dtype=np.int64)
+        ghost_cols[counts == 0] = 0  # reduceat gives the next row's first entry for an empty row
+        del local_cols, pattern
+        last = self.comm.rank == self._mult_rank  # its column range holds the multipliers
+        d_nnz = counts - ghost_cols + (m if last else 0)
+        o_nnz = ghost_cols + (0 if last else m)
+        # the multiplier rows: every dof of w (Bᵀ), no diagonal
+        d_nnz = np.concatenate([d_nnz, np.full(self._nmult, nrows)])
+        o_nnz = np.concatenate([o_nnz, np.full(self._nmult, N - nrows)])
+        size = (nrows + self._nmult, N + m)
+        K = PETSc.Mat().createAIJ((size, size), nnz=(d_nnz.astype(PETSc.IntType), o_nnz.astype(PETSc.IntType)),
+                                  comm=self.comm)
+        K.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, True)
+        to_global = cmap.local_to_global(np.arange(cmap.size_local + cmap.num_ghosts, dtype=np.int32))
+        lgmap = PETSc.LGMap().create(np.asarray(to_global, dtype=PETSc.IntType), bsize=1, comm=self.comm)
+        K.setLGMap(lgmap, lgmap)
+        return K
 
     def _preconditioner(self, mesh) -> None:
         """The splits and matrices of the "amg" preconditioner (module docstring).
@@ -399,7 +421,7 @@ class MechanicsProblem:
         (last rank) the multipliers, so that the Schur preconditioner
         Sp = +(1/μ) M_p ⊕ -diag(c) is assembled on the P1 space directly (μ = 2 (c1 + c2),
         the shear modulus). Where rigid motions are free, ε M_u (ε = AMG_SHIFT μ / L², its
-        diagonal) added to the block keeps it non-singular and
+        diagonal) added to the extracted block (`_shift_block`) keeps it non-singular and
         c_i = ∫ r_i·r_i dX / ε is the Schur complement Bᵀ (E + ε M_u)⁻¹ B of a motion r_i
         the block E does not resist.
         """
@@ -435,18 +457,13 @@ class MechanicsProblem:
             v = ufl.TestFunction(Vu)
             Mu = fem.petsc.assemble_matrix(fem.form(ufl.dot(ufl.TrialFunction(Vu), v) * dx))
             Mu.assemble()
-            diag = Mu.getDiagonal()
-            # the shift as a matrix of the u diagonal: K's pattern lacks the multipliers' diagonal
-            shift = np.zeros(self._K.getLocalSize()[0])
-            shift[udofs] = eps * diag.getArray()
+            # in the split's numbering (Vu's owned dofs in order), added to the displacement
+            # block the fieldsplit extracts (`_shift_block`): a shifted copy of all of K
+            # would double the largest matrix of the set-up
+            self._shift = Mu.getDiagonal()
+            self._shift.scale(eps)
+            self._shifted_state = None
             Mu.destroy()
-            diag.destroy()
-            has = shift != 0
-            self._shift = PETSc.Mat().createAIJ(self._K.getSizes(), comm=comm)
-            self._shift.setPreallocationCSR((np.concatenate([[0], np.cumsum(has)]).astype(PETSc.IntType),
-                                             (first + np.flatnonzero(has)).astype(PETSc.IntType), shift[has]))
-            self._shift.assemble()
-            self._P = self._K.duplicate(copy=True)
 
         p, q = ufl.TrialFunction(Q), ufl.TestFunction(Q)
         Mp = fem.petsc.assemble_matrix(fem.form(p * q * dx))
@@ -466,10 +483,6 @@ class MechanicsProblem:
         pc = self.snes.getKSP().getPC()
         pc.setFieldSplitIS(("u", is_u), ("p", is_p))
         pc.setFieldSplitSchurPreType(PETSc.PC.FieldSplitSchurPreType.USER, self._schur)
-        if m:
-            # Each Newton matrix changes Â⁻¹, and its large parts cancel only with the
-            # multipliers' Schur taken anew with it: before every linear solve
-            self.snes.getKSP().setPreSolve(weak_callback(self._multiplier_presolve))
         self._splits = (is_u, is_p)
         self._split_udofs = udofs
         if self.linear_solver == "pmg":
@@ -486,9 +499,10 @@ class MechanicsProblem:
         set-up of "amg" or "pmg" reads the sub-solvers' options; one of the user's it did not read
         is an InputError, as `_set_options` makes of the others."""
         ksp = self.snes.getKSP()
-        ksp.setOperators(self._K, self._P)
+        ksp.setOperators(self._K, self._K)
         if self._subsolvers_read or not self._subsolver_options:
             ksp.setUp()
+            self._shift_block()
             self._multiplier_schur()
             return
         db = PETSc.Options()
@@ -499,6 +513,7 @@ class MechanicsProblem:
                 db.setValue(prefix + key, value)
         try:
             ksp.setUp()
+            self._shift_block()
             if self.linear_solver == "pmg":
                 self._coarse_gamg(ksp.getPC().getFieldSplitSubKSP()[0].getPC(), db.hasName(prefix + COARSE_PC))
             for sub in ksp.getPC().getFieldSplitSubKSP():  # GAMG reads its levels' options here
@@ -535,8 +550,16 @@ class MechanicsProblem:
         coarse.setFromOptions()
         coarse.setUp()
 
-    def _multiplier_presolve(self, ksp, b, x) -> None:
-        self._multiplier_schur()
+    def _shift_block(self) -> None:
+        """Add ε M_u (its diagonal) to the displacement block the fieldsplit extracted from
+        K, once per extraction: the fieldsplit extracts it anew (values overwritten) when K
+        changes, and the block's state tells whether it has the shift already."""
+        if self._shift is None:
+            return
+        block = self.snes.getKSP().getPC().getFieldSplitSubKSP()[0].getOperators()[1]
+        if block.stateGet() != self._shifted_state:
+            block.setDiagonal(self._shift, addv=PETSc.InsertMode.ADD_VALUES)
+            self._shifted_state = block.stateGet()
 
     def _multiplier_schur(self) -> None:
         """The multipliers' part of the Schur preconditioner, -bᵢᵀ Â⁻¹ bᵢ with Â⁻¹ the
@@ -655,13 +678,6 @@ class MechanicsProblem:
         return self._K
 
     @property
-    def preconditioner_matrix(self) -> PETSc.Mat:
-        """The matrix the linear solver's preconditioner is built from: `jacobian_matrix`,
-        or for "amg" and "pmg" with free rigid motions that matrix plus the shift ε M_u
-        (`_preconditioner`)."""
-        return self._P
-
-    @property
     def solution_vector(self) -> PETSc.Vec:
         """The Newton unknowns as SNES sees them: this rank's `owned_size` dofs of w,
         then on the last rank the multipliers."""
@@ -700,9 +716,11 @@ class MechanicsProblem:
             K.setValues(self._rows, self._mult_index, self._B.T.copy(), addv=add)
             K.setValues(self._mult_index, self._rows, self._B, addv=add)
         K.assemble()
-        if self._P is not K:
-            K.copy(self._P, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
-            self._P.axpy(1.0, self._shift, structure=PETSc.Mat.Structure.SUBSET_NONZERO_PATTERN)
+        if self._subsolvers_read:
+            # The fieldsplit's set-up now, not when PETSc next solves: it extracts the
+            # blocks anew, and only then can the shift and the multipliers' Schur (which
+            # cancels large parts of Â⁻¹ only when taken with it) be made for this matrix
+            self.setup_linear_solver()
 
     @property
     def num_dofs(self) -> int:
