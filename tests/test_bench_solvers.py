@@ -56,3 +56,18 @@ def test_parts_not_run_are_kept_from_the_previous_results(tmp_path, capsys):
     # the kept parts ran on 2 ranks
     assert solvers.main(["--parts", "levels", "--ranks", "1", "--output", str(tmp_path)]) == 2
     assert "error:" in capsys.readouterr().err
+
+
+def test_the_scaling_part_runs_one_mesh_on_each_rank_count_and_reports_the_speedup(tmp_path):
+    import json
+
+    assert solvers.main(["--parts", "scaling", "--scaling-level", "0", "--scaling-ranks", "2", "1",
+                         "--output", str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / "solvers.json").read_text())["scaling"]
+    assert [r["ranks"] for r in rows] == [1, 2]
+    assert rows[0]["unknowns"] == rows[1]["unknowns"] == 11306
+    assert rows[1]["speedup"] == pytest.approx(rows[0]["solve_s"] / rows[1]["solve_s"])
+    assert rows[1]["efficiency"] == pytest.approx(rows[1]["speedup"] / 2)
+    # the same Newton path on either partition; GMRES counts may differ by a few
+    assert rows[0]["newton_iterations"] == rows[1]["newton_iterations"]
+    assert rows[0]["volume_ratio"] == pytest.approx(rows[1]["volume_ratio"], rel=1e-12)

@@ -1,6 +1,6 @@
 """Linear solvers side by side: MUMPS LU against GMRES with a BLR preconditioner, and GAMG.
 
-    python -m hyper.bench solvers [--levels 0 1 2] [--ranks 2] [--parts levels precision gamg amg pmg]
+    python -m hyper.bench solvers [--levels 0 1 2] [--ranks 2] [--parts levels precision gamg amg pmg scaling]
 
 The scene is a growth solve: the resting idealized shape (refined `level` times, every
 tetrahedron into eight) takes one transverse growth increment Fg = I + (ϑ - 1)(I - a0⊗a0)
@@ -38,7 +38,12 @@ Where it stalls:
   side with LU and with the exact (LU) displacement solve, on the idealized shape (levels
   0 and 1) and TA_VHF_Left, 1 rank; its solution against LU's.
 
---parts runs only some of the five (levels, precision, gamg, amg, pmg); the others are kept from
+- scaling: "pmg" on one mesh (`--scaling-level`, default 2: 578k unknowns) on each of
+  `--scaling-ranks` (default 1 2), one after the other: the wall time of the growth solve,
+  the speed-up over the fewest ranks and the Krylov iterations per Newton step (the
+  issue's goal: 1 -> 2 ranks at least 1.7 times as fast).
+
+--parts runs only some of the six (levels, precision, gamg, amg, pmg, scaling); the others are kept from
 an existing OUTPUT/solvers.json. Writes results/bench/solvers.json and solvers.png (memory and time against unknowns,
 iterations against unknowns and precision).
 """
@@ -77,7 +82,7 @@ GAMG_VARIANTS = {
     "exact displacement solve (LU)": {"fieldsplit_u_pc_type": "lu", "fieldsplit_u_pc_factor_mat_solver_type": "mumps"},
 }
 GAMG_CASES = (("idealized", "GAMG"), *(("TA_VHF_Left", variant) for variant in GAMG_VARIANTS))
-PARTS = ("levels", "precision", "gamg", "amg", "pmg")
+PARTS = ("levels", "precision", "gamg", "amg", "pmg", "scaling")
 LEVEL_SOLVERS = ("lu", "iterative", "pmg")
 # The mechanics' experimental "amg" solver (mass-matrix Schur preconditioner, the free
 # modes' multiplier Schur with the same V-cycle): (geometry, level, variant), the variant's
@@ -309,6 +314,9 @@ def parser() -> cli.Parser:
     p.add_argument("--ranks", type=cli.integer(1), default=2, help="MPI ranks per run")
     p.add_argument("--solvers", nargs="+", choices=LEVEL_SOLVERS, default=list(LEVEL_SOLVERS), metavar="SOLVER",
                    help=f"the levels part's linear solvers ({', '.join(LEVEL_SOLVERS)}), each against lu where lu runs")
+    p.add_argument("--scaling-level", type=cli.integer(0, 3), default=2, help="refinement level of the scaling part")
+    p.add_argument("--scaling-ranks", nargs="+", type=cli.integer(1), default=[1, 2], metavar="RANKS",
+                   help="rank counts of the scaling part")
     p.add_argument("--precision-level", type=cli.integer(0, 3), default=1, help="level of the BLR precision ladder")
     p.add_argument("--parts", nargs="+", choices=PARTS, metavar="PART", default=list(PARTS),
                    help=f"which parts to run ({', '.join(PARTS)}); the others are kept from OUTPUT/solvers.json")
@@ -342,6 +350,24 @@ def _pmg_part(args) -> list[dict]:
                           f"{row['krylov_iterations']} Krylov its, {row['solve_s']:.1f} s, "
                           f"peak RSS {row['peak_rss_mb_sum']:.0f} MB, vs LU {row.get('difference_from_lu')}"),
                   flush=True)
+    return rows
+
+
+def _scaling_part(args) -> list[dict]:
+    """"pmg" on one mesh on each rank count; each row's speed-up is over the fewest ranks'."""
+    rows = []
+    for ranks in sorted(args.scaling_ranks):
+        print(f"solvers: scaling, pmg on level {args.scaling_level} on {ranks} rank(s) …", flush=True)
+        row = _run_worker({"geometry": "idealized", "level": args.scaling_level, "solver": "pmg"},
+                          ranks, args.timeout, None)
+        if "failed" not in row and rows and "failed" not in rows[0]:
+            row["speedup"] = rows[0]["solve_s"] / row["solve_s"]
+            row["efficiency"] = row["speedup"] * rows[0]["ranks"] / ranks
+        rows.append(row)
+        print("  " + ("FAILED " + row["failed"] if "failed" in row else
+                      f"{row['unknowns']} unknowns, {row['krylov_iterations'] / row['newton_iterations']:.1f} "
+                      f"Krylov its a Newton step, {row['solve_s']:.1f} s, peak RSS {row['peak_rss_mb_sum']:.0f} MB"
+                      + (f", speed-up {row['speedup']:.2f}" if "speedup" in row else "")), flush=True)
     return rows
 
 
@@ -422,10 +448,12 @@ def run(comm, args) -> int:
         amg.append(_run_worker({"geometry": name, "level": level, "solver": "amg", "variant": variant}, 1,
                                args.timeout, None))
     pmg = _pmg_part(args) if "pmg" in args.parts else []
-    measured = {"levels": rows, "precision": precision, "gamg": gamg, "amg": amg, "pmg": pmg}
-    rows, precision, gamg, amg, pmg = ({**measured, **kept}[part] for part in PARTS)
+    scaling = _scaling_part(args) if "scaling" in args.parts else []
+    measured = {"levels": rows, "precision": precision, "gamg": gamg, "amg": amg, "pmg": pmg, "scaling": scaling}
+    rows, precision, gamg, amg, pmg, scaling = ({**measured, **kept}[part] for part in PARTS)
     result = {"benchmark": "solvers", "machine": common.machine(), "ranks": args.ranks, "theta": THETA,
-              "levels": rows, "precision": precision, "gamg": gamg, "amg": amg, "pmg": pmg, "parts_run": args.parts,
+              "levels": rows, "precision": precision, "gamg": gamg, "amg": amg, "pmg": pmg, "scaling": scaling,
+              "parts_run": args.parts,
               "memory_fit": {s: memory_fit([r for r in rows if r["solver"] == s]) for s in ("lu", "iterative")},
               "rss_fit": {s: memory_fit([r for r in rows if r["solver"] == s], "peak_rss_mb_sum")
                           for s in LEVEL_SOLVERS},
