@@ -382,19 +382,20 @@ class MechanicsProblem:
         every row of w, and dense multiplier rows (last rank). Its first assembly
         (`assemble_jacobian`) fixes the pattern. No Jacobian-sized matrix is made on
         the way: a copy of J would be the largest object of a Krylov solve."""
+        if self.W.dofmap.index_map_bs != 1:
+            raise RuntimeError(f"the mixed space's dofmap has block size {self.W.dofmap.index_map_bs}, expected 1")
+        nrows = self._nowned
+        # counted, then the pattern (a third of K's size) freed before K is made
         pattern = fem.create_sparsity_pattern(self._jacobian_form)
         pattern.finalize()
         local_cols, offsets = pattern.graph
         cmap = pattern.index_map(1)
-        if self.W.dofmap.index_map_bs != 1:
-            raise RuntimeError(f"the mixed space's dofmap has block size {self.W.dofmap.index_map_bs}, expected 1")
-        nrows = self._nowned
-        starts = np.asarray(offsets[:nrows], dtype=np.int64)
-        counts = np.diff(np.asarray(offsets[: nrows + 1], dtype=np.int64))
-        ghost_cols = np.add.reduceat(np.asarray(local_cols[: offsets[nrows]]) >= cmap.size_local, starts) \
-            if nrows else np.empty(0, dtype=np.int64)
-        ghost_cols[counts == 0] = 0  # reduceat gives the next row's first entry for an empty row
-        del local_cols, pattern
+        counts = np.diff(offsets[: nrows + 1]).astype(np.int64)
+        ghost_cols = np.zeros(nrows, dtype=np.int64)
+        if nrows:
+            ghost_cols = np.add.reduceat(local_cols[: offsets[nrows]] >= cmap.size_local, offsets[:nrows])
+            ghost_cols[counts == 0] = 0  # reduceat gives the next row's first entry for an empty row
+        del local_cols, offsets, pattern
         last = self.comm.rank == self._mult_rank  # its column range holds the multipliers
         d_nnz = counts - ghost_cols + (m if last else 0)
         o_nnz = ghost_cols + (0 if last else m)
@@ -454,16 +455,24 @@ class MechanicsProblem:
             comm.Allreduce(np.ascontiguousarray(mesh.geometry.x.max(axis=0)), hi, op=MPI.MAX)
             eps = AMG_SHIFT * mu / float(np.sum((hi - lo) ** 2))
             c = np.array([self._sum(fem.form(ufl.dot(r, r) * dx)) for r in self.rigid.modes]) / eps
-            v = ufl.TestFunction(Vu)
-            Mu = fem.petsc.assemble_matrix(fem.form(ufl.dot(ufl.TrialFunction(Vu), v) * dx))
-            Mu.assemble()
+            # diag M_u from the scalar P2 mass matrix (a ninth of the vector one's entries):
+            # the same ∫ φ_i² for the three components of a node
+            Vs, node_dofs = Vu.sub(0).collapse()
+            s = ufl.TrialFunction(Vs)
+            Ms = fem.petsc.assemble_matrix(fem.form(s * ufl.TestFunction(Vs) * dx))
+            Ms.assemble()
+            mass = Ms.getDiagonal()
+            Ms.destroy()
+            ns = Vs.dofmap.index_map.size_local
             # in the split's numbering (Vu's owned dofs in order), added to the displacement
             # block the fieldsplit extracts (`_shift_block`): a shifted copy of all of K
             # would double the largest matrix of the set-up
-            self._shift = Mu.getDiagonal()
-            self._shift.scale(eps)
+            self._shift = PETSc.Vec().createMPI((3 * nu, PETSc.DETERMINE), comm=comm)
+            first_node = np.asarray(node_dofs[:ns])  # Vu's local dof of each owned node's first component
+            for component in range(3):
+                self._shift.getArray()[first_node + component] = eps * mass.getArray()
+            mass.destroy()
             self._shifted_state = None
-            Mu.destroy()
 
         p, q = ufl.TrialFunction(Q), ufl.TestFunction(Q)
         Mp = fem.petsc.assemble_matrix(fem.form(p * q * dx))
@@ -488,8 +497,11 @@ class MechanicsProblem:
         if self.linear_solver == "pmg":
             # the split's rows are Vu's owned dofs in order, so its numbering is Vu's
             V1 = fem.functionspace(mesh, ("Lagrange", 1, (3,)))
-            self._prolongation = fem.petsc.interpolation_matrix(V1, Vu)
-            self._prolongation.assemble()
+            full = fem.petsc.interpolation_matrix(V1, Vu)
+            full.assemble()
+            # preallocated for dense cell blocks, 12 times the entries it holds: a copy keeps those alone
+            self._prolongation = full.duplicate(copy=True)
+            full.destroy()
             self._coarse_modes = _rigid_body_space(V1.tabulate_dof_coordinates()[: V1.dofmap.index_map.size_local],
                                                    comm)
 
