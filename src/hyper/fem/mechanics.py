@@ -468,7 +468,10 @@ class MechanicsProblem:
             # block the fieldsplit extracts (`_shift_block`): a shifted copy of all of K
             # would double the largest matrix of the set-up
             self._shift = PETSc.Vec().createMPI((3 * nu, PETSc.DETERMINE), comm=comm)
-            first_node = np.asarray(node_dofs[:ns])  # Vu's local dof of each owned node's first component
+            # Vu's local dof of each owned node's first component
+            first_node = np.asarray(node_dofs, dtype=np.int64).ravel()[:ns]
+            if first_node.max(initial=-1) >= 3 * nu:
+                raise RuntimeError("a collapsed space owns a dof its parent does not")
             for component in range(3):
                 self._shift.getArray()[first_node + component] = eps * mass.getArray()
             mass.destroy()
