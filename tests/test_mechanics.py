@@ -414,6 +414,37 @@ def test_the_experimental_pmg_solver_equals_lu_in_parallel():
     _check_pmg(MPI.COMM_WORLD)
 
 
+def _check_pmg_holds_one_newton_matrix(comm):
+    # Memory: the preconditioner is built from K itself (no shifted copy), the displacement
+    # block it extracts carries the shift ε diag(M_u) after every assembly, and the P1 -> P2
+    # interpolation holds only its entries
+    pmg, _ = _grown_cylinder(linear_solver="pmg")
+    ksp = pmg.snes.getKSP()
+    K = pmg.jacobian_matrix
+    assert [op.handle for op in ksp.getOperators()] == [K.handle, K.handle]
+    info = pmg._prolongation.getInfo()
+    assert info["nz_allocated"] == info["nz_used"]
+    is_u = pmg._splits[0]
+    shift = pmg._shift.getArray()
+    assert comm.allreduce(shift.min(), op=MPI.MIN) > 0
+    for alpha in (0.0, 0.3):  # the block is extracted anew from each Newton matrix
+        pmg.alpha.value = alpha
+        pmg.assemble_jacobian(pmg.solution_vector)
+        block = ksp.getPC().getFieldSplitSubKSP()[0].getOperators()[1]
+        diagonal = K.getDiagonal().getSubVector(is_u).getArray()
+        # to the round-off of the diagonal (about 1e2) against the shift (about 1e-5)
+        assert np.allclose(block.getDiagonal().getArray() - diagonal, shift, rtol=1e-6, atol=0.0)
+
+
+def test_the_pmg_solver_holds_one_newton_matrix_and_shifts_its_displacement_block():
+    _check_pmg_holds_one_newton_matrix(MPI.COMM_WORLD)
+
+
+@pytest.mark.mpi
+def test_the_pmg_solver_holds_one_newton_matrix_in_parallel():
+    _check_pmg_holds_one_newton_matrix(MPI.COMM_WORLD)
+
+
 @pytest.mark.parametrize("option, said", [
     ("fieldsplit_u_mg_levels_ksp_max_iter=3", "does not read fieldsplit_u_mg_levels_ksp_max_iter"),
     ("fieldsplit_u_mg_levels_ksp_max_it=abc", "fieldsplit_u_mg_levels_ksp_max_it=abc: Input string abc"),
