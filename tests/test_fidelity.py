@@ -158,17 +158,23 @@ def test_lu_memory_law_passes_through_its_measurements_and_grows_faster_than_the
     assert 1.0 < exponent < 2.0  # 3-D nested dissection: n^(4/3) in theory
 
 
-def test_the_linear_solver_is_lu_while_it_fits_and_pmg_beyond():
+def test_the_linear_solver_is_lu_on_small_meshes_while_it_fits_and_pmg_beyond():
     gib = 1024.0
     solver, why = fidelity.linear_solver(78120, 22 * gib)
     assert solver == "lu" and "MUMPS LU" in why
-    # the largest mesh LU may take on 22 GiB, and one unknown in a hundred more
-    limit = fidelity.LU_MEMORY_MB[1][0] * (fidelity.LU_MEMORY_SHARE * 22 * gib / fidelity.LU_MEMORY_MB[1][1]) ** (
+    # where pmg is the faster, LU fitting or not
+    assert fidelity.linear_solver(fidelity.PMG_FASTER_FROM - 1, 22 * gib)[0] == "lu"
+    solver, why = fidelity.linear_solver(fidelity.PMG_FASTER_FROM, 22 * gib)
+    assert solver == "pmg" and "faster than LU" in why
+    # the largest mesh LU may take on 2 GiB, and one unknown in a hundred more
+    small = 2 * gib
+    limit = fidelity.LU_MEMORY_MB[1][0] * (fidelity.LU_MEMORY_SHARE * small / fidelity.LU_MEMORY_MB[1][1]) ** (
         1 / (math.log(fidelity.LU_MEMORY_MB[1][1] / fidelity.LU_MEMORY_MB[0][1])
              / math.log(fidelity.LU_MEMORY_MB[1][0] / fidelity.LU_MEMORY_MB[0][0])))
-    assert fidelity.linear_solver(int(limit * 0.99), 22 * gib)[0] == "lu"
-    solver, why = fidelity.linear_solver(int(limit * 1.01), 22 * gib)
-    assert solver == "pmg" and "GMRES" in why and "may not fit" not in why
+    assert limit < fidelity.PMG_FASTER_FROM
+    assert fidelity.linear_solver(int(limit * 0.99), small)[0] == "lu"
+    solver, why = fidelity.linear_solver(int(limit * 1.01), small)
+    assert solver == "pmg" and "GMRES" in why and "LU would need" in why and "may not fit" not in why
     solver, why = fidelity.linear_solver(1_500_000, 22 * gib)
     assert solver == "pmg" and "may not fit" not in why
     solver, why = fidelity.linear_solver(20_000_000, 22 * gib)

@@ -29,11 +29,12 @@ mesh carries the loaded mesh's fibre field, `hyper.fem.fibers.carried`) and the 
 (refining keeps the polyhedron, whose facets approximate the muscle's surface); an
 accuracy below them is refused with what the mesh can give.
 
-The linear solver is chosen once the mesh is known (`linear_solver`): MUMPS's LU while
-its memory, predicted from the measured growth with the number of unknowns, fits in the
-memory available; "pmg" (GMRES, a Schur fieldsplit with a P2 -> P1 multigrid, memory about
-linear in the mesh) beyond. Both answer to the Newton tolerance, so the choice changes the
-cost, not the answer.
+The linear solver is chosen once the mesh is known (`linear_solver`): MUMPS's LU on
+meshes below `PMG_FASTER_FROM` unknowns while its memory, predicted from the measured
+growth with the number of unknowns, fits in the memory available; "pmg" (GMRES, a Schur
+fieldsplit with a P2 -> P1 multigrid, memory about linear in the mesh) from that size on,
+where it is the faster, and wherever LU would not fit. Both answer to the Newton
+tolerance, so the choice changes the cost, not the answer.
 """
 
 from __future__ import annotations
@@ -276,6 +277,12 @@ LU_MEMORY_MB = ((78120, 871.0), (577993, 11946.0))  # exponent 1.31
 # (python -m hyper.bench solvers --parts levels --solvers lu pmg; results/bench/scalable):
 # taken as linear through the measurement, which overestimates below it and is exact at it.
 PMG_MEMORY_MB = (577993, 5464.0)
+# From this many unknowns pmg takes less time than LU. Measured in the growth solve of
+# `python -m hyper.bench solvers --parts levels` (2 ranks, results/bench/scalable): pmg's
+# time over LU's is 1.01 at 11k unknowns, 0.91 at 78k and 0.24 at 578k on the idealized
+# shape, but 1.6 on TA_VHF_Left at 48k (1 rank, `--parts pmg`: anatomical meshes need more
+# GMRES iterations); the threshold lies between the tie at 78k and the clear win at 578k.
+PMG_FASTER_FROM = 300_000
 # LU runs while its predicted memory is within this share of the memory available: the
 # mesh, forms, fields and MUMPS's own workspace estimate (up to 20 % above its use) need the rest.
 LU_MEMORY_SHARE = 0.7
@@ -295,17 +302,21 @@ def pmg_memory_mb(unknowns: int) -> float:
 
 
 def linear_solver(unknowns: int, available_mb: float) -> tuple[str, str]:
-    """LU while it fits in the memory available, else the pmg solver (at 578k unknowns 0.24x
-    LU's time and 0.34x its memory, in a growth solve on 2 ranks); and why."""
+    """LU on small meshes while it fits in the memory available, else the pmg solver (at
+    578k unknowns 0.24x LU's time and 0.34x its memory, in a growth solve on 2 ranks); and why."""
     lu = lu_memory_mb(unknowns)
-    if lu <= LU_MEMORY_SHARE * available_mb:
+    fits = lu <= LU_MEMORY_SHARE * available_mb
+    if fits and unknowns < PMG_FASTER_FROM:
         return "lu", (f"MUMPS LU: {unknowns} unknowns need about {lu / 1024:.2g} GiB, within "
                       f"{LU_MEMORY_SHARE:g} x {available_mb / 1024:.3g} GiB available")
     pmg = pmg_memory_mb(unknowns)
-    fits = "" if pmg <= LU_MEMORY_SHARE * available_mb else "; it may not fit either: use more nodes"
-    return "pmg", (f"GMRES with a multigrid fieldsplit (pmg): LU would need about {lu / 1024:.3g} GiB for "
-                   f"{unknowns} unknowns, more than {LU_MEMORY_SHARE:g} x {available_mb / 1024:.3g} GiB available; "
-                   f"pmg about {pmg / 1024:.3g} GiB{fits}")
+    if fits:
+        why = f"from {PMG_FASTER_FROM} unknowns on it is faster than LU ({unknowns} unknowns)"
+    else:
+        why = (f"LU would need about {lu / 1024:.3g} GiB for {unknowns} unknowns, more than "
+               f"{LU_MEMORY_SHARE:g} x {available_mb / 1024:.3g} GiB available")
+    left = "" if pmg <= LU_MEMORY_SHARE * available_mb else "; it may not fit either: use more nodes"
+    return "pmg", f"GMRES with a multigrid fieldsplit (pmg): {why}; pmg needs about {pmg / 1024:.3g} GiB{left}"
 
 
 # ------------------------------------------------------------------------ the mesh
