@@ -520,8 +520,8 @@ class MechanicsProblem:
         ksp.setOperators(self._K, self._K)
         if self._subsolvers_read or not self._subsolver_options:
             ksp.setUp()
-            self._shift_block()
-            self._multiplier_schur()
+            if self._shift_block():  # a new block: its multipliers' Schur with it
+                self._multiplier_schur()
             return
         db = PETSc.Options()
         prefix = self.snes.getOptionsPrefix()
@@ -568,16 +568,19 @@ class MechanicsProblem:
         coarse.setFromOptions()
         coarse.setUp()
 
-    def _shift_block(self) -> None:
+    def _shift_block(self) -> bool:
         """Add ε M_u (its diagonal) to the displacement block the fieldsplit extracted from
         K, once per extraction: the fieldsplit extracts it anew (values overwritten) when K
-        changes, and the block's state tells whether it has the shift already."""
+        changes, and the block's state tells whether it has the shift already. True where
+        it shifted a new block."""
         if self._shift is None:
-            return
+            return False
         block = self.snes.getKSP().getPC().getFieldSplitSubKSP()[0].getOperators()[1]
-        if block.stateGet() != self._shifted_state:
-            block.setDiagonal(self._shift, addv=PETSc.InsertMode.ADD_VALUES)
-            self._shifted_state = block.stateGet()
+        if block.stateGet() == self._shifted_state:
+            return False
+        block.setDiagonal(self._shift, addv=PETSc.InsertMode.ADD_VALUES)
+        self._shifted_state = block.stateGet()
+        return True
 
     def _multiplier_schur(self) -> None:
         """The multipliers' part of the Schur preconditioner, -bᵢᵀ Â⁻¹ bᵢ with Â⁻¹ the
