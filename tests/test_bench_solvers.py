@@ -71,3 +71,15 @@ def test_the_scaling_part_runs_one_mesh_on_each_rank_count_and_reports_the_speed
     # the same Newton path on either partition; GMRES counts may differ by a few
     assert rows[0]["newton_iterations"] == rows[1]["newton_iterations"]
     assert rows[0]["volume_ratio"] == pytest.approx(rows[1]["volume_ratio"], rel=1e-12)
+
+
+def test_the_answers_part_runs_lu_and_pmg_side_by_side_and_they_agree(tmp_path):
+    import json
+
+    assert solvers.main(["--parts", "answers", "--answers-levels", "0", "--output", str(tmp_path)]) == 0
+    rows = {r["job"]: r for r in json.loads((tmp_path / "solvers.json").read_text())["answers"]}
+    grow, contraction = rows["grow"], rows["contraction"]
+    assert grow["csa_ratio_final"]["lu"] > 1.05  # nine weeks of mwf grow the idealized CSA by ~8 %
+    assert grow["csa_ratio_difference"] < 1e-6 and grow["volume_ratio_difference"] < 1e-6
+    assert contraction["end_force"]["lu"] > 0.5 and contraction["end_force_difference"] < 1e-8
+    assert contraction["krylov_iterations"]["pmg"] > 10 * contraction["krylov_iterations"]["lu"]

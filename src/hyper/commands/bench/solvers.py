@@ -43,7 +43,13 @@ Where it stalls:
   the speed-up over the fewest ranks and the Krylov iterations per Newton step (the
   issue's goal: 1 -> 2 ranks at least 1.7 times as fast).
 
---parts runs only some of the six (levels, precision, gamg, amg, pmg, scaling); the others are kept from
+- answers: whole runs with "lu" and with "pmg" on the idealized shape refined
+  `--answers-levels` times (default 0 1), 1 rank each, side by side: `hyper grow
+  --protocol mwf` (9 weeks) and `hyper contraction` (α to 1); the largest difference of
+  the CSA and volume series as a fraction of the growth, and of the end force relative
+  to it (the issue's goal: 1e-6 of the growth, 1e-8 of the force).
+
+--parts runs only some of the seven (levels, precision, gamg, amg, pmg, scaling, answers); the others are kept from
 an existing OUTPUT/solvers.json. Writes results/bench/solvers.json and solvers.png (memory and time against unknowns,
 iterations against unknowns and precision).
 """
@@ -82,7 +88,7 @@ GAMG_VARIANTS = {
     "exact displacement solve (LU)": {"fieldsplit_u_pc_type": "lu", "fieldsplit_u_pc_factor_mat_solver_type": "mumps"},
 }
 GAMG_CASES = (("idealized", "GAMG"), *(("TA_VHF_Left", variant) for variant in GAMG_VARIANTS))
-PARTS = ("levels", "precision", "gamg", "amg", "pmg", "scaling")
+PARTS = ("levels", "precision", "gamg", "amg", "pmg", "scaling", "answers")
 LEVEL_SOLVERS = ("lu", "iterative", "pmg")
 # The mechanics' experimental "amg" solver (mass-matrix Schur preconditioner, the free
 # modes' multiplier Schur with the same V-cycle): (geometry, level, variant), the variant's
@@ -317,6 +323,8 @@ def parser() -> cli.Parser:
     p.add_argument("--scaling-level", type=cli.integer(0, 3), default=2, help="refinement level of the scaling part")
     p.add_argument("--scaling-ranks", nargs="+", type=cli.integer(1), default=[1, 2], metavar="RANKS",
                    help="rank counts of the scaling part")
+    p.add_argument("--answers-levels", nargs="+", type=cli.integer(0, 3), default=[0, 1], metavar="LEVEL",
+                   help="refinement levels of the answers part")
     p.add_argument("--precision-level", type=cli.integer(0, 3), default=1, help="level of the BLR precision ladder")
     p.add_argument("--parts", nargs="+", choices=PARTS, metavar="PART", default=list(PARTS),
                    help=f"which parts to run ({', '.join(PARTS)}); the others are kept from OUTPUT/solvers.json")
@@ -368,6 +376,51 @@ def _scaling_part(args) -> list[dict]:
                       f"{row['unknowns']} unknowns, {row['krylov_iterations'] / row['newton_iterations']:.1f} "
                       f"Krylov its a Newton step, {row['solve_s']:.1f} s, peak RSS {row['peak_rss_mb_sum']:.0f} MB"
                       + (f", speed-up {row['speedup']:.2f}" if "speedup" in row else "")), flush=True)
+    return rows
+
+
+def _answers_part(args) -> list[dict]:
+    """Whole grow and contraction runs with lu and pmg, each in its own process (1 rank),
+    the two solvers of a level at once; their series against each other."""
+    import subprocess
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for level in args.answers_levels:
+            for job in ("grow", "contraction"):
+                print(f"solvers: answers, {job} on level {level}, lu and pmg …", flush=True)
+                outputs = {s: Path(tmp) / f"{job}_{level}_{s}.h5" for s in ("lu", "pmg")}
+                extra = ("--protocol", "mwf") if job == "grow" else ()
+                procs = {s: subprocess.Popen([sys.executable, "-m", f"hyper.{job}", "--geometry", "idealized",
+                                              "--refine", str(level), "--linear-solver", s, "--quiet",
+                                              "--output", str(out), *extra],
+                                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                         for s, out in outputs.items()}
+                started = time.perf_counter()
+                errors = {s: p.communicate(timeout=args.timeout)[1] for s, p in procs.items()}
+                row = {"job": job, "level": level, "wall_s": time.perf_counter() - started}
+                failed = {s: (errors[s].strip().splitlines() or ["failed"])[-1] for s, p in procs.items()
+                          if p.returncode}
+                if failed:
+                    row["failed"] = "; ".join(f"{s}: {e}" for s, e in failed.items())
+                else:
+                    lu, pmg = (io.read_series(outputs[s]) for s in ("lu", "pmg"))
+                    if job == "grow":
+                        for name in ("csa_ratio", "volume_ratio"):
+                            growth = lu[name][-1] - 1.0
+                            row[f"{name}_difference"] = float(np.max(np.abs(np.asarray(pmg[name]) - lu[name]))
+                                                              / growth)
+                            row[f"{name}_final"] = {"lu": float(lu[name][-1]), "pmg": float(pmg[name][-1])}
+                    else:
+                        row["end_force_difference"] = abs(pmg["end_force"][-1] - lu["end_force"][-1]) \
+                            / abs(lu["end_force"][-1])
+                        row["end_force"] = {"lu": float(lu["end_force"][-1]), "pmg": float(pmg["end_force"][-1])}
+                        row["krylov_iterations"] = {"lu": int(np.sum(lu["krylov_iterations"])),
+                                                    "pmg": int(np.sum(pmg["krylov_iterations"]))}
+                rows.append(row)
+                print("  " + ("FAILED " + row["failed"] if "failed" in row else
+                              ", ".join(f"{k} {v:.2e}" for k, v in row.items() if k.endswith("_difference"))),
+                      flush=True)
     return rows
 
 
@@ -449,11 +502,13 @@ def run(comm, args) -> int:
                                args.timeout, None))
     pmg = _pmg_part(args) if "pmg" in args.parts else []
     scaling = _scaling_part(args) if "scaling" in args.parts else []
-    measured = {"levels": rows, "precision": precision, "gamg": gamg, "amg": amg, "pmg": pmg, "scaling": scaling}
-    rows, precision, gamg, amg, pmg, scaling = ({**measured, **kept}[part] for part in PARTS)
+    answers = _answers_part(args) if "answers" in args.parts else []
+    measured = {"levels": rows, "precision": precision, "gamg": gamg, "amg": amg, "pmg": pmg, "scaling": scaling,
+                "answers": answers}
+    rows, precision, gamg, amg, pmg, scaling, answers = ({**measured, **kept}[part] for part in PARTS)
     result = {"benchmark": "solvers", "machine": common.machine(), "ranks": args.ranks, "theta": THETA,
               "levels": rows, "precision": precision, "gamg": gamg, "amg": amg, "pmg": pmg, "scaling": scaling,
-              "parts_run": args.parts,
+              "answers": answers, "parts_run": args.parts,
               "memory_fit": {s: memory_fit([r for r in rows if r["solver"] == s]) for s in ("lu", "iterative")},
               "rss_fit": {s: memory_fit([r for r in rows if r["solver"] == s], "peak_rss_mb_sum")
                           for s in LEVEL_SOLVERS},
