@@ -59,6 +59,7 @@ from __future__ import annotations
 import argparse
 import json
 import resource
+import subprocess
 import sys
 import tempfile
 import time
@@ -382,8 +383,6 @@ def _scaling_part(args) -> list[dict]:
 def _answers_part(args) -> list[dict]:
     """Whole grow and contraction runs with lu and pmg, each in its own process (1 rank),
     the two solvers of a level at once; their series against each other."""
-    import subprocess
-
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for level in args.answers_levels:
