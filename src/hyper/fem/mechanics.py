@@ -45,9 +45,9 @@ PETSc wheel. Measured in `python -m hyper.bench solvers --parts amg` (docs/perfo
 "pmg" (`--linear-solver pmg`; `hyper.runs.fidelity` picks it for large meshes): the same
 fieldsplit with a two-level P2 → P1 multigrid on the displacement block (`_coarse_gamg`):
 Chebyshev/Jacobi on P2, GAMG on the Galerkin P1 operator. Its memory is about linear in
-the mesh and its GMRES count nearly independent of it: in a growth solve on 2 ranks, 57.8
-iterations a Newton step at 11k unknowns and 63.5 at 578k, where it takes 0.24 times LU's
-time and 0.34 times its memory (`python -m hyper.bench solvers --parts levels`,
+the mesh and its GMRES count nearly independent of it: in a growth solve on 2 ranks, 58.0
+iterations a Newton step at 11k unknowns and 63.25 at 578k, where it takes 0.24 times LU's
+time and 0.24 times its memory (`python -m hyper.bench solvers --parts levels`,
 docs/performance.md). It holds one Newton matrix: the preconditioner is built from K
 itself, and K is preallocated from DOLFINx's sparsity pattern (`_bordered_matrix`).
 """
