@@ -396,7 +396,13 @@ def _answers_part(args) -> list[dict]:
                                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
                          for s, out in outputs.items()}
                 started = time.perf_counter()
-                errors = {s: p.communicate(timeout=args.timeout)[1] for s, p in procs.items()}
+                errors = {}
+                for s, p in procs.items():
+                    try:
+                        errors[s] = p.communicate(timeout=args.timeout)[1]
+                    except subprocess.TimeoutExpired:  # a failed row, as the workers' timeout gives
+                        p.kill()
+                        errors[s] = p.communicate()[1] + f"\ntimed out after {args.timeout:g} s"
                 row = {"job": job, "level": level, "wall_s": time.perf_counter() - started}
                 failed = {s: (errors[s].strip().splitlines() or ["failed"])[-1] for s, p in procs.items()
                           if p.returncode}
