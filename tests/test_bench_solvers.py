@@ -83,3 +83,37 @@ def test_the_answers_part_runs_lu_and_pmg_side_by_side_and_they_agree(tmp_path):
     assert grow["csa_ratio_difference"] < 1e-6 and grow["volume_ratio_difference"] < 1e-6
     assert contraction["end_force"]["lu"] > 0.5 and contraction["end_force_difference"] < 1e-8
     assert contraction["krylov_iterations"]["pmg"] > 10 * contraction["krylov_iterations"]["lu"]
+
+
+def test_the_weak_part_meshes_the_unknowns_it_asks_for_on_each_rank_count(tmp_path):
+    import json
+
+    assert solvers.main(["--parts", "weak", "--weak-unknowns", "8000", "--scaling-ranks", "2", "1",
+                         "--output", str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / "solvers.json").read_text())["weak"]
+    assert [r["ranks"] for r in rows] == [1, 2]
+    for r in rows:
+        # the mesher's count of P2-P1 unknowns is the mechanics' own, which adds a multiplier
+        # for each free rigid motion of the flat-ended cylinder (two translations, one rotation)
+        assert r["unknowns"] == r["meshed_unknowns"] + 3
+        assert r["unknowns_per_rank"] == pytest.approx(8000, rel=solvers.WEAK_TOLERANCE)
+        # incompressible: the volume grows by det Fg = ϑ² whatever the fibres
+        assert r["volume_ratio"] == pytest.approx(solvers.THETA**2, rel=1e-9)
+        assert r["krylov_per_newton"] == pytest.approx(r["krylov_iterations"] / r["newton_iterations"])
+    assert rows[1]["efficiency"] == pytest.approx(rows[0]["solve_s"] / rows[1]["solve_s"])
+
+
+def test_the_projection_recovers_the_iteration_and_communication_growth_it_is_given():
+    levels = [{"solver": "pmg", "unknowns": n, "newton_iterations": 4, "krylov_iterations": 4 * 50 * (n / 1e4) ** 0.05}
+              for n in (1e4, 8e4, 6.4e5)]
+    levels.append({"solver": "lu", "unknowns": 1e4, "newton_iterations": 4, "krylov_iterations": 4})
+    key = "solve_s_per_iteration_and_unknown_a_rank"
+    weak = [{"ranks": 1, "unknowns": 1e5, "unknowns_per_rank": 1e5, "solve_s": 10.0, key: 1e-6},
+            {"ranks": 2, "unknowns": 2e5, "unknowns_per_rank": 1e5, "solve_s": 13.0, key: 1.2e-6}]
+    out = solvers.projection(weak, levels)
+    assert out["beta"] == pytest.approx(0.05) and out["gamma"] == pytest.approx(0.2)
+    at64 = out["rows"][0]
+    assert at64["ranks"] == 64 and at64["unknowns"] == pytest.approx(6.4e6)
+    assert at64["solve_s"] == pytest.approx(10.0 * 64**0.05 * (1 + 0.2 * 6))
+    assert at64["efficiency"] == pytest.approx(10.0 / at64["solve_s"])
+    assert solvers.projection(weak[:1], levels) == {} and solvers.projection(weak, levels[:1]) == {}

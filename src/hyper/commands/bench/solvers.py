@@ -43,15 +43,21 @@ Where it stalls:
   the speed-up over the fewest ranks and the Krylov iterations per Newton step (the
   issue's goal: 1 -> 2 ranks at least 1.7 times as fast).
 
+- weak: "pmg" at `--weak-unknowns` per rank (default 150k) on each of `--scaling-ranks`:
+  a cylinder of the idealized shape's length (`weak_cylinder`, meshed by gmsh to the size
+  each rank count needs) with the idealized fibres; iterations, time, memory a rank and
+  the efficiency T(1) / T(P). From these and the levels part's iteration growth,
+  `projection` extrapolates the time to 64-1024 ranks (marked as a projection).
+
 - answers: whole runs with "lu" and with "pmg" on the idealized shape refined
   `--answers-levels` times (default 0 1), 1 rank each, side by side: `hyper grow
   --protocol mwf` (9 weeks) and `hyper contraction` (α to 1); the largest difference of
   the CSA and volume series as a fraction of the growth, and of the end force relative
   to it (the issue's goal: 1e-6 of the growth, 1e-8 of the force).
 
---parts runs only some of the seven (levels, precision, gamg, amg, pmg, scaling, answers); the others are kept from
+--parts runs only some of the eight (levels, precision, gamg, amg, pmg, scaling, weak, answers); the others are kept from
 an existing OUTPUT/solvers.json. Writes results/bench/solvers.json and solvers.png (memory and time against unknowns,
-iterations against unknowns and precision).
+iterations against unknowns and precision, and the weak-scaling efficiency where it ran).
 """
 
 from __future__ import annotations
@@ -89,7 +95,14 @@ GAMG_VARIANTS = {
     "exact displacement solve (LU)": {"fieldsplit_u_pc_type": "lu", "fieldsplit_u_pc_factor_mat_solver_type": "mumps"},
 }
 GAMG_CASES = (("idealized", "GAMG"), *(("TA_VHF_Left", variant) for variant in GAMG_VARIANTS))
-PARTS = ("levels", "precision", "gamg", "amg", "pmg", "scaling", "answers")
+PARTS = ("levels", "precision", "gamg", "amg", "pmg", "scaling", "weak", "answers")
+# The weak-scaling scene: a cylinder of the idealized shape's length and about its mean
+# radius, meshed by gmsh at any size (the idealized mesh comes in steps of 8), with the
+# idealized shape's analytic fibres, whose turn makes the growth non-uniform (with axial
+# fibres its answer is stress-free and linear in X).
+WEAK_RADIUS, WEAK_LENGTH = 0.02, 0.2  # m
+WEAK_TRIES = 4  # meshes until the unknowns are within WEAK_TOLERANCE of the target
+WEAK_TOLERANCE = 0.05
 LEVEL_SOLVERS = ("lu", "iterative", "pmg")
 # The mechanics' experimental "amg" solver (mass-matrix Schur preconditioner, the free
 # modes' multiplier Schur with the same V-cycle): (geometry, level, variant), the variant's
@@ -178,10 +191,10 @@ def run_case(case: dict, comm, save: Path | None) -> dict:
     from mpi4py import MPI
 
 
-    geometry = geo.load(case["geometry"], comm)
+    geometry = geo.load(case["geometry"], comm, meshes_dir=case.get("meshes_dir"))
     for _ in range(case.get("level", 0)):
         geometry = geo.refine(geometry)
-    a0 = fibers.fiber_field(geometry)
+    a0 = fibers.fiber_field(geometry, case.get("fibers", "auto"))
     unit = a0 / ufl.sqrt(ufl.dot(a0, a0))
     theta = fem.Constant(geometry.mesh, 1.0)  # transverse stretch: area growth ϑ²
     Fg = growth.transverse_growth_ufl(theta**2, unit)
@@ -251,10 +264,13 @@ def compare(reference: Path, other: Path, ranks: int) -> dict:
 
 def chart(path: Path, result: dict) -> None:
     plt = plot.pyplot()
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.3))
+    weak = [r for r in result.get("weak", []) if "failed" not in r]
+    fig, axes = plt.subplots(1, 4 if weak else 3, figsize=(20 if weak else 15, 4.3))
     styles = {"lu": ("o-", "MUMPS LU"), "iterative": ("s-", "GMRES + BLR LU (1e-4)"),
               "pmg": ("P-", "GMRES + fieldsplit, P2→P1 multigrid (pmg)")}
     ax = axes[0]
+    ran = {r["solver"] for r in result["levels"] if "failed" not in r}
+    styles = {solver: style for solver, style in styles.items() if solver in ran}  # no empty legend entries
     for solver, (style, label) in styles.items():
         rows = [r for r in result["levels"] if r["solver"] == solver and "failed" not in r]
         n = [r["unknowns"] for r in rows]
@@ -276,6 +292,8 @@ def chart(path: Path, result: dict) -> None:
     ax.legend(fontsize=7)
     ax = axes[2]
     for solver, label in (("iterative", "GMRES + BLR 1e-4"), ("pmg", "pmg")):
+        if solver not in styles:
+            continue
         rows = [r for r in result["levels"] if r["solver"] == solver and "failed" not in r]
         ax.semilogx([r["unknowns"] for r in rows], [r["krylov_iterations"] / r["newton_iterations"] for r in rows],
                     styles[solver][0], label=f"{label}, idealized refined, against unknowns")
@@ -310,8 +328,31 @@ def chart(path: Path, result: dict) -> None:
     twin.set_xlabel("BLR precision (purple; red x: GMRES fails)", color="tab:purple", fontsize=8)
     ax.set_title("where it stalls", fontsize=9, pad=28)
     ax.legend(fontsize=7, loc="upper left")
+    if weak:
+        _weak_chart(axes[3], weak, result.get("projection") or {})
     fig.tight_layout()
     plot.save(fig, path, dpi=120)
+
+
+def _weak_chart(ax, weak: list[dict], projected: dict) -> None:
+    """Weak-scaling efficiency against ranks: measured points, the projection dashed."""
+    ranks = [r["ranks"] for r in weak]
+    ax.semilogx(ranks, [r.get("efficiency", 1.0) for r in weak], "P-", ms=9, base=2,
+                label=f"measured, {weak[0]['unknowns_per_rank'] / 1e3:.0f}k unknowns a rank")
+    if projected:
+        times = 2.0 ** np.arange(0, 1 + int(np.log2(projected["rows"][-1]["ranks"] / projected["from_ranks"])))
+        T = [projected_seconds(projected["from_solve_s"], projected["beta"], projected["gamma"], t) for t in times]
+        ax.semilogx(projected["from_ranks"] * times, projected["from_solve_s"] / np.array(T), "--", color="grey",
+                    base=2, label=f"projection (not measured): β = {projected['beta']:.3f}, "
+                                  f"γ = {projected['gamma']:.3f}")
+    for r in weak:
+        ax.annotate(f"{r['krylov_per_newton']:.0f} its", (r["ranks"], r.get("efficiency", 1.0)), fontsize=7,
+                    textcoords="offset points", xytext=(4, 4))
+    ax.set_ylim(0, 1.1)
+    ax.set_xlabel("ranks")
+    ax.set_ylabel("weak-scaling efficiency T(1) / T(P)")
+    ax.set_title("pmg, fixed unknowns a rank (cylinder, growth solve)", fontsize=9)
+    ax.legend(fontsize=7)
 
 
 def parser() -> cli.Parser:
@@ -324,6 +365,8 @@ def parser() -> cli.Parser:
     p.add_argument("--scaling-level", type=cli.integer(0, 3), default=2, help="refinement level of the scaling part")
     p.add_argument("--scaling-ranks", nargs="+", type=cli.integer(1), default=[1, 2], metavar="RANKS",
                    help="rank counts of the scaling part")
+    p.add_argument("--weak-unknowns", type=cli.integer(1000), default=150_000,
+                   help="unknowns a rank of the weak part (on each of --scaling-ranks)")
     p.add_argument("--answers-levels", nargs="+", type=cli.integer(0, 3), default=[0, 1], metavar="LEVEL",
                    help="refinement levels of the answers part")
     p.add_argument("--precision-level", type=cli.integer(0, 3), default=1, help="level of the BLR precision ladder")
@@ -378,6 +421,121 @@ def _scaling_part(args) -> list[dict]:
                       f"Krylov its a Newton step, {row['solve_s']:.1f} s, peak RSS {row['peak_rss_mb_sum']:.0f} MB"
                       + (f", speed-up {row['speedup']:.2f}" if "speedup" in row else "")), flush=True)
     return rows
+
+
+def weak_cylinder(folder: Path, unknowns: int) -> int:
+    """Mesh the weak-scaling cylinder with gmsh into ``folder`` as `geo.load` reads a
+    cylinder (FOLDER/muscle-cylinder/muscle-cylinder.msh: ends tagged 1 and 2, the
+    internal mid disk 3), with about ``unknowns`` P2–P1 unknowns (3 (V + E) + V for V
+    vertices and E edges); returns its unknowns. The edge length is rescaled until they
+    are within WEAK_TOLERANCE."""
+    import gmsh
+
+    path = folder / geo.GEOMETRIES["cylinder"]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    size = (WEAK_LENGTH * np.pi * WEAK_RADIUS**2 * 33.0 / unknowns) ** (1.0 / 3.0)  # first guess, then measured
+    gmsh.initialize(interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        occ = gmsh.model.occ
+        halves = [occ.addCylinder(0, 0, z, 0, 0, WEAK_LENGTH / 2, WEAK_RADIUS) for z in (0.0, WEAK_LENGTH / 2)]
+        occ.fragment([(3, halves[0])], [(3, halves[1])])
+        occ.synchronize()
+        disks = {}
+        for _, tag in gmsh.model.getEntities(2):
+            box = gmsh.model.getBoundingBox(2, tag)
+            if box[5] - box[2] < 1e-3 * WEAK_LENGTH:  # flat (boxes carry OCC's tolerance): an end or the mid disk
+                disks[round(box[2] / (WEAK_LENGTH / 2))] = tag
+        for physical, position in ((1, 0), (2, 2), (3, 1)):
+            gmsh.model.addPhysicalGroup(2, [disks[position]], physical)
+        gmsh.model.addPhysicalGroup(3, [t for _, t in gmsh.model.getEntities(3)], 1)
+        for _ in range(WEAK_TRIES):
+            gmsh.model.mesh.clear()
+            gmsh.option.setNumber("Mesh.MeshSizeMin", size)
+            gmsh.option.setNumber("Mesh.MeshSizeMax", size)
+            gmsh.model.mesh.generate(3)
+            vertices = len(gmsh.model.mesh.getNodes()[0])
+            tets = gmsh.model.mesh.getElementsByType(4)[1].reshape(-1, 4)
+            a, b = tets[:, [0, 0, 0, 1, 1, 2]].ravel(), tets[:, [1, 2, 3, 2, 3, 3]].ravel()
+            edges = np.unique(np.minimum(a, b) * (tets.max() + 1) + np.maximum(a, b)).size
+            made = 3 * (vertices + edges) + vertices
+            if abs(made / unknowns - 1.0) <= WEAK_TOLERANCE:
+                break
+            size *= (made / unknowns) ** (1.0 / 3.0)
+        gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
+        gmsh.write(str(path))
+    finally:
+        gmsh.finalize()
+    return made
+
+
+def _weak_part(args) -> list[dict]:
+    """"pmg" at `--weak-unknowns` per rank on each of `--scaling-ranks`: the cylinder of
+    `weak_cylinder` meshed anew for each rank count; efficiency = fewest ranks' time / this one's."""
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for ranks in sorted(args.scaling_ranks):
+            folder = Path(tmp) / str(ranks)
+            print(f"solvers: weak scaling, pmg at {args.weak_unknowns} unknowns a rank on {ranks} rank(s) …",
+                  flush=True)
+            meshed = weak_cylinder(folder, ranks * args.weak_unknowns)
+            row = _run_worker({"geometry": "cylinder", "meshes_dir": str(folder), "fibers": "idealized",
+                               "solver": "pmg"}, ranks, args.timeout, None)
+            row.pop("meshes_dir", None)  # a folder gone with this run
+            row["meshed_unknowns"] = meshed
+            if "failed" not in row:
+                row["unknowns_per_rank"] = row["unknowns"] / ranks
+                row["krylov_per_newton"] = row["krylov_iterations"] / row["newton_iterations"]
+                row["peak_rss_mb_per_rank"] = row["peak_rss_mb_sum"] / ranks
+                # time per Krylov iteration and unknown a rank: the cost the projection carries
+                row["solve_s_per_iteration_and_unknown_a_rank"] = (row["solve_s"] / row["krylov_iterations"]
+                                                                   / row["unknowns_per_rank"])
+                if rows and "failed" not in rows[0]:
+                    row["efficiency"] = rows[0]["solve_s"] / row["solve_s"]
+            rows.append(row)
+            print("  " + ("FAILED " + row["failed"] if "failed" in row else
+                          f"{row['unknowns']} unknowns ({row['unknowns_per_rank']:.0f} a rank), "
+                          f"{row['krylov_per_newton']:.1f} Krylov its a Newton step, {row['solve_s']:.1f} s, "
+                          f"peak RSS {row['peak_rss_mb_per_rank']:.0f} MB a rank"
+                          + (f", efficiency {row['efficiency']:.2f}" if "efficiency" in row else "")), flush=True)
+    return rows
+
+
+PROJECTED_RANKS = (64, 128, 256, 512, 1024)
+
+
+def projection(weak: list[dict], levels: list[dict]) -> dict:
+    """A projection (not a measurement) of the weak-scaling time to PROJECTED_RANKS from
+    the measured per-rank costs: T(P) = T(1) (N_P / N_1)^β (1 + γ log₂ P), with β the
+    growth of pmg's Krylov iterations a Newton step with the unknowns (fitted on the
+    levels part), and γ the growth of the time per iteration and per-rank unknown from 1
+    to 2 ranks (its halo exchange and shared memory bandwidth; inter-node networks and the
+    coarse grid's growing share are not in it). Empty without two weak rows and two pmg levels."""
+    done = sorted((r for r in weak if "failed" not in r), key=lambda r: r["ranks"])
+    pmg = sorted((r for r in levels if r["solver"] == "pmg" and "failed" not in r), key=lambda r: r["unknowns"])
+    if len(done) < 2 or len(pmg) < 2:
+        return {}
+    small, large = pmg[0], pmg[-1]
+    beta = float(np.log((large["krylov_iterations"] / large["newton_iterations"])
+                        / (small["krylov_iterations"] / small["newton_iterations"]))
+                 / np.log(large["unknowns"] / small["unknowns"]))
+    first, second = done[0], done[1]
+    key = "solve_s_per_iteration_and_unknown_a_rank"
+    gamma = float((second[key] / first[key] - 1.0) / np.log2(second["ranks"] / first["ranks"]))
+    per_rank = first["unknowns_per_rank"]
+    rows = [{"ranks": ranks, "unknowns": per_rank * ranks,
+             "solve_s": projected_seconds(first["solve_s"], beta, gamma, ranks / first["ranks"])}
+            for ranks in PROJECTED_RANKS]
+    for row in rows:
+        row["efficiency"] = first["solve_s"] / row["solve_s"]
+    return {"kind": "projection, not measured", "model": "T(P) = T(1) (N_P / N_1)^beta (1 + gamma log2 P)",
+            "beta": beta, "gamma": gamma, "unknowns_per_rank": per_rank, "from_ranks": first["ranks"],
+            "from_solve_s": first["solve_s"], "rows": rows}
+
+
+def projected_seconds(seconds: float, beta: float, gamma: float, times: float) -> float:
+    """`projection`'s T(P) for ``times`` the measured ranks and unknowns."""
+    return float(seconds * times**beta * (1.0 + gamma * np.log2(times)))
 
 
 def _answers_part(args) -> list[dict]:
@@ -507,13 +665,14 @@ def run(comm, args) -> int:
                                args.timeout, None))
     pmg = _pmg_part(args) if "pmg" in args.parts else []
     scaling = _scaling_part(args) if "scaling" in args.parts else []
+    weak = _weak_part(args) if "weak" in args.parts else []
     answers = _answers_part(args) if "answers" in args.parts else []
     measured = {"levels": rows, "precision": precision, "gamg": gamg, "amg": amg, "pmg": pmg, "scaling": scaling,
-                "answers": answers}
-    rows, precision, gamg, amg, pmg, scaling, answers = ({**measured, **kept}[part] for part in PARTS)
+                "weak": weak, "answers": answers}
+    rows, precision, gamg, amg, pmg, scaling, weak, answers = ({**measured, **kept}[part] for part in PARTS)
     result = {"benchmark": "solvers", "machine": common.machine(), "ranks": args.ranks, "theta": THETA,
               "levels": rows, "precision": precision, "gamg": gamg, "amg": amg, "pmg": pmg, "scaling": scaling,
-              "answers": answers, "parts_run": args.parts,
+              "weak": weak, "projection": projection(weak, rows), "answers": answers, "parts_run": args.parts,
               "memory_fit": {s: memory_fit([r for r in rows if r["solver"] == s]) for s in ("lu", "iterative")},
               "rss_fit": {s: memory_fit([r for r in rows if r["solver"] == s], "peak_rss_mb_sum")
                           for s in LEVEL_SOLVERS},
