@@ -55,9 +55,9 @@ Where it stalls:
   the CSA and volume series as a fraction of the growth, and of the end force relative
   to it (the issue's goal: 1e-6 of the growth, 1e-8 of the force).
 
---parts runs only some of the eight (levels, precision, gamg, amg, pmg, scaling, weak, answers); the others are kept
-from an existing OUTPUT/solvers.json. Writes results/bench/solvers.json and solvers.png (memory and time against unknowns,
-iterations against unknowns and precision, and the weak-scaling efficiency where it ran).
+--parts runs only some of the eight (levels, precision, gamg, amg, pmg, scaling, weak, answers); the others are
+kept from an existing OUTPUT/solvers.json. Writes results/bench/solvers.json and solvers.png (memory and time
+against unknowns, iterations against unknowns and precision, and the weak-scaling efficiency where it ran).
 """
 
 from __future__ import annotations
