@@ -66,7 +66,7 @@ from hyper.fem.coupled import GrowthSettings, build_model
 from hyper.fem.mechanics import MechanicsProblem, SolverError
 from hyper.model import protocols
 from hyper.model.failure import GrowthFailure
-from hyper.runs import contraction, plot
+from hyper.runs import contraction, farm, plot
 
 PROTOCOL = "mwf"
 CELLS = (4000, 8000, 16000, 32000)
@@ -225,41 +225,81 @@ def study(comm, args) -> dict:
     root = args.output / "convergence" / name
     start = time.perf_counter()
     folders = [level_mesh(comm, name, stl, extra, n, root, args.force) for n in cells]
-    finest_geometry = load_level(comm, folders[-1])
-    finest = fibers.load(finest_geometry, folders[-1] / fibers.FILE_NAME)
+    results = farm.run(comm, level_jobs(cells, args), lambda sub, job: level_job(sub, folders, job),
+                       label=f"convergence {name}")
+    failed = [r for r in results if r.status != "done"]
+    if failed:
+        raise InputError(f"{failed[0].key}: {farm.summary_line(results)}: {failed[0].error.strip().splitlines()[-1]}; "
+                         "take finer levels (--cells)")
     rows = []
-    for n, folder in zip(cells, folders):
-        level = time.perf_counter()
-        geometry = load_level(comm, folder)
-        own = fibers.load(geometry, folder / fibers.FILE_NAME)
-        fields = {"own": own, "finest": unit(fibers.transferred(finest, geometry))}
-        volume = geometry.reference_volume()
-        row = {"cells_target": n, "cells": geometry.num_cells(),
-               "vertices": geometry.mesh.topology.index_map(0).size_global,
-               "h_mm": (volume / geometry.num_cells()) ** (1 / 3) / geo.MM, "volume_m3": volume,
-               "fibre_angle_to_finest": angles(fields["own"], fields["finest"])}
-        for variant, a0 in fields.items():
-            if variant == "finest" and folder == folders[-1]:
+    for i, (n, folder) in enumerate(zip(cells, folders)):
+        done = {r.key.split("/", 1)[1]: r for r in results if r.key.split("/")[0] == str(i)}
+        row = {"cells_target": n, **done["own/growth"].result.pop("level")}
+        for variant in VARIANTS:
+            if variant == "finest" and i == len(cells) - 1:
                 row[variant] = row["own"]  # the same field
                 continue
-            try:
-                row[variant] = growth(geometry, a0)
-            except GrowthFailure as err:
-                raise InputError(f"{folder.name} ({variant} fibres): {err}; take finer levels (--cells)") from None
-            if args.force_at_full_activation and not (args.quick and variant == "finest"):
-                row[variant].update(end_force(geometry, a0))
-        row["wall_s"] = comm.allreduce(time.perf_counter() - level, op=MPI.MAX)
+            row[variant] = {**done[f"{variant}/growth"].result,
+                            **(done[f"{variant}/force"].result if f"{variant}/force" in done else {})}
+        row["fibre_angle_to_finest"] = (done["finest/growth"].result.pop("fibre_angle_to_finest")
+                                        if "finest/growth" in done else {"mean_deg": 0.0, "p95_deg": 0.0,
+                                                                         "max_deg": 0.0})
+        row["finest"].pop("fibre_angle_to_finest", None)
+        row["wall_s"] = sum(r.wall_s for r in done.values())  # the level's jobs, wherever they ran
         rows.append(row)
         a = row["fibre_angle_to_finest"]
         info(comm, f"{folder.name}: {row['cells']} cells, h {row['h_mm']:.2f} mm; fibres to the finest: mean "
                    f"{a['mean_deg']:.2f}°, p95 {a['p95_deg']:.2f}°; "
                    + "; ".join(f"{v}: CSA {row[v]['csa_gain_pct']:+.4f} %, V {row[v]['volume_gain_pct']:+.4f} % "
                                f"({row[v]['growth_s']:.0f} s), force {shown_force(row[v])}" for v in VARIANTS)
-                   + f" ({row['wall_s']:.0f} s)")
+                   + f" ({row['wall_s']:.0f} s of jobs)")
     return {"benchmark": "convergence", "muscle": name, "surface": str(stl), "protocol": PROTOCOL,
             "quick": bool(args.quick), "ranks": comm.size, "machine": common.machine(), "levels": rows,
             "estimates": estimates_of(rows), "wall_s": comm.allreduce(time.perf_counter() - start, op=MPI.MAX),
+            "jobs": [{"key": r.key, "rank": r.group, "wall_s": r.wall_s} for r in results],
             "versions": io.versions()}
+
+
+def level_jobs(cells: list[int], args) -> list[farm.Job]:
+    """The study's independent runs, farmed over the ranks (each on one): per level the
+    growth with its own and with the finest fibres (the finest level: own only), and the
+    end force where asked (--quick: own fibres only). Costs: cells, the force about four
+    growths (measured on ST_VHM_Right's quick study)."""
+    jobs = []
+    for i, n in enumerate(cells):
+        for variant in VARIANTS:
+            if variant == "finest" and i == len(cells) - 1:
+                continue
+            jobs.append(farm.Job(f"{i}/{variant}/growth", cost=float(n), payload=(i, variant, "growth")))
+            if args.force_at_full_activation and not (args.quick and variant == "finest"):
+                jobs.append(farm.Job(f"{i}/{variant}/force", cost=4.0 * n, payload=(i, variant, "force")))
+    return jobs
+
+
+def level_job(comm, folders: list[Path], job: farm.Job) -> dict:
+    """One of `level_jobs` on ``comm``: the growth numbers (with the level's size and, for
+    the finest fibres, their angle to its own) or the end force."""
+    i, variant, what = job.payload
+    folder = folders[i]
+    geometry = load_level(comm, folder)
+    own = fibers.load(geometry, folder / fibers.FILE_NAME)
+    a0 = own
+    out = {}
+    if variant == "finest":
+        finest = fibers.load(load_level(comm, folders[-1]), folders[-1] / fibers.FILE_NAME)
+        a0 = unit(fibers.transferred(finest, geometry))
+        out["fibre_angle_to_finest"] = angles(own, a0)
+    if what == "force":
+        return end_force(geometry, a0)
+    try:
+        out.update(growth(geometry, a0))
+    except GrowthFailure as err:
+        raise InputError(f"{folder.name} ({variant} fibres): {err}") from None
+    if variant == "own":
+        volume = geometry.reference_volume()
+        out["level"] = {"cells": geometry.num_cells(), "vertices": geometry.mesh.topology.index_map(0).size_global,
+                        "h_mm": (volume / geometry.num_cells()) ** (1 / 3) / geo.MM, "volume_m3": volume}
+    return out
 
 
 def estimates_of(rows: list[dict]) -> dict:
