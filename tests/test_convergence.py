@@ -173,3 +173,33 @@ def test_the_study_farmed_over_two_ranks_gives_the_numbers_of_one_rank(tmp_path_
                     assert mine[variant].get(q) == theirs[variant].get(q), (mine["cells"], variant, q)
         assert farmed["estimates"] == alone["estimates"]
     comm.barrier()
+
+
+def test_the_all_muscles_table_reuses_kept_studies_and_judges_the_goal(tmp_path, monkeypatch):
+    """Two kept studies (no run): one within the goal, one whose CSA gain moves by 1 % of
+    the growth between its two finest levels (no order: that spread is its error)."""
+    import json
+
+    cells = list(convergence.QUICK_CELLS)
+    h = [4.0, 3.2, 2.5, 2.0]
+
+    def kept(name, csa):
+        levels = [{"cells_target": n, "cells": n, "h_mm": hh, "fibre_angle_to_finest": {"p95_deg": 10.0 - i},
+                   "own": {"csa_gain_pct": c, "volume_gain_pct": 8.4, "end_force_n": 0.5}}
+                  for i, (n, hh, c) in enumerate(zip(cells, h, csa))]
+        result = {"muscle": name, "levels": levels, "estimates": convergence.estimates_of(
+            [{**lv, "finest": lv["own"]} for lv in levels]), "wall_s": 1.0}
+        (tmp_path / "convergence_all").mkdir(exist_ok=True)
+        (tmp_path / "convergence_all" / f"{name}.json").write_text(json.dumps(result))
+
+    kept("TA_VHF_Left", [8.30, 8.36, 8.38, 8.385])  # converging: Richardson order
+    kept("ST_VHM_Right", [8.30, 8.40, 8.30, 8.384])  # zigzags: the 2.5-2.0 spread, 0.084 points
+    monkeypatch.setattr(convergence, "source", lambda muscle, surfaces: (muscle, None, []))
+    assert convergence.main(["--all", "TA_VHF_Left", "ST_VHM_Right", "--quick", "--output", str(tmp_path)]) == 0
+    table = {r["muscle"]: r for r in json.loads((tmp_path / "convergence_all.json").read_text())["muscles"]}
+    ta, st = table["TA_VHF_Left"], table["ST_VHM_Right"]
+    assert ta["csa_order"] is not None and ta["csa_error"] < convergence.GROWTH_GOAL and ta["goal_met"]
+    assert st["csa_order"] is None and st["csa_error"] == pytest.approx(0.084 / 8.384)
+    assert not st["goal_met"]
+    assert ta["fibre_p95_deg_below"] == 8.0 and ta["cells"] == cells[-1]
+    assert (tmp_path / "convergence_all.png").stat().st_size > 0

@@ -2,6 +2,7 @@
 resolutions, and which of fibres and mechanics carries the error.
 
     python -m hyper.bench convergence [MUSCLE] [--cells 4000 8000 16000 32000] [--quick]
+    python -m hyper.bench convergence --all [ID …] [--quick] (every muscle, one table)
     python -m hyper.bench convergence --fibres-only ID … (the fixed-geometry fibre check)
 
 MUSCLE: a shipped or meshed geometry id whose surface is known (the 12 paper muscles:
@@ -30,6 +31,15 @@ finest levels' spread |f3 - f2| stands for the finest level's error, and |f - f3
 for the others. The error of the own-fibre series less that of the finest-fibre series
 is the fibres' share.
 
+The runs of a study (per level: growth with each fibre field, the end force) are farmed
+over the ranks (`hyper.runs.farm`, longest first), each on one rank: `mpirun -n 2` gives
+the numbers of one rank in about half the time.
+
+--all [ID …]: the study of every muscle with a surface (or those named), each kept under
+OUTPUT/convergence_all/ and reused, and one table of their finest levels (with --quick,
+the default 8000 cells): gains, estimated errors, whether both gains are within
+GROWTH_GOAL of the growth (convergence_all.json, .png).
+
 --fibres-only ID …: the Stokes fibres of each geometry at the default Taylor–Hood P2-P1
 against P3-P2 on the same mesh (the same polyhedron, one order higher): mean, 95th
 percentile and largest angle at the nodes, and the seconds and peak memory of the P3
@@ -40,6 +50,7 @@ Writes OUTPUT/convergence_NAME.json and .png (or convergence_fibres.json).
 
 from __future__ import annotations
 
+import argparse
 import json
 import resource
 import shutil
@@ -77,6 +88,7 @@ VARIANTS = ("own", "finest")
 QUANTITIES = ("csa_gain_pct", "volume_gain_pct", "end_force_n")
 ORDER_RANGE = (0.3, 6.0)  # observed orders outside it are taken as no order
 FIBRES_GOAL_DEG = 3.0  # issue 32: the default mesh's fibres within 3° (95th percentile) of the converged field
+GROWTH_GOAL = 5e-3  # issue 32: the default mesh's CSA and volume gains within 0.5 % of the growth of their limit
 
 
 # ---------------------------------------------------------------------------- source
@@ -541,6 +553,98 @@ def fibres_all(comm, args) -> int:
     return cli.EXIT_OK
 
 
+# ------------------------------------------------------------------------------ --all
+
+
+def studies_all(comm, args) -> int:
+    """The study of each muscle (`--all`), each kept under OUTPUT/convergence_all/ and
+    reused when its levels are the same (a stopped run goes on where it was), then one
+    table of every muscle's finest level (with --quick, the default resolution)."""
+    muscles = args.all or fibre_muscles(args.surfaces)
+    cells = sorted(args.cells if args.cells else (QUICK_CELLS if args.quick else CELLS))
+    folder = args.output / "convergence_all"
+    rows = []
+    for muscle in muscles:
+        name = source(muscle, args.surfaces)[0]
+        path = folder / f"{name}.json"
+        done = comm.bcast(path.is_file() and [r["cells_target"] for r in json.loads(path.read_text())["levels"]]
+                          == cells if comm.rank == 0 else None, root=0)
+        if done and not args.force:
+            result = comm.bcast(json.loads(path.read_text()) if comm.rank == 0 else None, root=0)
+        else:
+            try:
+                result = study(comm, argparse.Namespace(**{**vars(args), "muscle": muscle}))
+            except InputError as err:  # one muscle's failure is a row of the table, not the end of it
+                info(comm, f"{name}: FAILED {err}")
+                rows.append({"muscle": name, "failed": str(err)})
+                continue
+            if comm.rank == 0:
+                folder.mkdir(parents=True, exist_ok=True)
+                io.write_json(path, result)
+                chart(folder / f"{name}.png", result)
+        rows.append(summary_row(result))
+        info(comm, summary_line(rows[-1]))
+    result = {"benchmark": "convergence --all", "cells": cells, "quick": bool(args.quick), "goal": GROWTH_GOAL,
+              "muscles": rows, "ranks": comm.size, "machine": common.machine(), "versions": io.versions()}
+    if comm.rank == 0:
+        io.write_json(args.output / "convergence_all.json", result)
+        all_chart(args.output / "convergence_all.png", result)
+    met = [r for r in rows if r.get("goal_met")]
+    info(comm, f"{len(met)} of {len(rows)} muscles within {GROWTH_GOAL:g} of the growth (CSA and volume) at "
+               f"{cells[-1]} cells; wrote {args.output / 'convergence_all'}.json and .png")
+    return cli.EXIT_OK
+
+
+def summary_row(result: dict) -> dict:
+    """A muscle's finest level: its gains, their estimated errors (own fibres, of the
+    growth), the end force's, and the fibres' p95 angle one level down."""
+    top = result["levels"][-1]
+    est = result["estimates"]
+
+    def error(q):
+        e = est.get(q, {}).get("own")
+        return None if e is None else e["errors"][-1]
+
+    row = {"muscle": result["muscle"], "cells": top["cells"], "h_mm": top["h_mm"],
+           "csa_gain_pct": top["own"]["csa_gain_pct"], "volume_gain_pct": top["own"]["volume_gain_pct"],
+           "csa_error": error("csa_gain_pct"), "volume_error": error("volume_gain_pct"),
+           "csa_order": (est.get("csa_gain_pct", {}).get("own") or {}).get("order"),
+           "end_force_n": top["own"].get("end_force_n"), "end_force_error": error("end_force_n"),
+           "fibre_p95_deg_below": result["levels"][-2]["fibre_angle_to_finest"]["p95_deg"],
+           "wall_s": result["wall_s"]}
+    row["goal_met"] = bool(row["csa_error"] is not None and row["volume_error"] is not None
+                           and max(row["csa_error"], row["volume_error"]) <= GROWTH_GOAL)
+    return row
+
+
+def summary_line(row: dict) -> str:
+    if "failed" in row:
+        return f"{row['muscle']}: FAILED {row['failed']}"
+    return (f"{row['muscle']}: {row['cells']} cells, CSA {row['csa_gain_pct']:+.4f} % (error {row['csa_error']:.1e}), "
+            f"V {row['volume_gain_pct']:+.4f} % ({row['volume_error']:.1e}), fibres p95 one level down "
+            f"{row['fibre_p95_deg_below']:.1f}°, {'meets' if row['goal_met'] else 'misses'} {GROWTH_GOAL:g} "
+            f"({row['wall_s']:.0f} s)")
+
+
+def all_chart(path: Path, result: dict) -> None:
+    rows = [r for r in result["muscles"] if "failed" not in r]
+    plt = plot.pyplot()
+    fig, ax = plt.subplots(figsize=(9, 0.28 * len(rows) + 1.6))
+    y = np.arange(len(rows))
+    ax.barh(y - 0.2, [r["csa_error"] for r in rows], 0.4, label="CSA gain")
+    ax.barh(y + 0.2, [r["volume_error"] for r in rows], 0.4, label="volume gain")
+    ax.axvline(result["goal"], color="k", ls="--", lw=1, label=f"goal {result['goal']:g} of the growth")
+    ax.set_yticks(y, [r["muscle"] for r in rows], fontsize=7)
+    ax.set_xscale("log")
+    ax.invert_yaxis()
+    ax.set_xlabel("estimated error of the 9-week gain, fraction of the growth")
+    ax.set_title(f"{result['cells'][-1]}-cell meshes (levels {', '.join(map(str, result['cells']))}), "
+                 f"{sum(r['goal_met'] for r in rows)} of {len(result['muscles'])} meet the goal", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    plot.save(fig, path, dpi=120)
+
+
 # ------------------------------------------------------------------------------ job
 
 
@@ -552,6 +656,8 @@ def parser() -> cli.Parser:
                         f"({' '.join(map(str, QUICK_CELLS))} with --quick)")
     p.add_argument("--quick", action="store_true", help="coarser levels: a few minutes on 2 cores")
     p.add_argument("--surfaces", type=Path, default=mesh_bench.SURFACES, help="folder of the STL surfaces")
+    p.add_argument("--all", nargs="*", metavar="ID", help="the study of each muscle (every one with a surface by "
+                   "default), kept under OUTPUT/convergence_all/ and reused; one table (convergence_all.json, .png)")
     p.add_argument("--fibres-only", nargs="+", metavar="ID", help="only the fixed-geometry fibre check (P2 against "
                    "P3) of these geometries")
     p.add_argument("--fibres-all", nargs="*", metavar="ID", help="only the fibres' resolution: each muscle's "
@@ -576,6 +682,8 @@ def parser() -> cli.Parser:
 
 
 def run(comm, args) -> int:
+    if args.all is not None:
+        return studies_all(comm, args)
     if args.fibres_all is not None:
         return fibres_all(comm, args)
     if args.fibres_only:
