@@ -611,7 +611,7 @@ def summary_row(result: dict) -> dict:
            "csa_order": (est.get("csa_gain_pct", {}).get("own") or {}).get("order"),
            "end_force_n": top["own"].get("end_force_n"), "end_force_error": error("end_force_n"),
            "fibre_p95_deg_below": result["levels"][-2]["fibre_angle_to_finest"]["p95_deg"],
-           "wall_s": result["wall_s"]}
+           "wall_s": result["wall_s"], "ranks": result.get("ranks", 1)}
     row["goal_met"] = bool(row["csa_error"] is not None and row["volume_error"] is not None
                            and max(row["csa_error"], row["volume_error"]) <= GROWTH_GOAL)
     return row
