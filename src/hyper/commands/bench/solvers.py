@@ -202,10 +202,10 @@ def run_case(case: dict, comm, save: Path | None) -> dict:
     kwargs = {}
     if solver == "iterative":
         kwargs = {"linear_solver": "iterative", "blr_precision": case.get("precision", BLR_PRECISION)}
-    if solver == "pmg" and "pmg_case" not in case:
-        kwargs = {"linear_solver": "pmg"}
     start = time.perf_counter()
     options = {**GAMG_OPTIONS, **GAMG_VARIANTS[case["variant"]]} if solver == "gamg" else None
+    if solver == "pmg" and "pmg_case" not in case:
+        kwargs, options = {"linear_solver": "pmg"}, case.get("options") or None
     if solver == "amg":
         kwargs, options = {"linear_solver": "amg"}, AMG_VARIANTS[case["variant"]] or None
     if "pmg_case" in case:
@@ -367,6 +367,9 @@ def parser() -> cli.Parser:
                    help="rank counts of the scaling part")
     p.add_argument("--weak-unknowns", type=cli.integer(1000), default=150_000,
                    help="unknowns a rank of the weak part (on each of --scaling-ranks)")
+    p.add_argument("--pmg-option", type=cli.petsc_option, action="append", default=[], metavar="KEY=VALUE",
+                   help="a PETSc option of the pmg runs of the levels, scaling and weak parts (repeatable), "
+                        "e.g. ksp_gmres_restart=60")
     p.add_argument("--answers-levels", nargs="+", type=cli.integer(0, 3), default=[0, 1], metavar="LEVEL",
                    help="refinement levels of the answers part")
     p.add_argument("--precision-level", type=cli.integer(0, 3), default=1, help="level of the BLR precision ladder")
@@ -410,8 +413,8 @@ def _scaling_part(args) -> list[dict]:
     rows = []
     for ranks in sorted(args.scaling_ranks):
         print(f"solvers: scaling, pmg on level {args.scaling_level} on {ranks} rank(s) …", flush=True)
-        row = _run_worker({"geometry": "idealized", "level": args.scaling_level, "solver": "pmg"},
-                          ranks, args.timeout, None)
+        row = _run_worker({"geometry": "idealized", "level": args.scaling_level, "solver": "pmg",
+                           "options": dict(args.pmg_option)}, ranks, args.timeout, None)
         if "failed" not in row and rows and "failed" not in rows[0]:
             row["speedup"] = rows[0]["solve_s"] / row["solve_s"]
             row["efficiency"] = row["speedup"] * rows[0]["ranks"] / ranks
@@ -480,7 +483,7 @@ def _weak_part(args) -> list[dict]:
                   flush=True)
             meshed = weak_cylinder(folder, ranks * args.weak_unknowns)
             row = _run_worker({"geometry": "cylinder", "meshes_dir": str(folder), "fibers": "idealized",
-                               "solver": "pmg"}, ranks, args.timeout, None)
+                               "solver": "pmg", "options": dict(args.pmg_option)}, ranks, args.timeout, None)
             row.pop("meshes_dir", None)  # a folder gone with this run
             row["meshed_unknowns"] = meshed
             if "failed" not in row:
@@ -626,7 +629,8 @@ def run(comm, args) -> int:
                 saved[solver] = Path(tmp) / f"{solver}_{level}"
                 saved[solver].mkdir()
                 print(f"solvers: level {level}, {solver} on {args.ranks} rank(s) …", flush=True)
-                row = _run_worker({"geometry": "idealized", "level": level, "solver": solver},
+                row = _run_worker({"geometry": "idealized", "level": level, "solver": solver,
+                                   **({"options": dict(args.pmg_option)} if solver == "pmg" else {})},
                                   args.ranks, args.timeout, saved[solver])
                 rows.append(row)
                 print("  " + ("FAILED " + row["failed"] if "failed" in row else
