@@ -589,6 +589,7 @@ def studies_all(comm, args) -> int:
     if comm.rank == 0:
         io.write_json(args.output / "convergence_all.json", result)
         all_chart(args.output / "convergence_all.png", result)
+        print("\n".join(all_table(result)))
     met = [r for r in rows if r.get("goal_met")]
     info(comm, f"{len(met)} of {len(rows)} muscles within {GROWTH_GOAL:g} of the growth (CSA and volume) at "
                f"{cells[-1]} cells; wrote {args.output / 'convergence_all'}.json and .png")
@@ -624,6 +625,24 @@ def summary_line(row: dict) -> str:
             f"V {row['volume_gain_pct']:+.4f} % ({row['volume_error']:.1e}), fibres p95 one level down "
             f"{row['fibre_p95_deg_below']:.1f}°, {'meets' if row['goal_met'] else 'misses'} {GROWTH_GOAL:g} "
             f"({row['wall_s']:.0f} s)")
+
+
+def all_table(result: dict) -> list[str]:
+    """The markdown table of docs/convergence.md: each muscle's finest level."""
+    lines = ["| muscle | cells | CSA gain (%) | its estimated error (of the growth), order | volume gain (%) | "
+             "its error | fibres one level down: p95 to the finest (°) | goal | study (s, ranks) |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in result["muscles"]:
+        if "failed" in r:
+            lines.append(f"| {r['muscle']} | failed: {r['failed']} | | | | | | | |")
+            continue
+        order = f"{r['csa_order']:.2f}" if r["csa_order"] is not None else "none"
+        lines.append(f"| {r['muscle']} | {r['cells']} | {r['csa_gain_pct']:.4f} | {r['csa_error']:.1e}, {order} | "
+                     f"{r['volume_gain_pct']:.4f} | {r['volume_error']:.1e} | {r['fibre_p95_deg_below']:.1f} | "
+                     f"{'met' if r['goal_met'] else 'missed'} | {r['wall_s']:.0f}, {r['ranks']} |")
+    met = sum(bool(r.get("goal_met")) for r in result["muscles"])
+    lines.append(f"| within {result['goal']:g} of the growth | {met} of {len(result['muscles'])} | | | | | | | |")
+    return lines
 
 
 def all_chart(path: Path, result: dict) -> None:
