@@ -236,7 +236,18 @@ def study(comm, args) -> dict:
         raise InputError("--cells: at least three resolutions (four or more for a check of the order)")
     root = args.output / "convergence" / name
     start = time.perf_counter()
-    folders = [level_mesh(comm, name, stl, extra, n, root, args.force) for n in cells]
+    asked, folders, dropped = list(cells), [], {}
+    for n in asked:
+        try:
+            folders.append(level_mesh(comm, name, stl, extra, n, root, args.force))
+        except InputError as err:  # a thin muscle cannot be meshed at the coarsest sizes
+            if folders:  # a finer level failing where a coarser one worked is no thin muscle: stop
+                raise
+            dropped[n] = str(err)
+            info(comm, f"{name}: level {n} dropped: {err}")
+    cells = [n for n in asked if n not in dropped]
+    if len(cells) < 3:
+        raise InputError(f"{name}: only {len(cells)} of the levels {asked} could be meshed; give finer --cells")
     results = farm.run(comm, level_jobs(cells, args), lambda sub, job: level_job(sub, folders, job),
                        label=f"convergence {name}")
     failed = [r for r in results if r.status != "done"]
@@ -266,7 +277,8 @@ def study(comm, args) -> dict:
                                f"({row[v]['growth_s']:.0f} s), force {shown_force(row[v])}" for v in VARIANTS)
                    + f" ({row['wall_s']:.0f} s of jobs)")
     return {"benchmark": "convergence", "muscle": name, "surface": str(stl), "protocol": PROTOCOL,
-            "quick": bool(args.quick), "ranks": comm.size, "machine": common.machine(), "levels": rows,
+            "quick": bool(args.quick), "ranks": comm.size, "machine": common.machine(), "cells_asked": asked,
+            "dropped_levels": dropped, "levels": rows,
             "estimates": estimates_of(rows), "wall_s": comm.allreduce(time.perf_counter() - start, op=MPI.MAX),
             "jobs": [{"key": r.key, "rank": r.group, "wall_s": r.wall_s} for r in results],
             "versions": io.versions()}
@@ -567,8 +579,8 @@ def studies_all(comm, args) -> int:
     for muscle in muscles:
         name = source(muscle, args.surfaces)[0]
         path = folder / f"{name}.json"
-        done = comm.bcast(path.is_file() and [r["cells_target"] for r in json.loads(path.read_text())["levels"]]
-                          == cells if comm.rank == 0 else None, root=0)
+        done = comm.bcast(path.is_file() and kept_cells(json.loads(path.read_text())) == cells
+                          if comm.rank == 0 else None, root=0)
         if done and not args.force:
             result = comm.bcast(json.loads(path.read_text()) if comm.rank == 0 else None, root=0)
         else:
@@ -596,6 +608,11 @@ def studies_all(comm, args) -> int:
     return cli.EXIT_OK
 
 
+def kept_cells(result: dict) -> list[int]:
+    """The levels a kept study was asked for (those it dropped included)."""
+    return result.get("cells_asked") or [r["cells_target"] for r in result["levels"]]
+
+
 def summary_row(result: dict) -> dict:
     """A muscle's finest level: its gains, their estimated errors (own fibres, of the
     growth), the end force's, and the fibres' p95 angle one level down."""
@@ -612,7 +629,8 @@ def summary_row(result: dict) -> dict:
            "csa_order": (est.get("csa_gain_pct", {}).get("own") or {}).get("order"),
            "end_force_n": top["own"].get("end_force_n"), "end_force_error": error("end_force_n"),
            "fibre_p95_deg_below": result["levels"][-2]["fibre_angle_to_finest"]["p95_deg"],
-           "wall_s": result["wall_s"], "ranks": result.get("ranks", 1)}
+           "wall_s": result["wall_s"], "ranks": result.get("ranks", 1),
+           "levels": [r["cells_target"] for r in result["levels"]]}
     row["goal_met"] = bool(row["csa_error"] is not None and row["volume_error"] is not None
                            and max(row["csa_error"], row["volume_error"]) <= GROWTH_GOAL)
     return row
@@ -637,7 +655,8 @@ def all_table(result: dict) -> list[str]:
             lines.append(f"| {r['muscle']} | failed: {r['failed']} | | | | | | | |")
             continue
         order = f"{r['csa_order']:.2f}" if r["csa_order"] is not None else "none"
-        lines.append(f"| {r['muscle']} | {r['cells']} | {r['csa_gain_pct']:.4f} | {r['csa_error']:.1e}, {order} | "
+        fewer = r.get("levels", result["cells"])[0] != result["cells"][0]  # too thin for the coarsest
+        lines.append(f"| {r['muscle']}{' (levels from ' + str(r['levels'][0]) + ')' if fewer else ''} | {r['cells']} | {r['csa_gain_pct']:.4f} | {r['csa_error']:.1e}, {order} | "
                      f"{r['volume_gain_pct']:.4f} | {r['volume_error']:.1e} | {r['fibre_p95_deg_below']:.1f} | "
                      f"{'met' if r['goal_met'] else 'missed'} | {r['wall_s']:.0f}, {r['ranks']} |")
     met = sum(bool(r.get("goal_met")) for r in result["muscles"])
