@@ -656,7 +656,8 @@ def all_table(result: dict) -> list[str]:
             continue
         order = f"{r['csa_order']:.2f}" if r["csa_order"] is not None else "none"
         fewer = r.get("levels", result["cells"])[0] != result["cells"][0]  # too thin for the coarsest
-        lines.append(f"| {r['muscle']}{' (levels from ' + str(r['levels'][0]) + ')' if fewer else ''} | {r['cells']} | {r['csa_gain_pct']:.4f} | {r['csa_error']:.1e}, {order} | "
+        name = f"{r['muscle']} (levels from {r['levels'][0]})" if fewer else r["muscle"]
+        lines.append(f"| {name} | {r['cells']} | {r['csa_gain_pct']:.4f} | {r['csa_error']:.1e}, {order} | "
                      f"{r['volume_gain_pct']:.4f} | {r['volume_error']:.1e} | {r['fibre_p95_deg_below']:.1f} | "
                      f"{'met' if r['goal_met'] else 'missed'} | {r['wall_s']:.0f}, {r['ranks']} |")
     met = sum(bool(r.get("goal_met")) for r in result["muscles"])
