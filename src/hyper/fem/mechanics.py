@@ -146,8 +146,11 @@ SCHUR_MASS_OPTIONS = {
 # Chebyshev/Jacobi on P2, the Galerkin P1 operator (interpolation from the P1 vector space
 # on the same mesh) by GAMG with the rigid-body near null space of the P1 nodes
 # (`_coarse_gamg`). A user's fieldsplit_u_mg_coarse_pc_type (lu, say) replaces the GAMG.
-# GMRES restarts at 200: at 60 it stagnates near 1e-10 on the idealized shape.
-PMG_PETSC_OPTIONS = {**AMG_PETSC_OPTIONS, "ksp_gmres_restart": 200}
+# GMRES restarts at 60 (AMG_PETSC_OPTIONS): at 4.4M unknowns a basis of 200 (36 MB a vector)
+# took the growth solve on 1 rank past 23 GB; at 60 it peaked at 19.9 GB. On 2 ranks at
+# 11k/78k/578k unknowns restart 60 takes 296/243/261 GMRES iterations against 290/238/253
+# at 200 (python -m hyper.bench solvers --parts levels --pmg-option ksp_gmres_restart=60).
+PMG_PETSC_OPTIONS = AMG_PETSC_OPTIONS
 PMG_SUBSOLVER_OPTIONS = {
     "fieldsplit_u_ksp_type": "preonly",
     "fieldsplit_u_pc_type": "mg",
