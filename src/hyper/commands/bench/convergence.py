@@ -257,17 +257,16 @@ def study(comm, args) -> dict:
     rows = []
     for i, (n, folder) in enumerate(zip(cells, folders)):
         done = {r.key.split("/", 1)[1]: r for r in results if r.key.split("/")[0] == str(i)}
-        row = {"cells_target": n, **done["own/growth"].result.pop("level")}
+        row = {"cells_target": n, **done["own/growth"].result.pop("level"),
+               "fibre_angle_to_finest": (done["finest/growth"].result.pop("fibre_angle_to_finest")
+                                         if "finest/growth" in done else {"mean_deg": 0.0, "p95_deg": 0.0,
+                                                                          "max_deg": 0.0})}
         for variant in VARIANTS:
             if variant == "finest" and i == len(cells) - 1:
                 row[variant] = row["own"]  # the same field
                 continue
             row[variant] = {**done[f"{variant}/growth"].result,
                             **(done[f"{variant}/force"].result if f"{variant}/force" in done else {})}
-        row["fibre_angle_to_finest"] = (done["finest/growth"].result.pop("fibre_angle_to_finest")
-                                        if "finest/growth" in done else {"mean_deg": 0.0, "p95_deg": 0.0,
-                                                                         "max_deg": 0.0})
-        row["finest"].pop("fibre_angle_to_finest", None)
         row["wall_s"] = sum(r.wall_s for r in done.values())  # the level's jobs, wherever they ran
         rows.append(row)
         a = row["fibre_angle_to_finest"]
@@ -312,9 +311,10 @@ def level_job(comm, folders: list[Path], job: farm.Job) -> dict:
     if variant == "finest":
         finest = fibers.load(load_level(comm, folders[-1]), folders[-1] / fibers.FILE_NAME)
         a0 = unit(fibers.transferred(finest, geometry))
-        out["fibre_angle_to_finest"] = angles(own, a0)
     if what == "force":
         return end_force(geometry, a0)
+    if variant == "finest":
+        out["fibre_angle_to_finest"] = angles(own, a0)
     try:
         out.update(growth(geometry, a0))
     except GrowthFailure as err:
@@ -529,6 +529,16 @@ def fibre_table(result: dict) -> list[str]:
     return lines
 
 
+def kept(comm, path: Path, fits, force: bool) -> dict | None:
+    """The record an earlier run kept at ``path`` (read on rank 0, shared) where
+    ``fits(record)`` and not ``force``; None: run it anew."""
+    record = None
+    if comm.rank == 0 and not force and path.is_file():
+        record = json.loads(path.read_text())
+        record = record if fits(record) else None
+    return comm.bcast(record, root=0)
+
+
 def fibres_all(comm, args) -> int:
     muscles = args.fibres_all or fibre_muscles(args.surfaces)
     for name in muscles:
@@ -540,11 +550,8 @@ def fibres_all(comm, args) -> int:
     records = []
     for muscle in muscles:
         path = folder / f"{source(muscle, args.surfaces)[0]}.json"
-        done = comm.bcast(path.is_file() and json.loads(path.read_text()).get("settings") == settings
-                          if comm.rank == 0 else None, root=0)
-        if done and not args.force:
-            record = comm.bcast(json.loads(path.read_text()) if comm.rank == 0 else None, root=0)
-        else:
+        record = kept(comm, path, lambda old: old.get("settings") == settings, args.force)
+        if record is None:
             record = {**fibre_errors(comm, muscle, args), "settings": settings, "machine": common.machine(),
                       "peak_rss_mb": comm.allreduce(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
                                                     op=MPI.MAX) / 1024, "versions": io.versions()}
@@ -579,11 +586,8 @@ def studies_all(comm, args) -> int:
     for muscle in muscles:
         name = source(muscle, args.surfaces)[0]
         path = folder / f"{name}.json"
-        done = comm.bcast(path.is_file() and kept_cells(json.loads(path.read_text())) == cells
-                          if comm.rank == 0 else None, root=0)
-        if done and not args.force:
-            result = comm.bcast(json.loads(path.read_text()) if comm.rank == 0 else None, root=0)
-        else:
+        result = kept(comm, path, lambda record: kept_cells(record) == cells, args.force)
+        if result is None:
             try:
                 result = study(comm, argparse.Namespace(**{**vars(args), "muscle": muscle}))
             except InputError as err:  # one muscle's failure is a row of the table, not the end of it
