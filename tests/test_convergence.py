@@ -2,6 +2,8 @@
 their observed order, and --accuracy counts the mesh (hyper.runs.fidelity.spatial): it
 refines where refining helps and refuses where the fibres' resolution bounds the error."""
 
+from pathlib import Path
+
 import dolfinx_solver  # noqa: F401  (must precede dolfinx)
 import numpy as np
 import pytest
@@ -143,12 +145,55 @@ def test_every_result_records_its_spatial_error():
     assert spatial.error == pytest.approx(7.5e-5) and spatial.measured
     other = fidelity.spatial("a_mesh", 0, mesh_file=True)
     assert not other.measured and "no table for a mesh file" in other.reason
+    assert other.error == max(e.error for e in fidelity.SPATIAL_ERROR.values())  # the worst measured
+
+
+def test_every_muscle_has_its_spatial_error_or_its_other_side_s():
+    muscles = set(geo.ANATOMICAL) | {m for m in geo.MESHED if m.count("_") == 2}
+    assert set(fidelity.SURFACE_STUDIES) == muscles - {"BFLH_VHF_Right"}  # the one without a surface
+    right = fidelity.spatial("BFLH_VHF_Right")
+    assert right.error == fidelity.SPATIAL_ERROR["BFLH_VHF_Left"].error and not right.measured
+    assert "the other side's, BFLH_VHF_Left's" in right.reason
+    # a surface study measures another mesh of the shipped mesh's surface: an estimate
+    assert not fidelity.spatial("VL_VHM_Left").measured and fidelity.spatial("GM_VHF_Left").measured
+    for muscle, (error, levels) in fidelity.SURFACE_STUDIES.items():
+        assert 0 < error < 1 and 8000 in levels, muscle
+
+
+def test_a_shipped_mesh_given_as_a_file_has_its_geometry_s_spatial_error(tmp_path):
+    from hyper.runs import runspec
+
+    shipped = Path(geo.MESHES_DIR) / geo.GEOMETRIES["VL_VHM_Left"]
+    assert runspec.table_name(shipped.stem, runspec.MeshFile(shipped, "mm")) == ("VL_VHM_Left", False)
+    mine = tmp_path / "VL_VHM_Left.xdmf"  # the same name elsewhere is a user's mesh
+    assert runspec.table_name(mine.stem, runspec.MeshFile(mine, "mm")) == ("VL_VHM_Left", True)
+    assert runspec.table_name("idealized", None) == ("idealized", False)
+
+
+def test_the_spatial_table_takes_each_muscle_from_its_finest_study(tmp_path):
+    import json
+
+    def kept(folder, name, cells, csa):
+        h = [10.0 / n ** (1 / 3) for n in cells]
+        levels = [{"cells_target": n, "cells": n, "h_mm": hh, "own": {"csa_gain_pct": c, "volume_gain_pct": 8.4}}
+                  for n, hh, c in zip(cells, h, csa)]
+        result = {"muscle": name, "levels": levels,
+                  "estimates": convergence.estimates_of([{**lv, "finest": lv["own"]} for lv in levels])}
+        (tmp_path / folder / "convergence_all").mkdir(parents=True, exist_ok=True)
+        (tmp_path / folder / "convergence_all" / f"{name}.json").write_text(json.dumps(result))
+
+    kept("quick", "VL_VHM_Left", [1000, 2000, 4000, 8000], [8.30, 8.40, 8.30, 8.384])
+    kept("fine", "VL_VHM_Left", [4000, 8000, 16000], [8.30, 8.384, 8.30])  # zigzags: no order
+    kept("fine", "TA_VHF_Left", [4000, 16000], [8.3, 8.3])  # no 8000-cell level: not used
+    rows = convergence.spatial_rows([tmp_path / "quick", tmp_path / "fine"], 8000)
+    assert [r["muscle"] for r in rows] == ["VL_VHM_Left"] and rows[0]["levels"] == [4000, 8000, 16000]
+    # the 8k level's error without an order: its distance to the finest plus the finest spread
+    assert rows[0]["csa_error"] == pytest.approx((0.084 + 0.084) / 8.30)
+    assert convergence.spatial_literal(rows[0]) == '    "VL_VHM_Left": (0.021, (4000, 8000, 16000)),'
 
 
 @pytest.mark.mpi(min_size=2)
 def test_the_study_farmed_over_two_ranks_gives_the_numbers_of_one_rank(tmp_path_factory):
-    from pathlib import Path
-
     from hyper.commands.bench import mesh as mesh_bench
 
     comm = MPI.COMM_WORLD

@@ -351,11 +351,12 @@ def mesh_and_steps(study: Study, growth_dt, signaling_dt) -> fidelity.Choice:
     (a study's `refine` is one number), the fewest that each geometry's mesh needs, and the
     steps from what the worst mesh at that refinement leaves of the accuracy."""
     n, protocols = study.numerics, ",".join(p.name for p in study.protocols)
-    built_in = set(study.geometries)
+    files = {m.path.stem: m for m in study.meshes}
 
     def on(name: str, refine: int) -> fidelity.Choice:
-        scene = fidelity.Scene(name, protocols, heterogeneous=study.heterogeneity is not None, ask="growth")
-        return fidelity.choose_on_mesh(scene, n.accuracy, refine=refine, mesh_file=name not in built_in,
+        table, mesh_file = runspec.table_name(name, files.get(name))
+        scene = fidelity.Scene(table, protocols, heterogeneous=study.heterogeneity is not None, ask="growth")
+        return fidelity.choose_on_mesh(scene, n.accuracy, refine=refine, mesh_file=mesh_file,
                                        growth_dt=growth_dt, signaling_dt=signaling_dt)
 
     refine = max(on(name, n.refine).refine for name in study.names)

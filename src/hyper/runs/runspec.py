@@ -78,6 +78,14 @@ class MeshFile:
             )
         return geometry
 
+    def shipped(self) -> str | None:
+        """The built-in geometry whose mesh file this is, if it is one."""
+        from hyper.fem import geometry as geo
+
+        here = Path(self.path).resolve()
+        return next((name for name, file in geo.GEOMETRIES.items()
+                     if (Path(geo.MESHES_DIR) / file).resolve() == here), None)
+
     def identity(self) -> dict:
         return {"mesh_sha256": ckpt.file_digest(*mesh_files(self.path)), "unit": self.unit, "tags": self.tags}
 
@@ -296,6 +304,15 @@ def result_groups(spec: RunSpec, choice: fidelity.Choice | None = None) -> dict:
     return groups
 
 
+def table_name(geometry: str, mesh: MeshFile | None) -> tuple[str, bool]:
+    """The name `fidelity`'s tables know a run's mesh by, and whether that is a user's
+    mesh file: a shipped mesh given as a file (with the fibres beside it, the same run as
+    its --geometry) is its geometry."""
+    shipped = mesh.shipped() if mesh is not None else None
+    return (shipped, False) if shipped else (geometry, mesh is not None)
+
+
 def spatial_error(spec: RunSpec) -> fidelity.Spatial:
     """The estimated spatial error of the growth of ``spec`` (`fidelity.spatial`)."""
-    return fidelity.spatial(spec.geometry, spec.refine, mesh_file=spec.mesh is not None)
+    name, mesh_file = table_name(spec.geometry, spec.mesh)
+    return fidelity.spatial(name, spec.refine, mesh_file=mesh_file)

@@ -4,6 +4,7 @@ resolutions, and which of fibres and mechanics carries the error.
     python -m hyper.bench convergence [MUSCLE] [--cells 4000 8000 16000 32000] [--quick]
     python -m hyper.bench convergence --all [ID …] [--quick] (every muscle, one table)
     python -m hyper.bench convergence --fibres-only ID … (the fixed-geometry fibre check)
+    python -m hyper.bench convergence --spatial-table DIR … (fidelity's table, no runs)
 
 MUSCLE: a shipped or meshed geometry id whose surface is known (the 12 paper muscles:
 their Visible Human STL in --surfaces, origin at the shipped tag 1; the meshed ones: the
@@ -40,6 +41,11 @@ OUTPUT/convergence_all/ and reused, and one table of their finest levels (with -
 the default 8000 cells): gains, estimated errors, whether both gains are within
 GROWTH_GOAL of the growth (convergence_all.json, .png).
 
+--spatial-table DIR …: no runs; from the kept `--all` studies under the folders, each
+muscle's estimated error at the default resolution (8000 cells) taken from its study with
+the finest levels, printed as the lines of `hyper.runs.fidelity.SURFACE_STUDIES`
+(OUTPUT/spatial_table.json).
+
 --fibres-only ID …: the Stokes fibres of each geometry at the default Taylor–Hood P2-P1
 against P3-P2 on the same mesh (the same polyhedron, one order higher): mean, 95th
 percentile and largest angle at the nodes, and the seconds and peak memory of the P3
@@ -52,6 +58,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import resource
 import shutil
 import sys
@@ -688,6 +695,57 @@ def all_chart(path: Path, result: dict) -> None:
     plot.save(fig, path, dpi=120)
 
 
+# ----------------------------------------------------------------- --spatial-table
+
+
+def spatial_rows(folders: list[Path], cells: int) -> list[dict]:
+    """Per muscle, the estimated error of the gains at its ``cells``-cell level, from the
+    kept `--all` study (under each folder's convergence_all/) with the finest levels that
+    has that level: the finer the levels, the nearer the limit the estimate is taken from."""
+    best: dict[str, tuple] = {}
+    for folder in folders:
+        for path in sorted((folder / "convergence_all").glob("*.json")):
+            result = json.loads(path.read_text())
+            targets = [r["cells_target"] for r in result["levels"]]
+            if cells not in targets:
+                continue
+            rank = (targets[-1], len(targets))
+            if result["muscle"] not in best or rank > best[result["muscle"]][0]:
+                best[result["muscle"]] = (rank, result, path)
+    rows = []
+    for muscle, (_, result, path) in sorted(best.items()):
+        targets = [r["cells_target"] for r in result["levels"]]
+        i = targets.index(cells)
+        own = {q: result["estimates"][q]["own"] for q in ("csa_gain_pct", "volume_gain_pct")}
+        rows.append({"muscle": muscle, "cells": result["levels"][i]["cells"], "levels": targets,
+                     "csa_error": own["csa_gain_pct"]["errors"][i],
+                     "volume_error": own["volume_gain_pct"]["errors"][i],
+                     "csa_order": own["csa_gain_pct"]["order"], "study": str(path)})
+    return rows
+
+
+def spatial_literal(row: dict) -> str:
+    """A row as the line of `hyper.runs.fidelity.SURFACE_STUDIES`: the larger error, two
+    digits rounded up, and the study's levels."""
+    error = max(row["csa_error"], row["volume_error"])
+    digits = 10.0 ** (math.floor(math.log10(error)) - 1)
+    return f'    "{row["muscle"]}": ({math.ceil(error / digits) * digits:.2g}, {tuple(row["levels"])}),'
+
+
+def spatial_table(comm, args) -> int:
+    rows = spatial_rows(args.spatial_table, hm.DEFAULT_CELLS)
+    if not rows:
+        raise InputError(f"--spatial-table: no kept study with a {hm.DEFAULT_CELLS}-cell level under "
+                         + ", ".join(f"{f}/convergence_all" for f in args.spatial_table))
+    if comm.rank == 0:
+        args.output.mkdir(parents=True, exist_ok=True)
+        io.write_json(args.output / "spatial_table.json", {"benchmark": "convergence --spatial-table",
+                                                          "cells": hm.DEFAULT_CELLS, "muscles": rows})
+        print("\n".join(spatial_literal(r) for r in rows))
+    info(comm, f"{len(rows)} muscles; wrote {args.output / 'spatial_table.json'}")
+    return cli.EXIT_OK
+
+
 # ------------------------------------------------------------------------------ job
 
 
@@ -715,6 +773,9 @@ def parser() -> cli.Parser:
                    help="--fibres-all: the finest is the reference; coarser ones are compared with it too")
     p.add_argument("--fibres-smoothing", type=cli.number(0, 50), nargs="+", default=[2.0, 4.0], metavar="MM",
                    help="--fibres-all: the smoothing lengths (each level's flow smoothed over each)")
+    p.add_argument("--spatial-table", nargs="+", type=Path, metavar="DIR", reads=True,
+                   help="no runs: from the kept --all studies under each DIR, every muscle's error at the "
+                        f"{hm.DEFAULT_CELLS}-cell level (the finest study's), as hyper.runs.fidelity's table")
     p.add_argument("--replot", type=Path, metavar="JSON", reads=True,
                    help="no runs: the estimates and chart again from a convergence_NAME.json")
     p.add_argument("--force", action="store_true", help="mesh the levels again")
@@ -725,6 +786,8 @@ def parser() -> cli.Parser:
 
 
 def run(comm, args) -> int:
+    if args.spatial_table:
+        return spatial_table(comm, args)
     if args.all is not None:
         return studies_all(comm, args)
     if args.fibres_all is not None:
