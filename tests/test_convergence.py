@@ -155,7 +155,8 @@ def test_every_muscle_has_its_spatial_error_or_its_other_side_s():
     assert right.error == fidelity.SPATIAL_ERROR["BFLH_VHF_Left"].error and not right.measured
     assert "the other side's, BFLH_VHF_Left's" in right.reason
     # a surface study measures another mesh of the shipped mesh's surface: an estimate
-    assert not fidelity.spatial("VL_VHM_Left").measured and fidelity.spatial("GM_VHF_Left").measured
+    assert not any(fidelity.spatial(m).measured for m in fidelity.SURFACE_STUDIES)
+    assert fidelity.spatial("idealized").measured
     for muscle, (error, levels) in fidelity.SURFACE_STUDIES.items():
         assert 0 < error < 1 and 8000 in levels, muscle
 
@@ -175,10 +176,11 @@ def test_the_spatial_table_takes_each_muscle_from_its_finest_study(tmp_path):
 
     def kept(folder, name, cells, csa):
         h = [10.0 / n ** (1 / 3) for n in cells]
-        levels = [{"cells_target": n, "cells": n, "h_mm": hh, "own": {"csa_gain_pct": c, "volume_gain_pct": 8.4}}
-                  for n, hh, c in zip(cells, h, csa)]
-        result = {"muscle": name, "levels": levels,
-                  "estimates": convergence.estimates_of([{**lv, "finest": lv["own"]} for lv in levels])}
+        levels = [{"cells_target": n, "cells": n, "h_mm": hh, "own": {"csa_gain_pct": c, "volume_gain_pct": 8.4},
+                   "finest": {"csa_gain_pct": 8.3 + 0.01 * (len(cells) - i), "volume_gain_pct": 8.4},
+                   "fibre_angle_to_finest": {"p95_deg": 5.0 * (len(cells) - 1 - i)}}
+                  for i, (n, hh, c) in enumerate(zip(cells, h, csa))]
+        result = {"muscle": name, "levels": levels, "estimates": convergence.estimates_of(levels)}
         (tmp_path / folder / "convergence_all").mkdir(parents=True, exist_ok=True)
         (tmp_path / folder / "convergence_all" / f"{name}.json").write_text(json.dumps(result))
 
@@ -189,7 +191,18 @@ def test_the_spatial_table_takes_each_muscle_from_its_finest_study(tmp_path):
     assert [r["muscle"] for r in rows] == ["VL_VHM_Left"] and rows[0]["levels"] == [4000, 8000, 16000]
     # the 8k level's error without an order: its distance to the finest plus the finest spread
     assert rows[0]["csa_error"] == pytest.approx((0.084 + 0.084) / 8.30)
+    assert rows[0]["fibre_p95_deg"] == 5.0
+    # with the finest fibres the gain moves steadily (8.33, 8.32, 8.31): the mechanics' own error, smaller here
+    assert rows[0]["csa_error_finest_fibres"] < rows[0]["csa_error"]
     assert convergence.spatial_literal(rows[0]) == '    "VL_VHM_Left": (0.021, (4000, 8000, 16000)),'
+    # where the own-fibre series' spread is smaller (fibres and mechanics cancelling), the mechanics' counts
+    row = {**rows[0], "csa_error": 1e-4, "volume_error": 1e-5, "csa_error_finest_fibres": 3.01e-3}
+    assert convergence.spatial_literal(row) == '    "VL_VHM_Left": (0.0031, (4000, 8000, 16000)),'
+    assert convergence.main(["--spatial-table", str(tmp_path / "quick"), str(tmp_path / "fine"), "--output",
+                             str(tmp_path / "out")]) == 0
+    written = json.loads((tmp_path / "out" / "spatial_table.json").read_text())
+    assert written["muscles"] == rows and (tmp_path / "out" / "spatial_table.png").stat().st_size > 0
+    assert convergence.main(["--spatial-table", str(tmp_path / "nothing"), "--output", str(tmp_path / "out")]) == 2
 
 
 @pytest.mark.mpi(min_size=2)
