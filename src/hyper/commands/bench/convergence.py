@@ -726,22 +726,24 @@ def spatial_rows(folders: list[Path], cells: int) -> list[dict]:
                      # the mechanics' part: the same level with the finest level's fibres
                      "csa_error_finest_fibres": finest["errors"][i] if finest else None,
                      "fibre_p95_deg": result["levels"][i]["fibre_angle_to_finest"]["p95_deg"],
-                     "study": str(path)})
+                     "volume_gain_pct": result["levels"][i]["own"]["volume_gain_pct"],
+                     "study": str(path), "study_s": result.get("wall_s"), "ranks": result.get("ranks", 1)})
     return rows
 
 
 def spatial_markdown(rows: list[dict]) -> list[str]:
     """The table of docs/convergence.md: each muscle's 8k level, and who carries its error."""
-    lines = ["| muscle | study's levels | CSA gain (%) | its error (of the growth) | of which the mechanics' "
-             "(finest fibres) | volume gain's error | fibres: p95 to the finest (°) | spatial error |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| muscle | study's levels | CSA gain (%) | its error (of the growth) | with the finest fibres (the "
+             "mechanics') | volume gain (%) | its error | fibres: p95 to the finest (°) | spatial error | study "
+             "(s, ranks) |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         mech = "–" if r["csa_error_finest_fibres"] is None else f"{r['csa_error_finest_fibres']:.1e}"
         angle = "(the finest)" if r["levels"][-1] == r["levels"][r["levels"].index(r["cells_target"])] \
             else f"{r['fibre_p95_deg']:.1f}"
+        took = "–" if r.get("study_s") is None else f"{r['study_s']:.0f}, {r['ranks']}"
         lines.append(f"| {r['muscle']} | {r['levels'][0]}–{r['levels'][-1]} | {r['csa_gain_pct']:.4f} | "
-                     f"{r['csa_error']:.1e} | {mech} | {r['volume_error']:.1e} | {angle} | "
-                     f"{spatial_error(r):.2g} |")
+                     f"{r['csa_error']:.1e} | {mech} | {r['volume_gain_pct']:.4f} | {r['volume_error']:.1e} | "
+                     f"{angle} | {rounded_up(spatial_error(r)):.2g} | {took} |")
     return lines
 
 
@@ -756,9 +758,13 @@ def spatial_error(row: dict) -> float:
 def spatial_literal(row: dict) -> str:
     """A row as the line of `hyper.runs.fidelity.SURFACE_STUDIES`: its `spatial_error`,
     two digits rounded up, and the study's levels."""
-    error = spatial_error(row)
+    return f'    "{row["muscle"]}": ({rounded_up(spatial_error(row)):.2g}, {tuple(row["levels"])}),'
+
+
+def rounded_up(error: float) -> float:
+    """Two significant digits, rounded up (a table's error never understates the measured)."""
     digits = 10.0 ** (math.floor(math.log10(error)) - 1)
-    return f'    "{row["muscle"]}": ({math.ceil(error / digits) * digits:.2g}, {tuple(row["levels"])}),'
+    return math.ceil(error / digits - 1e-9) * digits  # 0.0024 / 1e-4 is 24.000000000000004
 
 
 def spatial_chart(path: Path, rows: list[dict]) -> None:
