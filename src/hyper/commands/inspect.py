@@ -5,7 +5,7 @@
 Prints the fibres a run used (their kind, how they were made and their file's SHA-256),
 the provenance (command, versions, git commit, run digest, mesh hash, ranks,
 quadrature degree, refinements, linear solver), the attribute groups (signaling, material, protocol,
-settings, heterogeneity, fidelity: the names every job uses), the study file that reruns
+settings, heterogeneity, fidelity, spatial: the names every job uses), the study file that reruns
 a growth result, and each series with its unit, length and first and last values.
 Works on every HDF5 result the jobs write.
 
@@ -26,7 +26,7 @@ from hyper.core import io
 from hyper.core.params import InputError
 
 # the groups every job names alike, shown first
-GROUPS = ("signaling", "material", "protocol", "settings", "heterogeneity", "fidelity")
+GROUPS = ("signaling", "material", "protocol", "settings", "heterogeneity", "fidelity", "spatial")
 
 
 def parser() -> cli.Parser:
