@@ -194,6 +194,8 @@ def test_the_spatial_table_takes_each_muscle_from_its_finest_study(tmp_path):
     assert rows[0]["fibre_p95_deg"] == 5.0
     # with the finest fibres the gain moves steadily (8.33, 8.32, 8.31): the mechanics' own error, smaller here
     assert rows[0]["csa_error_finest_fibres"] < rows[0]["csa_error"]
+    # the 8k level with the finest flow (8.32) against the own series' finest (8.30) plus its spread
+    assert rows[0]["csa_error_finest_flow"] == pytest.approx((0.02 + 0.084) / 8.30)
     assert convergence.spatial_literal(rows[0]) == '    "VL_VHM_Left": (0.021, (4000, 8000, 16000)),'
     # where the own-fibre series' spread is smaller (fibres and mechanics cancelling), the mechanics' counts
     row = {**rows[0], "csa_error": 1e-4, "volume_error": 1e-5, "csa_error_finest_fibres": 3.01e-3}
