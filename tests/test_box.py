@@ -233,11 +233,11 @@ intensity = 0.8
 """
 
 
-def test_grow_records_both_measures_and_feeds_back_the_chosen_one(tmp_path):
+def test_grow_records_every_measure_and_feeds_back_the_chosen_one(tmp_path):
     write_prism(tmp_path / "prism.xdmf")
     (tmp_path / "one.toml").write_text(PROTOCOL)
     series = {}
-    for method in ("cut", "box"):
+    for method in ("cut", "box", "solid"):
         out = tmp_path / f"{method}.h5"
         picture = ["--plot-box", str(tmp_path / "box.png")] if method == "box" else []
         assert grow.main(["--mesh", str(tmp_path / "prism.xdmf"), "--protocol", str(tmp_path / "one.toml"),
@@ -248,6 +248,7 @@ def test_grow_records_both_measures_and_feeds_back_the_chosen_one(tmp_path):
     for method, s in series.items():
         assert np.array_equal(s["csa_ratio"], s[f"csa_ratio_{method}"])
         assert s["csa_ratio_cut"][-1] > 1.0005 and s["csa_ratio_box"][-1] < s["csa_ratio_cut"][-1]
+        assert s["csa_ratio_solid"][-1] > 1.0005
     # the box reads less, so the feedback lowers synthesis less and the muscle grows more
     assert series["box"]["kM"][-1] > series["cut"]["kM"][-1]
 
@@ -292,7 +293,7 @@ def test_a_resumed_run_records_both_measures_as_an_uninterrupted_one(tmp_path):
         driver.execute(comm, spec, out, stop=lambda: next(reports) >= 2)
     parts = driver.execute(comm, spec, out).series
     assert len(parts["t"]) == len(whole["t"]) > 4
-    for name in ("csa_ratio", "csa_ratio_cut", "csa_ratio_box", "volume_ratio", "kM"):
+    for name in ("csa_ratio", "csa_ratio_cut", "csa_ratio_box", "csa_ratio_solid", "volume_ratio", "kM"):
         np.testing.assert_array_equal(parts[name], whole[name], err_msg=name)
     assert whole["csa_ratio_box"][-1] < whole["csa_ratio_cut"][-1]
 

@@ -20,12 +20,12 @@ from hyper.fem.coupled import CSA_METHODS, GrowthSettings
 from hyper.runs import farm, runspec
 
 COLUMNS = ("geometry", "muscle", "subject", "side", "protocol", "csa0_cm2", "volume0_cm3",
-           "final_csa_ratio", "final_csa_ratio_cut", "final_csa_ratio_box", "final_volume_ratio", "wall_s",
-           "data_rmse_pp", "data_last_difference_pp", "status")
+           "final_csa_ratio", "final_csa_ratio_cut", "final_csa_ratio_box", "final_csa_ratio_solid",
+           "final_volume_ratio", "wall_s", "data_rmse_pp", "data_last_difference_pp", "status")
 # the summary's numbers: CSA by the feedback's method and by each method, and against
 # measured CSA (blank without them)
 NUMBERS = ("csa0_cm2", "volume0_cm3", "final_csa_ratio", "final_csa_ratio_cut", "final_csa_ratio_box",
-           "final_volume_ratio", "wall_s", "data_rmse_pp", "data_last_difference_pp")
+           "final_csa_ratio_solid", "final_volume_ratio", "wall_s", "data_rmse_pp", "data_last_difference_pp")
 
 
 def summary_row(path: Path) -> dict:

@@ -23,9 +23,10 @@ nothing left to do writes the same summary):
 
     summary.csv     geometry,muscle,subject,side,protocol,csa0_cm2,volume0_cm3,
                     final_csa_ratio,final_csa_ratio_cut,final_csa_ratio_box,
-                    final_volume_ratio,wall_s,data_rmse_pp,data_last_difference_pp,
-                    status (final_csa_ratio is the one --csa-method feeds back; cut
-                    and box are blank on meshes with a tagged mid-section; data_*:
+                    final_csa_ratio_solid,final_volume_ratio,wall_s,data_rmse_pp,
+                    data_last_difference_pp,
+                    status (final_csa_ratio is the one --csa-method feeds back; cut,
+                    box and solid are blank on meshes with a tagged mid-section; data_*:
                     against --data, or the protocol's own data set, in percentage
                     points; blank without)
     failures.txt    the error of every failed run (only when some failed)

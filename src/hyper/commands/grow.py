@@ -12,12 +12,14 @@ Newton iterations, step cuts) with its provenance as attributes, an XDMF file of
 snapshots for ParaView (u, det Ḡ, fibres; every --snapshot-every simulated hours and the
 last state, one temporal series that ParaView and meshio's TimeSeriesReader read whole)
 and the paper's Fig. 4C–E analog (--plot). On a mesh without a tagged mid-section (the
-anatomical ones) both CSA measures are recorded, csa_ratio_cut (the exact plane cut) and
-csa_ratio_box (the original code's box staircase, MODEL.md §9); csa_ratio is the one
---csa-method feeds back. --plot-box draws the box's inner and rim facets at the end of
-each run, with the exact cut. Against measured CSA (--data, or the protocol's own
-data set where it was measured on a muscle the geometry is compatible with: DeFreitas,
-the thigh, for mwf on idealized, cylinder or a thigh muscle; `hyper.runs.measured`) the
+anatomical ones) every CSA measure is recorded, csa_ratio_cut (the exact cut by the
+vertices' plane), csa_ratio_box (the original code's box staircase, MODEL.md §9) and
+csa_ratio_solid (the exact cut by the solid's plane of inertia, the same plane on any
+mesh of the shape); csa_ratio is the one --csa-method feeds back. --plot-box draws the
+box's inner and rim facets at the end of each run, with the exact cut. Against measured
+CSA (--data, or the protocol's own data set where it was measured on a muscle the
+geometry is compatible with: DeFreitas, the thigh, for mwf on idealized, cylinder or a
+thigh muscle; `hyper.runs.measured`) the
 run's RMSE in percentage points of CSA change and its difference at the last measured
 time are printed, stored (the result's `data` group) and the data drawn on the figure,
 whose title names the geometry, fibres, protocols and CSA measure.

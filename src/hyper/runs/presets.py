@@ -110,9 +110,10 @@ def add_options(p: argparse.ArgumentParser, *, signaling_method: bool = True, se
                    help="P = Fe S (the original code) instead of the consistent det(Fg) Fe S Fg⁻ᵀ; "
                         "off unless --settings sets it")
     p.add_argument("--csa-method", choices=CSA_METHODS,
-                   help="the CSA the feedback sees on a mesh without a tagged mid-section: the exact plane cut, or "
-                        "the original code's box staircase (MODEL.md §9); both are recorded (csa_ratio_cut, "
-                        "csa_ratio_box); cut unless --settings sets it")
+                   help="the CSA the feedback sees on a mesh without a tagged mid-section: the exact cut by the "
+                        "vertices' plane (MODEL.md §4), the original code's box staircase (MODEL.md §9), or the "
+                        "exact cut by the solid's plane of inertia (the same on any mesh of the shape); all are "
+                        "recorded (csa_ratio_cut, csa_ratio_box, csa_ratio_solid); cut unless --settings sets it")
     p.add_argument("--growth-fields", choices=GROWTH_FIELDS,
                    help="where G, Ḡ and A live: at the quadrature points, or at the nodes of DG1 fields "
                         "(the original code); quadrature unless --settings sets it")
