@@ -349,8 +349,10 @@ class MeshError:
 # and the CSA gain's with the finest level's fibres, of the growth, two digits rounded up;
 # the study's levels). Printed by `python -m hyper.bench convergence --spatial-table
 # results/bench/convergence_quick results/bench/convergence_16k
-# results/bench/convergence_32k results/bench/convergence_64k` from the studies of
-# docs/convergence.md ("The spatial error of every muscle"). Most have no asymptotic order:
+# results/bench/convergence_32k results/bench/convergence_64k
+# results/bench/convergence_full --output results/bench/spatial` from the studies of
+# docs/convergence.md ("The spatial error of every muscle": 4k-32k cells, 8k-64k for
+# three). Most have no asymptotic order:
 # the error is the spread of the finest levels (and for the 8k level below a finer one,
 # its distance to the finest plus that spread), a measure of the scatter, not a bound;
 # the finest fibres' series counts too, since the own fibres' and the mechanics' changes
@@ -360,36 +362,36 @@ class MeshError:
 # new-meshes`, fibres unsmoothed), hence an estimate for them. No refinement of these was
 # measured: all of it is taken as kept.
 SURFACE_STUDIES = {
-    "BFLH_VHF_Left": (0.0038, (1000, 2000, 4000, 8000)),
-    "BFLH_VHM_Left": (0.002, (1000, 2000, 4000, 8000)),
-    "BFLH_VHM_Right": (0.0024, (2000, 4000, 8000, 16000)),
-    "GM_VHF_Left": (0.0033, (1000, 2000, 4000, 8000)),
-    "GM_VHF_Right": (0.00018, (1000, 2000, 4000, 8000)),
-    "GM_VHM_Left": (0.00078, (2000, 4000, 8000)),
-    "GM_VHM_Right": (0.0031, (1000, 2000, 4000, 8000)),
-    "RF_VHF_Left": (0.0013, (1000, 2000, 4000, 8000)),
-    "RF_VHF_Right": (0.0021, (1000, 2000, 4000, 8000)),
-    "RF_VHM_Left": (0.00076, (1000, 2000, 4000, 8000)),
-    "ST_VHF_Left": (0.00033, (1000, 2000, 4000, 8000)),
-    "ST_VHF_Right": (0.0037, (1000, 2000, 4000, 8000)),
-    "ST_VHM_Left": (0.0035, (1000, 2000, 4000, 8000)),
-    "ST_VHM_Right": (0.0021, (1000, 2000, 4000, 8000)),
-    "TA_VHF_Left": (0.002, (1000, 2000, 4000, 8000)),
-    "TA_VHF_Right": (0.004, (1000, 2000, 4000, 8000)),
-    "TA_VHM_Left": (0.014, (2000, 4000, 8000, 16000)),
-    "TA_VHM_Right": (0.0044, (2000, 4000, 8000, 16000)),
-    "VI_VHF_Left": (0.022, (2000, 4000, 8000, 16000)),
-    "VI_VHF_Right": (0.00043, (1000, 2000, 4000, 8000)),
-    "VI_VHM_Left": (0.002, (1000, 2000, 4000, 8000)),
-    "VI_VHM_Right": (0.028, (2000, 4000, 8000, 16000)),
-    "VL_VHF_Left": (0.0058, (2000, 4000, 8000, 16000)),
-    "VL_VHF_Right": (0.0083, (2000, 4000, 8000, 16000)),
-    "VL_VHM_Left": (0.098, (2000, 4000, 8000, 16000)),
-    "VL_VHM_Right": (0.093, (2000, 4000, 8000, 16000)),
-    "VM_VHF_Left": (0.00068, (1000, 2000, 4000, 8000)),
-    "VM_VHF_Right": (0.0002, (1000, 2000, 4000, 8000)),
-    "VM_VHM_Left": (0.00049, (1000, 2000, 4000, 8000)),
-    "VM_VHM_Right": (0.0022, (1000, 2000, 4000, 8000)),
+    "BFLH_VHF_Left": (0.0086, (4000, 8000, 16000, 32000)),
+    "BFLH_VHM_Left": (0.0016, (4000, 8000, 16000, 32000)),
+    "BFLH_VHM_Right": (0.0017, (4000, 8000, 16000, 32000)),
+    "GM_VHF_Left": (0.0077, (4000, 8000, 16000, 32000)),
+    "GM_VHF_Right": (0.015, (4000, 8000, 16000, 32000)),
+    "GM_VHM_Left": (0.0016, (4000, 8000, 16000, 32000)),
+    "GM_VHM_Right": (0.0072, (4000, 8000, 16000, 32000)),
+    "RF_VHF_Left": (0.0044, (4000, 8000, 16000, 32000)),
+    "RF_VHF_Right": (0.0026, (4000, 8000, 16000, 32000)),
+    "RF_VHM_Left": (0.00024, (4000, 8000, 16000, 32000)),
+    "ST_VHF_Left": (0.00082, (4000, 8000, 16000, 32000)),
+    "ST_VHF_Right": (0.0009, (4000, 8000, 16000, 32000)),
+    "ST_VHM_Left": (0.0028, (4000, 8000, 16000, 32000)),
+    "ST_VHM_Right": (0.0011, (4000, 8000, 16000, 32000)),
+    "TA_VHF_Left": (0.0026, (4000, 8000, 16000, 32000)),
+    "TA_VHF_Right": (0.0046, (4000, 8000, 16000, 32000)),
+    "TA_VHM_Left": (0.018, (8000, 16000, 32000, 64000)),
+    "TA_VHM_Right": (0.0071, (4000, 8000, 16000, 32000)),
+    "VI_VHF_Left": (0.011, (4000, 8000, 16000, 32000)),
+    "VI_VHF_Right": (0.016, (4000, 8000, 16000, 32000)),
+    "VI_VHM_Left": (0.0098, (4000, 8000, 16000, 32000)),
+    "VI_VHM_Right": (0.025, (4000, 8000, 16000, 32000)),
+    "VL_VHF_Left": (0.0084, (4000, 8000, 16000, 32000)),
+    "VL_VHF_Right": (0.007, (4000, 8000, 16000, 32000)),
+    "VL_VHM_Left": (0.13, (8000, 16000, 32000, 64000)),
+    "VL_VHM_Right": (0.066, (8000, 16000, 32000, 64000)),
+    "VM_VHF_Left": (0.00086, (4000, 8000, 16000, 32000)),
+    "VM_VHF_Right": (0.0015, (4000, 8000, 16000, 32000)),
+    "VM_VHM_Left": (0.00075, (4000, 8000, 16000, 32000)),
+    "VM_VHM_Right": (0.0038, (4000, 8000, 16000, 32000)),
 }
 
 
