@@ -793,9 +793,11 @@ def spatial_chart(path: Path, rows: list[dict]) -> None:
     plt = plot.pyplot()
     fig, ax = plt.subplots(figsize=(9, 0.28 * len(rows) + 1.6))
     y = np.arange(len(rows))
-    ax.barh(y - 0.2, [r["csa_error"] for r in rows], 0.4, label="own fibres (what a run on that mesh has)")
-    ax.barh(y + 0.2, [r["csa_error_finest_fibres"] or np.nan for r in rows], 0.4,
+    ax.barh(y - 0.27, [r["csa_error"] for r in rows], 0.27, label="own fibres (what a run on that mesh has)")
+    ax.barh(y, [r["csa_error_finest_fibres"] or np.nan for r in rows], 0.27,
             label="the finest level's fibres: the mechanics' part")
+    ax.barh(y + 0.27, [r.get("csa_solid_error") or np.nan for r in rows], 0.27,
+            label="own fibres, the solid's plane (where measured)")
     ax.axvline(GROWTH_GOAL, color="k", ls="--", lw=1, label=f"goal {GROWTH_GOAL:g} of the growth")
     ax.set_yticks(y, [f"{r['muscle']} ({r['levels'][-1] // 1000}k)" for r in rows], fontsize=7)
     ax.set_xscale("log")
