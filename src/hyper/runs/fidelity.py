@@ -352,15 +352,14 @@ class MeshError:
 # results/bench/convergence_32k results/bench/convergence_64k
 # results/bench/convergence_full --output results/bench/spatial` from the studies of
 # docs/convergence.md ("The spatial error of every muscle": 4k-32k cells, 8k-64k for
-# three). Most have no asymptotic order:
-# the error is the spread of the finest levels (and for the 8k level below a finer one,
-# its distance to the finest plus that spread), a measure of the scatter, not a bound;
-# the finest fibres' series counts too, since the own fibres' and the mechanics' changes
-# can cancel. The levels are meshes of the muscle's STL by `hyper mesh` with its defaults
-# (fibres smoothed over 2 mm, ends along the STL's axis); the shipped meshes are other
-# meshes of the same surfaces (the 12 paper muscles: fTetWild's; the 19 others: `make
-# new-meshes`, fibres unsmoothed), hence an estimate for them. No refinement of these was
-# measured: all of it is taken as kept.
+# three). Most have no asymptotic order: the error is the spread of the finest levels (and
+# for the 8k level below a finer one, its distance to the finest plus that spread), a
+# measure of the scatter, not a bound; the finest fibres' series counts too, since the own
+# fibres' and the mechanics' changes can cancel. The levels are meshes of the muscle's STL
+# by `hyper mesh` with its defaults (fibres smoothed over 2 mm, ends along the STL's axis);
+# the shipped meshes are other meshes of the same surfaces (the 12 paper muscles:
+# fTetWild's; the 19 others: `make new-meshes`, fibres unsmoothed), hence an estimate for
+# them. No refinement of these was measured: all of it is taken as kept.
 SURFACE_STUDIES = {
     "BFLH_VHF_Left": (0.0086, (4000, 8000, 16000, 32000)),
     "BFLH_VHM_Left": (0.0016, (4000, 8000, 16000, 32000)),
@@ -419,6 +418,7 @@ SPATIAL_ERROR = {
                               "unsmoothed fibres: the CSA gain's spread between the 4k and 8k meshes of its surface",
                               same_mesh=False),
 }
+
 
 @dataclass(frozen=True)
 class Spatial:

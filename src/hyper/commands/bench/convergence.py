@@ -742,9 +742,8 @@ def spatial_rows(folders: list[Path], cells: int) -> list[dict]:
 def error_to(e: dict, value: float) -> float:
     """The error of ``value`` as `estimate` ``e`` measures its series' levels: to the
     Richardson limit, or without an order to the finest level plus the finest spread."""
-    if e["order"] is not None:
-        return abs(value - e["limit"]) / abs(e["limit"])
-    return abs(value - e["limit"]) / abs(e["limit"]) + e["errors"][-1]
+    spread = 0.0 if e["order"] is not None else e["errors"][-1]
+    return abs(value - e["limit"]) / abs(e["limit"]) + spread
 
 
 def spatial_markdown(rows: list[dict]) -> list[str]:
@@ -756,14 +755,12 @@ def spatial_markdown(rows: list[dict]) -> list[str]:
     for r in rows:
         mech = "–" if r["csa_error_finest_fibres"] is None else f"{r['csa_error_finest_fibres']:.1e}"
         solid = "–" if r.get("csa_solid_error") is None else f"{r['csa_solid_error']:.1e}"
-        angle = "(the finest)" if r["levels"][-1] == r["levels"][r["levels"].index(r["cells_target"])] \
-            else f"{r['fibre_p95_deg']:.1f}"
+        angle = "(the finest)" if r["levels"][-1] == r["cells_target"] else f"{r['fibre_p95_deg']:.1f}"
         took = "–" if r.get("study_s") is None else f"{r['study_s']:.0f}, {r['ranks']}"
         lines.append(f"| {r['muscle']} | {r['levels'][0]}–{r['levels'][-1]} | {r['csa_gain_pct']:.4f} | "
                      f"{r['csa_error']:.1e} | {mech} | {r['csa_error_finest_flow']:.1e} | {solid} | "
-                     f"{r['volume_gain_pct']:.4f} | "
-                     f"{r['volume_error']:.1e} | "
-                     f"{angle} | {rounded_up(spatial_error(r)):.2g} | {took} |")
+                     f"{r['volume_gain_pct']:.4f} | {r['volume_error']:.1e} | {angle} | "
+                     f"{rounded_up(spatial_error(r)):.2g} | {took} |")
     return lines
 
 
