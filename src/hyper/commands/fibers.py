@@ -1,7 +1,8 @@
 """``hyper fibers``: the Stokes-flow fibres (`hyper.fem.fibers`) of the anatomical meshes,
 stored next to each mesh, with a picture and a summary per mesh; with ``--fibers FILE``,
 fibres from data (`hyper.fem.fiberdata`) of the geometries given; or the fibres of one
-mesh file, Stokes or pennate (`hyper.fem.pennate`), beside it:
+mesh file, Stokes, Laplace (`hyper.fem.laplace`: the potential flow between the ends) or
+pennate (`hyper.fem.pennate`), beside it:
 
     hyper fibers --mesh my_muscle/my_muscle.xdmf --mesh-unit mm --method pennate \
         --origin "tags:1 | tags:3 & along:0,0.8" --insertion "tags:2 | midplane & along:0.2,1"
@@ -39,7 +40,7 @@ from hyper.core.collective import on_rank0
 from hyper.core.io import atomic_path, is_complete, write_series
 from hyper.core.log import info
 from hyper.core.params import InputError, as_attributes
-from hyper.fem import fiberdata, fibers, pennate
+from hyper.fem import fiberdata, fibers, laplace, pennate
 from hyper.fem import geometry as geo
 from hyper.runs import farm, plot, presets, runspec
 
@@ -47,7 +48,7 @@ SUMMARY_COLUMNS = ("geometry", "muscle", "subject", "side", "cells", "vertices",
                    "max_norm_error", "min_speed", "max_speed", "solve_s", "status")
 
 
-METHODS = ("stokes", "pennate")
+METHODS = ("stokes", "laplace", "pennate")
 
 
 def parser() -> cli.Parser:
@@ -61,8 +62,8 @@ def parser() -> cli.Parser:
                         f"lateral surface), whose fibres go beside it as {fibers.FILE_NAME} with fibers.png")
     p.add_argument("--mesh-unit", choices=tuple(runspec.MESH_UNITS), default="mm", help="length unit of --mesh")
     p.add_argument("--method", choices=METHODS, default="stokes",
-                   help="with --mesh: Stokes flow (hyper.fem.fibers) or pennate fibres between --origin and "
-                        "--insertion (hyper.fem.pennate)")
+                   help="with --mesh: Stokes flow (hyper.fem.fibers), the potential flow between the ends "
+                        "(hyper.fem.laplace) or pennate fibres between --origin and --insertion (hyper.fem.pennate)")
     p.add_argument("--origin", default=pennate.DEFAULT_ORIGIN, metavar="PATCH",
                    help="pennate: the origin aponeurosis (patch syntax above)")
     p.add_argument("--insertion", default=pennate.DEFAULT_INSERTION, metavar="PATCH",
@@ -186,9 +187,9 @@ def run(comm, args) -> int:
         if args.geometries != list(geo.ANATOMICAL):
             raise InputError("--mesh and --geometries: one or the other")
         return run_mesh(comm, args)
-    if args.method == "pennate":
-        raise InputError("--method pennate: give the --mesh file whose fibres to make (the shipped mesh folders keep "
-                         "their Stokes fibres; copy one to make pennate fibres beside it)")
+    if args.method != "stokes":
+        raise InputError(f"--method {args.method}: give the --mesh file whose fibres to make (the shipped mesh "
+                         "folders keep their Stokes fibres; copy one to make other fibres beside it)")
     unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
     if unknown:
         raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")
@@ -252,6 +253,14 @@ def run_mesh(comm, args) -> int:
         stats = pennate.statistics(result)
         pennate.store(path, result, {**stats, "solve_s": solve_s}, **identity)
         label = f"pennate fibres (origin {origin.spec!r}, insertion {insertion.spec!r})"
+    elif args.method == "laplace":
+        a0, speed = laplace.compute(geometry)
+        solve_s = time.perf_counter() - start
+        stats = pennate.stokes_statistics(geometry, a0)
+        laplace.store(path, geometry, a0, speed, solve_s=solve_s,
+                      **{f"architecture_{k}": v for k, v in stats.items() if k.startswith(("pennation", "fascicle"))},
+                      **identity)
+        label = "Laplace fibres (the potential flow between the ends)"
     else:
         params = fibers.StokesParams(penalty=args.penalty)
         a0, speed = fibers.compute(geometry, params)

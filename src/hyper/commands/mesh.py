@@ -1,6 +1,7 @@
 """``hyper mesh``: a muscle's surface (STL) to a mesh folder, by the steps of
 `hyper.fem.meshing` (whose docstring is the job's help): read, check, tetrahedralize and
-tag on rank 0, then the XDMF mesh, its Stokes fibres (`hyper.fem.fibers`), its statistics
+tag on rank 0, then the XDMF mesh, its fibres (Stokes, `hyper.fem.fibers`; Laplace,
+`hyper.fem.laplace`; pennate or from data), its statistics
 (`hyper.fem.meshstats`), mesh.json and a picture, written to a staging folder that
 replaces ``--output`` whole."""
 
@@ -22,7 +23,7 @@ from hyper.core.collective import on_rank0
 from hyper.core.io import write_json, write_series
 from hyper.core.log import info
 from hyper.core.params import InputError, as_attributes
-from hyper.fem import fiberdata, fibers, meshstats, pennate
+from hyper.fem import fiberdata, fibers, laplace, meshstats, pennate
 from hyper.fem import geometry as geo
 from hyper.fem import meshing as hm
 from hyper.runs import plot, presets
@@ -31,6 +32,8 @@ ARRAYS = ("x", "tets", "facets", "tags")  # what `build` returns besides numbers
 # --fibers-smoothing (mm): on TA_VHF_Left (docs/convergence.md) 2 mm brings the 8k-cell fibres
 # within 2.5° (95th percentile) of the 64k-cell field; 3 mm gains 0.3° more
 FIBERS_SMOOTHING_MM = 2.0
+METHODS = ("stokes", "laplace", "pennate")
+FIGURE_LABEL = {"stokes": "Stokes fibres", "laplace": "Laplace fibres", "pennate": "pennate fibres"}
 
 
 def parser() -> cli.Parser:
@@ -62,9 +65,11 @@ def parser() -> cli.Parser:
     p.add_argument("--fibers-smoothing", type=cli.number(0, 50), default=FIBERS_SMOOTHING_MM,
                    metavar="MM", help="the Stokes velocity smoothed over this length before its direction is taken "
                    "(hyper.fem.fibers.smoothed: the fibres then converge with the mesh); 0: none, the paper's")
-    p.add_argument("--method", choices=("stokes", "pennate"), default="stokes",
-                   help="the mesh's fibres: Stokes flow, or pennate fibres between --origin and --insertion "
-                        "(hyper.fem.pennate; patch syntax: hyper fibers --help)")
+    p.add_argument("--method", choices=METHODS, default="stokes",
+                   help="the mesh's fibres: Stokes flow (the paper's), the potential flow between the ends "
+                        "(laplace: hyper.fem.laplace, converges with the mesh where Stokes does not), or "
+                        "pennate fibres between --origin and --insertion (hyper.fem.pennate; patch syntax: "
+                        "hyper fibers --help)")
     p.add_argument("--origin", default=pennate.DEFAULT_ORIGIN, metavar="PATCH",
                    help="pennate: the origin aponeurosis, tagged on the mesh and recorded in its fibre file")
     p.add_argument("--insertion", default=pennate.DEFAULT_INSERTION, metavar="PATCH",
@@ -124,6 +129,22 @@ def flow_mesh(comm, args, path: Path, cells: int) -> geo.Geometry:
     return geo.load_file(path, comm, name=path.stem, scale=geo.MM)
 
 
+def end_to_end_fibres(comm, args, geometry: geo.Geometry, flow_path: Path):
+    """(a0, speed, method, parameters) of the flow from end to end that ``args.method`` asks
+    for: Laplace, or Stokes on this mesh or on --flow-cells' (meshed at ``flow_path``). The
+    pennate fibres and fibres from data replace these afterwards, which are then only their
+    statistics."""
+    if args.method == "laplace":
+        params = laplace.LaplaceParams()
+        return *laplace.compute(geometry, params), laplace.method(params), params
+    params = fibers.StokesParams(smoothing_m=args.fibers_smoothing * geo.MM)
+    if args.flow_cells is None:
+        return *fibers.compute(geometry, params), fibers.stokes_method(params), params
+    flow = flow_mesh(comm, args, flow_path, args.flow_cells)
+    a0, speed = fibers.compute_transferred(geometry, flow, params)
+    return a0, speed, fibers.stokes_method(params) + fibers.TRANSFERRED_METHOD.format(cells=flow.num_cells()), params
+
+
 def run(comm, args) -> int:
     out = args.output
     name = out.name
@@ -134,8 +155,11 @@ def run(comm, args) -> int:
     source = presets.data_source(args, ())
     if args.method == "stokes" and (args.origin, args.insertion) != (pennate.DEFAULT_ORIGIN, pennate.DEFAULT_INSERTION):
         raise InputError("--origin and --insertion are the attachments of --method pennate")
-    if args.method == "pennate" and source is not None:
-        raise InputError("--method pennate and --fibers FILE: the fibres come from one or the other")
+    if args.method != "stokes" and source is not None:
+        raise InputError(f"--method {args.method} and --fibers FILE: the fibres come from one or the other")
+    if args.method == "laplace" and args.flow_cells is not None:
+        raise InputError("--flow-cells: a second mesh for the Stokes flow; the Laplace fibres converge on the "
+                         "mesh itself (docs/convergence.md)")
     # the patches parsed before any meshing: a bad one writes nothing
     patches = (pennate.parse(args.origin, "--origin"), pennate.parse(args.insertion, "--insertion")) \
         if args.method == "pennate" else None
@@ -160,15 +184,7 @@ def run(comm, args) -> int:
         start = time.perf_counter()
         hm.write_xdmf(comm, stage / f"{name}.xdmf", *(arrays[k] for k in ARRAYS))
         geometry = geo.load_file(stage / f"{name}.xdmf", comm, name=name, scale=geo.MM)
-        params = fibers.StokesParams(smoothing_m=args.fibers_smoothing * geo.MM)
-        method = fibers.stokes_method(params)
-        if args.flow_cells is None:
-            a0, speed = fibers.compute(geometry, params)
-        else:
-            flow = flow_mesh(comm, args, stage / "flow" / f"{name}.xdmf", args.flow_cells)
-            a0, speed = fibers.compute_transferred(geometry, flow, params)
-            method += fibers.TRANSFERRED_METHOD.format(cells=flow.num_cells())
-            del flow
+        a0, speed, method, params = end_to_end_fibres(comm, args, geometry, stage / "flow" / f"{name}.xdmf")
         stats = {**fibers.statistics(geometry, a0, speed), "solve_s": time.perf_counter() - start}
         data = fibers.gather_nodal(a0, speed)
         row = meshstats.statistics(geometry)
@@ -186,8 +202,11 @@ def run(comm, args) -> int:
             info(comm, f"{name}: pennate fibres, pennation angle mean {architecture['pennation_deg_mean']:.1f}°, "
                        f"5/50/95 % {architecture['pennation_deg_p5']:.1f}/{architecture['pennation_deg_p50']:.1f}/"
                        f"{architecture['pennation_deg_p95']:.1f}°")
+        if args.method == "laplace":
+            laplace.store(stage / fibers.FILE_NAME, geometry, a0, speed, params, mesh=f"{name}/{name}.xdmf",
+                          solve_s=stats["solve_s"])
         cells = fibers.cell_fibers(geometry, a0)
-        if comm.rank == 0 and source is None and patches is None:
+        if comm.rank == 0 and source is None and patches is None and args.method == "stokes":
             write_series(stage / fibers.FILE_NAME, data,
                          attrs={"geometry": name, "mesh": f"{name}/{name}.xdmf", "method": method,
                                 "element": fibers.ELEMENT, "reference": "Varvik et al. 2021; MODEL.md §5",
@@ -201,7 +220,8 @@ def run(comm, args) -> int:
                       "mesher": f"gmsh {hm.gmsh_version()}", "cells_target": args.cells,
                       **({} if args.flow_cells is None else {"flow_cells_target": args.flow_cells}),
                       "surface_triangles": built["surface_triangles"], "ends": built["rule"],
-                      "fibers_smoothing_mm": args.fibers_smoothing,
+                      "fibres_method": args.method,
+                      **({"fibers_smoothing_mm": args.fibers_smoothing} if args.method == "stokes" else {}),
                       "end_area_mm2": built["end_area_mm2"], "quality": built["quality"],
                       "statistics": {k: v for k, v in row.items() if k != "geometry"},
                       "fibers": {k: float(v) for k, v in stats.items()},
@@ -215,7 +235,8 @@ def run(comm, args) -> int:
             write_json(stage / "mesh.json", record)
             axis = np.asarray(built["rule"]["axis"])
             plot.save(figure(name, arrays["x"], arrays["facets"], arrays["tags"], cells[0], cells[1], axis,
-                             "Stokes fibres" if field is None else "fibres from data"), stage / f"{name}.png", dpi=110)
+                             FIGURE_LABEL[args.method] if field is None else "fibres from data"), stage / f"{name}.png",
+                      dpi=110)
             if out.exists():
                 shutil.rmtree(out)
             os.replace(stage, out)

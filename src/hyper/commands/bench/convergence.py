@@ -10,9 +10,10 @@ MUSCLE: a shipped or meshed geometry id whose surface is known (the 12 paper mus
 their Visible Human STL in --surfaces, origin at the shipped tag 1; the meshed ones: the
 source their mesh.json records), or an STL file (mm). Each level is the surface meshed by
 `hyper mesh --cells N` (kept under OUTPUT/convergence/NAME/ and reused), with its Stokes
-fibres. Per level, with two fibre fields:
+fibres (with --fibres-method laplace: its Laplace fibres, `hyper.fem.laplace`). Per level,
+with two fibre fields:
 
-    own      the level's own Stokes fibres (what a run on that mesh uses)
+    own      the level's own fibres (what a run on that mesh uses)
     finest   the finest level's fibres interpolated onto the level's nodes (unit there):
              only the mechanics' resolution changes between levels
 
@@ -127,18 +128,25 @@ def source(muscle: str, surfaces: Path) -> tuple[str, Path, list[str]]:
                      f"({', '.join(geo.ANATOMICAL[:3])}, …, or one of meshes/)")
 
 
-def level_mesh(comm, name: str, stl: Path, extra: list[str], cells: int, root: Path, force: bool) -> Path:
-    """The folder of `hyper mesh STL --cells CELLS`, made once (reused unless ``force``)."""
+def level_mesh(comm, name: str, stl: Path, extra: list[str], cells: int, root: Path, force: bool,
+               method: str = "stokes") -> Path:
+    """The folder of `hyper mesh STL --cells CELLS --method METHOD`, made once (reused unless
+    ``force``; a record without a method is an older Stokes one)."""
     folder = root / f"{name}_c{cells}"
     record = folder / "mesh.json"
-    done = comm.bcast(record.is_file() and json.loads(record.read_text()).get("cells_target") == cells
+    done = comm.bcast(record.is_file() and made_as(json.loads(record.read_text()), cells, method)
                       if comm.rank == 0 else None, root=0)
     if done and not force:
         return folder
-    status = mesh_job.main([str(stl), "--output", str(folder), "--force", "--cells", str(cells), *extra], comm=comm)
+    status = mesh_job.main([str(stl), "--output", str(folder), "--force", "--cells", str(cells),
+                            "--method", method, *extra], comm=comm)
     if status != cli.EXIT_OK:
         raise InputError(f"{name}: hyper mesh --cells {cells} failed (exit {status})")
     return folder
+
+
+def made_as(record: dict, cells: int, method: str) -> bool:
+    return record.get("cells_target") == cells and record.get("fibres_method", "stokes") == method
 
 
 def load_level(comm, folder: Path) -> geo.Geometry:
@@ -248,7 +256,7 @@ def study(comm, args) -> dict:
     asked, folders, dropped = list(cells), [], {}
     for n in asked:
         try:
-            folders.append(level_mesh(comm, name, stl, extra, n, root, args.force))
+            folders.append(level_mesh(comm, name, stl, extra, n, root, args.force, args.fibres_method))
         except InputError as err:  # a thin muscle cannot be meshed at the coarsest sizes
             if folders:  # a finer level failing where a coarser one worked is no thin muscle: stop
                 raise
@@ -284,7 +292,8 @@ def study(comm, args) -> dict:
                    + "; ".join(f"{v}: CSA {row[v]['csa_gain_pct']:+.4f} %, V {row[v]['volume_gain_pct']:+.4f} % "
                                f"({row[v]['growth_s']:.0f} s), force {shown_force(row[v])}" for v in VARIANTS)
                    + f" ({row['wall_s']:.0f} s of jobs)")
-    return {"benchmark": "convergence", "muscle": name, "surface": str(stl), "protocol": PROTOCOL,
+    return {"benchmark": "convergence", "muscle": name, "surface": str(stl), "fibres_method": args.fibres_method,
+            "protocol": PROTOCOL,
             "quick": bool(args.quick), "ranks": comm.size, "machine": common.machine(), "cells_asked": asked,
             "dropped_levels": dropped, "levels": rows,
             "estimates": estimates_of(rows), "wall_s": comm.allreduce(time.perf_counter() - start, op=MPI.MAX),
@@ -595,7 +604,8 @@ def studies_all(comm, args) -> int:
     for muscle in muscles:
         name = source(muscle, args.surfaces)[0]
         path = folder / f"{name}.json"
-        result = kept(comm, path, lambda record: kept_cells(record) == cells, args.force)
+        result = kept(comm, path, lambda record: kept_cells(record) == cells
+                      and record.get("fibres_method", "stokes") == args.fibres_method, args.force)
         if result is None:
             try:
                 result = study(comm, argparse.Namespace(**{**vars(args), "muscle": muscle}))
@@ -854,6 +864,9 @@ def parser() -> cli.Parser:
                         f"{hm.DEFAULT_CELLS}-cell level (the finest study's), as hyper.runs.fidelity's table")
     p.add_argument("--replot", type=Path, metavar="JSON", reads=True,
                    help="no runs: the estimates and chart again from a convergence_NAME.json")
+    p.add_argument("--fibres-method", choices=("stokes", "laplace"), default="stokes",
+                   help="the levels' fibres (hyper mesh --method): the paper's Stokes flow, or the potential flow "
+                        "between the ends (hyper.fem.laplace)")
     p.add_argument("--force", action="store_true", help="mesh the levels again")
     p.add_argument("--no-force-at-full-activation", dest="force_at_full_activation", action="store_false",
                    help="skip the end force at α = 1 (the growth only)")
