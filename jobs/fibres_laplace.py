@@ -2,56 +2,32 @@
 # (the experiment as it was run for docs/convergence.md; kept to rerun its numbers, not as library code)
 """The end-to-end potential flow's fibres at degree 1 and 2 (docs/convergence.md): on the meshes
 of a finished convergence study, φ with -Δφ = 0, uniform flux -1/|Γ1| into the origin end and
-+1/|Γ2| out of the insertion end, none elsewhere, in P1 or P2; a0 = the L2 projection of ∇φ onto
-vector P1, unit at the nodes; each level against the finest at the level's nodes, beside the
-stored Stokes fibres of the same levels. 1 core:
++1/|Γ2| out of the insertion end, none elsewhere, in P1 or P2; a0 = the projection of ∇φ onto
+vector P1 (L2, or smoothed over l: `hyper.fem.laplace`), unit at the nodes; each level against the
+finest at the level's nodes, beside the stored Stokes fibres of the same levels (their kinds and
+shares within 30° of the axis printed as a table row per muscle). 1 core:
 
     python jobs/fibres_laplace.py results/bench/convergence_64k/convergence/VL_VHM_Left --degrees 1,2
     python jobs/fibres_laplace.py results/bench/convergence_full/convergence/*   # a table row per muscle
+    python jobs/fibres_laplace.py results/bench/convergence_64k/convergence/* --smoothing 0,2
 """
 import argparse
 import time
 from pathlib import Path
 
 import dolfinx_solver  # noqa: F401
-import numpy as np
-import ufl
-from dolfinx import fem
-from dolfinx.fem.petsc import LinearProblem
 from mpi4py import MPI
 
 from hyper.commands.bench import convergence as cv
 from hyper.fem import fibers
+from hyper.fem import laplace as lp
 
 p = argparse.ArgumentParser()
 p.add_argument("folders", type=Path, nargs="+"); p.add_argument("--degrees", default="2")
+p.add_argument("--smoothing", default="0", help="lengths l (mm) of the gradient's projection, comma-separated")
 p.add_argument("--min-cells", type=int, default=8000, help="levels from this target up")
 a = p.parse_args()
 comm = MPI.COMM_SELF
-k = 0
-
-
-def laplace(g, degree):
-    global k
-    k += 1
-    mesh = g.mesh
-    V = fem.functionspace(mesh, ("Lagrange", degree))
-    u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
-    ds = ufl.Measure("ds", domain=mesh, subdomain_data=g.facet_tags)
-    one = fem.Constant(mesh, 1.0)
-    area = [fem.assemble_scalar(fem.form(one * ds(t))) for t in (1, 2)]
-    index_map = V.dofmap.index_map
-    local = np.arange(index_map.size_local + index_map.num_ghosts, dtype=np.int32)
-    pinned = local[index_map.local_to_global(local) == 0]
-    bc = fem.dirichletbc(np.float64(0.0), pinned, V)
-    L = (-1.0 / area[0]) * v * ds(1) + (1.0 / area[1]) * v * ds(2)
-    phi = LinearProblem(ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx, L, bcs=[bc], petsc_options_prefix=f"lp{k}_",
-                        petsc_options={"ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}).solve()
-    V1 = fem.functionspace(mesh, ("Lagrange", 1, (3,)))
-    w, z = ufl.TrialFunction(V1), ufl.TestFunction(V1)
-    grad = LinearProblem(ufl.inner(w, z) * ufl.dx, ufl.inner(ufl.grad(phi), z) * ufl.dx, petsc_options_prefix=f"lg{k}_",
-                         petsc_options={"ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps"}).solve()
-    return cv.unit(grad)
 
 
 rows = []
@@ -61,9 +37,12 @@ for study in a.folders:
     levels = [cv.load_level(comm, f) for f in folders]
     kinds = {"stokes": [fibers.load(g, f / fibers.FILE_NAME) for g, f in zip(levels, folders)]}
     for degree in map(int, a.degrees.split(",")):
-        t = time.perf_counter()
-        kinds[f"laplace P{degree}"] = [laplace(g, degree) for g in levels]
-        print(f"{study.name}: laplace P{degree} {time.perf_counter() - t:.0f} s for {len(levels)} levels", flush=True)
+        for ell in map(float, a.smoothing.split(",")):
+            t = time.perf_counter()
+            params = lp.LaplaceParams(degree=degree, smoothing_m=ell * 1e-3)
+            kinds[f"laplace P{degree} l={ell:g}"] = [lp.compute(g, params)[0] for g in levels]
+            print(f"{study.name}: laplace P{degree} l = {ell:g} mm {time.perf_counter() - t:.0f} s for {len(levels)} "
+                  "levels", flush=True)
     row = {"muscle": study.name}
     for kind, fields in kinds.items():
         row[kind] = [cv.angles(a0, cv.unit(fibers.transferred(fields[-1], g)))["p95_deg"]
