@@ -49,7 +49,7 @@ new-meshes: venv
 	  base=$$(basename $$stl); subject=$${base%%_*}; rest=$${base#*_}; side=$${rest%%_*}; \
 	  toward="0 0 1"; [ $$subject = VHM ] && toward="0 0 -1"; \
 	  $(PY) -m hyper.mesh $$stl --output meshes/$${pair##*:}_$${subject}_$$side --origin-toward $$toward --force \
-	    --end-rule vertices --fibers-smoothing 0 \
+	    --end-rule vertices --fibers-smoothing 0 --method stokes \
 	    || exit 1; done; done
 
 lint: venv

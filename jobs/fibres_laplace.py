@@ -25,6 +25,7 @@ from hyper.fem import laplace as lp
 p = argparse.ArgumentParser()
 p.add_argument("folders", type=Path, nargs="+"); p.add_argument("--degrees", default="2")
 p.add_argument("--smoothing", default="0", help="lengths l (mm) of the gradient's projection, comma-separated")
+p.add_argument("--stokes", action=argparse.BooleanOptionalAction, default=True, help="the stored Stokes fibres too")
 p.add_argument("--min-cells", type=int, default=8000, help="levels from this target up")
 a = p.parse_args()
 comm = MPI.COMM_SELF
@@ -35,7 +36,7 @@ for study in a.folders:
     folders = sorted((f for f in study.iterdir() if f.is_dir() and int(f.name.rsplit("_c", 1)[1]) >= a.min_cells),
                      key=lambda f: int(f.name.rsplit("_c", 1)[1]))
     levels = [cv.load_level(comm, f) for f in folders]
-    kinds = {"stokes": [fibers.load(g, f / fibers.FILE_NAME) for g, f in zip(levels, folders)]}
+    kinds = {"stokes": [fibers.load(g, f / fibers.FILE_NAME) for g, f in zip(levels, folders)]} if a.stokes else {}
     for degree in map(int, a.degrees.split(",")):
         for ell in map(float, a.smoothing.split(",")):
             t = time.perf_counter()

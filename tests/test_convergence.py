@@ -165,10 +165,10 @@ def test_a_shipped_mesh_given_as_a_file_has_its_geometry_s_spatial_error(tmp_pat
     from hyper.runs import runspec
 
     shipped = Path(geo.MESHES_DIR) / geo.GEOMETRIES["VL_VHM_Left"]
-    assert runspec.table_name(shipped.stem, runspec.MeshFile(shipped, "mm")) == ("VL_VHM_Left", False)
+    assert runspec.table_name(shipped.stem, runspec.MeshFile(shipped, "mm")) == ("VL_VHM_Left", False, "stokes")
     mine = tmp_path / "VL_VHM_Left.xdmf"  # the same name elsewhere is a user's mesh
-    assert runspec.table_name(mine.stem, runspec.MeshFile(mine, "mm")) == ("VL_VHM_Left", True)
-    assert runspec.table_name("idealized", None) == ("idealized", False)
+    assert runspec.table_name(mine.stem, runspec.MeshFile(mine, "mm")) == ("VL_VHM_Left", True, "stokes")
+    assert runspec.table_name("idealized", None) == ("idealized", False, "stokes")
 
 
 def test_the_spatial_table_takes_each_muscle_from_its_finest_study(tmp_path):
@@ -251,7 +251,9 @@ def test_the_all_muscles_table_reuses_kept_studies_and_judges_the_goal(tmp_path,
     kept("TA_VHF_Left", [8.30, 8.36, 8.38, 8.385])  # converging: Richardson order
     kept("ST_VHM_Right", [8.30, 8.40, 8.30, 8.384])  # zigzags: the 2.5-2.0 spread, 0.084 points
     monkeypatch.setattr(convergence, "source", lambda muscle, surfaces: (muscle, None, []))
-    assert convergence.main(["--all", "TA_VHF_Left", "ST_VHM_Right", "--quick", "--output", str(tmp_path)]) == 0
+    # kept before --fibres-method: Stokes studies, which a Laplace study (the default) would not reuse
+    assert convergence.main(["--all", "TA_VHF_Left", "ST_VHM_Right", "--quick", "--fibres-method", "stokes",
+                             "--output", str(tmp_path)]) == 0
     table = {r["muscle"]: r for r in json.loads((tmp_path / "convergence_all.json").read_text())["muscles"]}
     ta, st = table["TA_VHF_Left"], table["ST_VHM_Right"]
     assert ta["csa_order"] is not None and ta["csa_error"] < convergence.GROWTH_GOAL and ta["goal_met"]

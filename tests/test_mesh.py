@@ -12,6 +12,7 @@ import pytest
 from hyper.commands import cli
 from hyper.commands import mesh as mesh_job
 from hyper.core.params import InputError
+from hyper.fem import fiberread as fr
 from hyper.fem import meshing as hm
 
 RADIUS, LENGTH = 20.0, 100.0  # mm
@@ -131,8 +132,9 @@ def meshed(tmp_path_factory):
     root = tmp_path_factory.mktemp("meshed")
     points, tris = cylinder()
     out = root / "CYL_X_Left"
+    # the paper's Stokes fibres: the finer flow of --flow-cells is theirs (the default is Laplace's)
     status = mesh_job.main([str(write_stl(root / "c.stl", points, tris)), "--output", str(out), "--cells", "3000",
-                      "--quiet"])
+                            "--method", "stokes", "--quiet"])
     assert status == cli.EXIT_OK
     return out
 
@@ -232,6 +234,8 @@ def test_a_real_surface_meshes_end_to_end(tmp_path):
     assert geometry.num_cells() == stats["cells"]
     a0 = fibers.load(geometry, out / fibers.FILE_NAME)
     assert fibers.aligned_share(geometry, a0, record["ends"]["axis"], angle_deg=30.0) > 0.95
+    # the default fibres: Laplace's, which converge with the mesh (docs/convergence.md)
+    assert record["fibres_method"] == "laplace" and fr.stored_fibres(out / fibers.FILE_NAME)[0] == "laplace"
 
 
 def test_flow_cells_solves_the_fibres_on_a_finer_mesh_of_the_surface(meshed, tmp_path):
@@ -247,7 +251,7 @@ def test_flow_cells_solves_the_fibres_on_a_finer_mesh_of_the_surface(meshed, tmp
 
     out = tmp_path / "CYL_Y_Left"
     assert mesh_job.main([str(meshed.parent / "c.stl"), "--output", str(out), "--cells", "1000", "--flow-cells", "3000",
-                          "--quiet"]) == cli.EXIT_OK
+                          "--method", "stokes", "--quiet"]) == cli.EXIT_OK
     assert json.loads((out / "mesh.json").read_text())["flow_cells_target"] == 3000
     assert sorted(p.name for p in out.iterdir()) == ["CYL_Y_Left.h5", "CYL_Y_Left.png", "CYL_Y_Left.xdmf",
                                                      "fibers.h5", "mesh.json"]

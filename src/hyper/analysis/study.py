@@ -354,9 +354,9 @@ def mesh_and_steps(study: Study, growth_dt, signaling_dt) -> fidelity.Choice:
     files = {m.path.stem: m for m in study.meshes}
 
     def on(name: str, refine: int) -> fidelity.Choice:
-        table, mesh_file = runspec.table_name(name, files.get(name))
+        table, mesh_file, fibres = runspec.table_name(name, files.get(name))
         scene = fidelity.Scene(table, protocols, heterogeneous=study.heterogeneity is not None, ask="growth")
-        return fidelity.choose_on_mesh(scene, n.accuracy, refine=refine, mesh_file=mesh_file,
+        return fidelity.choose_on_mesh(scene, n.accuracy, refine=refine, mesh_file=mesh_file, fibres=fibres,
                                        growth_dt=growth_dt, signaling_dt=signaling_dt)
 
     refine = max(on(name, n.refine).refine for name in study.names)

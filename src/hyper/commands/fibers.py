@@ -181,7 +181,8 @@ def picture(geometry, a0, field, path: Path, title: str) -> None:
 def run(comm, args) -> int:
     if args.fibers is not None:
         return from_data(comm, args)
-    if args.method == "stokes" and (args.origin, args.insertion) != (pennate.DEFAULT_ORIGIN, pennate.DEFAULT_INSERTION):
+    if args.method != "pennate" and (args.origin, args.insertion) != (pennate.DEFAULT_ORIGIN,
+                                                                      pennate.DEFAULT_INSERTION):
         raise InputError("--origin and --insertion are the attachments of --method pennate")
     if args.mesh is not None:
         if args.geometries != list(geo.ANATOMICAL):

@@ -183,7 +183,8 @@ def untabulated(args) -> list[str]:
     return out
 
 
-def choose(scene: fidelity.Scene, args, growth_dt=None, mesh_file: bool = False) -> fidelity.Choice | None:
+def choose(scene: fidelity.Scene, args, growth_dt=None, mesh_file: bool = False, fibres: str = "stokes"
+           ) -> fidelity.Choice | None:
     if args.accuracy is not None and untabulated(args):
         raise InputError(f"--accuracy chooses steps from the errors of the default model; it does not "
                          f"combine with {untabulated(args)[0]}")
@@ -192,7 +193,7 @@ def choose(scene: fidelity.Scene, args, growth_dt=None, mesh_file: bool = False)
             return None
         if scene.ask == "growth":
             return fidelity.choose_on_mesh(scene, args.accuracy, refine=args.refine, mesh_file=mesh_file,
-                                           growth_dt=growth_dt, signaling_dt=args.signaling_dt)
+                                           fibres=fibres, growth_dt=growth_dt, signaling_dt=args.signaling_dt)
         return fidelity.choose(scene, args.accuracy, signaling_dt=args.signaling_dt)
     except InputError as err:
         raise InputError(f"--accuracy {args.accuracy:g}: {err}") from None
@@ -219,9 +220,9 @@ def plan_from(comm, args) -> sequence.Plan:
     params = signaling.load_params(args.params) if args.params else signaling.SignalingParams()
     muscle = mat.load(args.material) if args.material else mat.MaterialParams()
     # hyper grow takes uniform parameters only (per-cell ones are hyper ensemble's)
-    table, mesh_file = runspec.table_name(name, mesh)
+    table, mesh_file, fibres = runspec.table_name(name, mesh)
     scene = fidelity.Scene(table, ",".join(p.name for p in runs), heterogeneous=False, ask="growth")
-    choice = choose(scene, args, args.growth_dt, mesh_file=mesh_file)
+    choice = choose(scene, args, args.growth_dt, mesh_file=mesh_file, fibres=fibres)
     steps = (choice.growth_dt, choice.signaling_dt) if choice is not None else (args.growth_dt, args.signaling_dt)
     settings = presets.settings(GrowthSettings, args.settings,
                                 {"growth_dt": steps[0], "signaling_dt": steps[1], "feedback": args.feedback,

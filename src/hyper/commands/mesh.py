@@ -33,6 +33,9 @@ ARRAYS = ("x", "tets", "facets", "tags")  # what `build` returns besides numbers
 # within 2.5° (95th percentile) of the 64k-cell field; 3 mm gains 0.3° more
 FIBERS_SMOOTHING_MM = 2.0
 METHODS = ("stokes", "laplace", "pennate")
+# The Laplace fibres converge with the mesh where the paper's Stokes fibres do not (the wide
+# muscles: docs/convergence.md, "Laplace fibres"); the shipped meshes keep their Stokes fibres.
+DEFAULT_METHOD = "laplace"
 FIGURE_LABEL = {"stokes": "Stokes fibres", "laplace": "Laplace fibres", "pennate": "pennate fibres"}
 
 
@@ -59,15 +62,17 @@ def parser() -> cli.Parser:
     cli.vector_option(p, "--origin-toward", default=hm.ORIGIN_TOWARD,
                       help="the origin (tag 1) is the end further along this direction")
     p.add_argument("--flow-cells", type=cli.integer(200, hm.MAX_CELLS), metavar="N",
-                   help="solve the fibres' Stokes flow on a second mesh of the surface at N cells (finer than "
-                        "--cells) and interpolate it onto this mesh's nodes: fibres nearer the converged field "
-                        "(python -m hyper.bench convergence --fibres-all); by default the flow is solved on this mesh")
+                   help="--method stokes: solve the fibres' Stokes flow on a second mesh of the surface at N cells "
+                        "(finer than --cells) and interpolate it onto this mesh's nodes: fibres nearer the converged "
+                        "field (python -m hyper.bench convergence --fibres-all); by default the flow is solved on "
+                        "this mesh")
     p.add_argument("--fibers-smoothing", type=cli.number(0, 50), default=FIBERS_SMOOTHING_MM,
-                   metavar="MM", help="the Stokes velocity smoothed over this length before its direction is taken "
-                   "(hyper.fem.fibers.smoothed: the fibres then converge with the mesh); 0: none, the paper's")
-    p.add_argument("--method", choices=METHODS, default="stokes",
-                   help="the mesh's fibres: Stokes flow (the paper's), the potential flow between the ends "
-                        "(laplace: hyper.fem.laplace, converges with the mesh where Stokes does not), or "
+                   metavar="MM", help="--method stokes: the Stokes velocity smoothed over this length before its "
+                   "direction is taken (hyper.fem.fibers.smoothed: the fibres then converge with the mesh on the strap "
+                   "muscles); 0: none, the paper's")
+    p.add_argument("--method", choices=METHODS, default=DEFAULT_METHOD,
+                   help="the mesh's fibres: the potential flow between the ends (laplace: hyper.fem.laplace, "
+                        "converges with the mesh where Stokes does not), the paper's Stokes flow, or "
                         "pennate fibres between --origin and --insertion (hyper.fem.pennate; patch syntax: "
                         "hyper fibers --help)")
     p.add_argument("--origin", default=pennate.DEFAULT_ORIGIN, metavar="PATCH",
@@ -134,7 +139,7 @@ def end_to_end_fibres(comm, args, geometry: geo.Geometry, flow_path: Path):
     for: Laplace, or Stokes on this mesh or on --flow-cells' (meshed at ``flow_path``). The
     pennate fibres and fibres from data replace these afterwards, which are then only their
     statistics."""
-    if args.method == "laplace":
+    if args.method == "laplace" and args.fibers is None:  # fibres from data are compared with Stokes'
         params = laplace.LaplaceParams()
         return *laplace.compute(geometry, params), laplace.method(params), params
     params = fibers.StokesParams(smoothing_m=args.fibers_smoothing * geo.MM)
@@ -153,13 +158,14 @@ def run(comm, args) -> int:
     if out.exists() and not args.force:
         raise InputError(f"--output {out}: exists; give --force to replace it")
     source = presets.data_source(args, ())
-    if args.method == "stokes" and (args.origin, args.insertion) != (pennate.DEFAULT_ORIGIN, pennate.DEFAULT_INSERTION):
+    if args.method != "pennate" and (args.origin, args.insertion) != (pennate.DEFAULT_ORIGIN,
+                                                                      pennate.DEFAULT_INSERTION):
         raise InputError("--origin and --insertion are the attachments of --method pennate")
-    if args.method != "stokes" and source is not None:
-        raise InputError(f"--method {args.method} and --fibers FILE: the fibres come from one or the other")
+    if args.method == "pennate" and source is not None:
+        raise InputError("--method pennate and --fibers FILE: the fibres come from one or the other")
     if args.method == "laplace" and args.flow_cells is not None:
-        raise InputError("--flow-cells: a second mesh for the Stokes flow; the Laplace fibres converge on the "
-                         "mesh itself (docs/convergence.md)")
+        raise InputError("--flow-cells: a second mesh for the Stokes flow (--method stokes); the Laplace fibres "
+                         "converge on the mesh itself (docs/convergence.md)")
     # the patches parsed before any meshing: a bad one writes nothing
     patches = (pennate.parse(args.origin, "--origin"), pennate.parse(args.insertion, "--insertion")) \
         if args.method == "pennate" else None
@@ -202,11 +208,11 @@ def run(comm, args) -> int:
             info(comm, f"{name}: pennate fibres, pennation angle mean {architecture['pennation_deg_mean']:.1f}°, "
                        f"5/50/95 % {architecture['pennation_deg_p5']:.1f}/{architecture['pennation_deg_p50']:.1f}/"
                        f"{architecture['pennation_deg_p95']:.1f}°")
-        if args.method == "laplace":
+        if args.method == "laplace" and source is None:
             laplace.store(stage / fibers.FILE_NAME, geometry, a0, speed, params, mesh=f"{name}/{name}.xdmf",
                           solve_s=stats["solve_s"])
         cells = fibers.cell_fibers(geometry, a0)
-        if comm.rank == 0 and source is None and patches is None and args.method == "stokes":
+        if comm.rank == 0 and source is None and args.method == "stokes":
             write_series(stage / fibers.FILE_NAME, data,
                          attrs={"geometry": name, "mesh": f"{name}/{name}.xdmf", "method": method,
                                 "element": fibers.ELEMENT, "reference": "Varvik et al. 2021; MODEL.md §5",
@@ -220,7 +226,7 @@ def run(comm, args) -> int:
                       "mesher": f"gmsh {hm.gmsh_version()}", "cells_target": args.cells,
                       **({} if args.flow_cells is None else {"flow_cells_target": args.flow_cells}),
                       "surface_triangles": built["surface_triangles"], "ends": built["rule"],
-                      "fibres_method": args.method,
+                      "fibres_method": "data" if source is not None else args.method,
                       **({"fibers_smoothing_mm": args.fibers_smoothing} if args.method == "stokes" else {}),
                       "end_area_mm2": built["end_area_mm2"], "quality": built["quality"],
                       "statistics": {k: v for k, v in row.items() if k != "geometry"},

@@ -394,10 +394,18 @@ SURFACE_STUDIES = {
 }
 
 
-def _surface_entry(muscle: str, error: float, levels: tuple[int, ...]) -> MeshError:
+# The same with the Laplace fibres (`hyper mesh --method laplace`, `hyper.fem.laplace`): the
+# studies of docs/convergence.md ("Laplace fibres"), `--fibres-method laplace --output
+# results/bench/convergence_laplace`, printed by `--spatial-table results/bench/convergence_laplace`.
+LAPLACE_STUDIES = {
+}
+
+
+def _surface_entry(muscle: str, error: float, levels: tuple[int, ...], fibres: str = "stokes") -> MeshError:
     cells = " ".join(map(str, levels))
-    return MeshError(error, error, 1.0, f"python -m hyper.bench convergence --all {muscle} --cells {cells}: the "
-                     f"8000-cell level of hyper mesh's meshes of its surface", same_mesh=False)
+    method = "" if fibres == "stokes" else f" --fibres-method {fibres}"
+    return MeshError(error, error, 1.0, f"python -m hyper.bench convergence --all {muscle} --cells {cells}{method}: "
+                     f"the 8000-cell level of hyper mesh's meshes of its surface", same_mesh=False)
 
 
 # Rounded up; measured as the source says. The idealized shape's, against its mesh refined
@@ -418,6 +426,13 @@ SPATIAL_ERROR = {
                               "unsmoothed fibres: the CSA gain's spread between the 4k and 8k meshes of its surface",
                               same_mesh=False),
 }
+
+
+# by fibre kind (what the fibre file beside a mesh file says it holds): the kinds without a
+# table of their own (pennate, from data) take the Stokes fibres' table
+LAPLACE_ERROR = {muscle: _surface_entry(muscle, error, levels, "laplace")
+                 for muscle, (error, levels) in LAPLACE_STUDIES.items()}
+TABLES = {"stokes": SPATIAL_ERROR, "laplace": LAPLACE_ERROR}
 
 
 @dataclass(frozen=True)
@@ -447,7 +462,9 @@ def _other_side(geometry: str) -> str:
     return "_".join([*rest, other]) if other and rest else geometry
 
 
-def _table_entry(geometry: str, mesh_file: bool) -> tuple[MeshError, bool, str]:
+def _table_entry(geometry: str, mesh_file: bool, fibres: str = "stokes") -> tuple[MeshError, bool, str]:
+    if fibres != "stokes" and TABLES.get(fibres):
+        return _kind_entry(geometry, TABLES[fibres], fibres)
     if not mesh_file and geometry in SPATIAL_ERROR:
         entry = SPATIAL_ERROR[geometry]
         return entry, entry.same_mesh, entry.source
@@ -465,20 +482,35 @@ def _table_entry(geometry: str, mesh_file: bool) -> tuple[MeshError, bool, str]:
     name, entry = max(anatomical.items(), key=lambda item: item[1].error)
     what = "a mesh file" if mesh_file else geometry
     return entry, False, (f"no table for {what}: the largest measured, {name}'s ({entry.source}); measure "
-                          f"yours: python -m hyper.bench convergence SURFACE.stl --quick")
+                          f"yours: python -m hyper.bench convergence SURFACE.stl --quick --fibres-method stokes")
 
 
-def spatial(geometry: str, refine: int = 0, *, mesh_file: bool = False) -> Spatial:
+def _kind_entry(geometry: str, table: dict, fibres: str) -> tuple[MeshError, bool, str]:
+    """A mesh with fibres of a kind that has a table of its own: the muscle's (a mesh of its
+    surface by `hyper mesh`, so for any other mesh an estimate), its other side's, or the
+    largest measured."""
+    for name, whose in ((geometry, ""), (_other_side(geometry), "the other side's, ")):
+        if name in table:
+            return table[name], False, f"{fibres} fibres: {whose}{name}'s ({table[name].source})"
+    name, entry = max(table.items(), key=lambda item: item[1].error)
+    return entry, False, (f"{fibres} fibres, no table for {geometry}: the largest measured with them, {name}'s "
+                          f"({entry.source}); measure yours: python -m hyper.bench convergence SURFACE.stl "
+                          f"--fibres-method {fibres}")
+
+
+def spatial(geometry: str, refine: int = 0, *, mesh_file: bool = False, fibres: str = "stokes") -> Spatial:
     """The spatial error of the growth on ``geometry`` (a built-in id, or with
     ``mesh_file`` the stem of a user's mesh) refined ``refine`` times: the table's fibre
-    share that refining keeps plus the rest times 2^(-order refine)."""
-    entry, measured, why = _table_entry(geometry, mesh_file)
+    share that refining keeps plus the rest times 2^(-order refine). ``fibres``: the kind
+    the mesh's fibre file holds (`TABLES`)."""
+    entry, measured, why = _table_entry(geometry, mesh_file, fibres)
     elements = max(0.0, entry.error - entry.kept) * 2.0 ** (-entry.order * refine)
     return Spatial(geometry, int(refine), entry.kept + elements, entry.kept, measured, why)
 
 
 def choose_on_mesh(scene: Scene, accuracy: float = DEFAULT_ACCURACY, *, refine: int = 0, mesh_file: bool = False,
-                   growth_dt: float | None = None, signaling_dt: float | None = None) -> Choice:
+                   fibres: str = "stokes", growth_dt: float | None = None, signaling_dt: float | None = None
+                   ) -> Choice:
     """`choose` for a growth question with its mesh counted: the fewest refinements from
     ``refine`` up to MAX_REFINE whose spatial error is within SPATIAL_SHARE of
     ``accuracy``, then the steps for what is left. Raises InputError (one line: what the
@@ -486,7 +518,7 @@ def choose_on_mesh(scene: Scene, accuracy: float = DEFAULT_ACCURACY, *, refine: 
     if scene.ask != "growth":
         raise InputError("the mesh counts for a growth question only")
     choose(scene, accuracy, growth_dt=growth_dt, signaling_dt=signaling_dt)  # the accuracy's own checks
-    candidates = [spatial(scene.geometry, k, mesh_file=mesh_file) for k in range(refine, MAX_REFINE + 1)]
+    candidates = [spatial(scene.geometry, k, mesh_file=mesh_file, fibres=fibres) for k in range(refine, MAX_REFINE + 1)]
     fitting = [c for c in candidates if c.error <= SPATIAL_SHARE * accuracy]
     if not fitting:
         best = candidates[-1]

@@ -96,6 +96,10 @@ class MeshFile:
 
         return Path(self.path).parent / fibers.FILE_NAME
 
+    def fibre_kind(self) -> str:
+        """The kind of fibres the file beside this mesh holds ("stokes" where there is none)."""
+        return fr.stored_fibres(self.fibres)[0] if self.fibres.is_file() else "stokes"
+
     def fibre_cache(self) -> tuple[Path | None, str]:
         """(where Stokes fibres computed for this mesh are kept, or None; why not there).
 
@@ -304,15 +308,18 @@ def result_groups(spec: RunSpec, choice: fidelity.Choice | None = None) -> dict:
     return groups
 
 
-def table_name(geometry: str, mesh: MeshFile | None) -> tuple[str, bool]:
-    """The name `fidelity`'s tables know a run's mesh by, and whether that is a user's
-    mesh file: a shipped mesh given as a file (with the fibres beside it, the same run as
-    its --geometry) is its geometry."""
+def table_name(geometry: str, mesh: MeshFile | None) -> tuple[str, bool, str]:
+    """The name `fidelity`'s tables know a run's mesh by, whether that is a user's mesh
+    file, and the kind of its fibres: a shipped mesh given as a file (with the fibres beside
+    it, the same run as its --geometry) is its geometry; a mesh file's fibres are what the
+    file beside it holds (Stokes where there is none: a run computes them)."""
     shipped = mesh.shipped() if mesh is not None else None
-    return (shipped, False) if shipped else (geometry, mesh is not None)
+    if shipped:
+        return shipped, False, "stokes"
+    return geometry, mesh is not None, mesh.fibre_kind() if mesh is not None else "stokes"
 
 
 def spatial_error(spec: RunSpec) -> fidelity.Spatial:
     """The estimated spatial error of the growth of ``spec`` (`fidelity.spatial`)."""
-    name, mesh_file = table_name(spec.geometry, spec.mesh)
-    return fidelity.spatial(name, spec.refine, mesh_file=mesh_file)
+    name, mesh_file, fibres = table_name(spec.geometry, spec.mesh)
+    return fidelity.spatial(name, spec.refine, mesh_file=mesh_file, fibres=fibres)

@@ -9,9 +9,9 @@ resolutions, and which of fibres and mechanics carries the error.
 MUSCLE: a shipped or meshed geometry id whose surface is known (the 12 paper muscles:
 their Visible Human STL in --surfaces, origin at the shipped tag 1; the meshed ones: the
 source their mesh.json records), or an STL file (mm). Each level is the surface meshed by
-`hyper mesh --cells N` (kept under OUTPUT/convergence/NAME/ and reused), with its Stokes
-fibres (with --fibres-method laplace: its Laplace fibres, `hyper.fem.laplace`). Per level,
-with two fibre fields:
+`hyper mesh --cells N` (kept under OUTPUT/convergence/NAME/ and reused), with its fibres
+(--fibres-method: Laplace, `hyper.fem.laplace`, hyper mesh's default; or the paper's Stokes
+fibres; a study kept before the option is a Stokes one). Per level, with two fibre fields:
 
     own      the level's own fibres (what a run on that mesh uses)
     finest   the finest level's fibres interpolated onto the level's nodes (unit there):
@@ -129,7 +129,7 @@ def source(muscle: str, surfaces: Path) -> tuple[str, Path, list[str]]:
 
 
 def level_mesh(comm, name: str, stl: Path, extra: list[str], cells: int, root: Path, force: bool,
-               method: str = "stokes") -> Path:
+               method: str) -> Path:
     """The folder of `hyper mesh STL --cells CELLS --method METHOD`, made once (reused unless
     ``force``; a record without a method is an older Stokes one)."""
     folder = root / f"{name}_c{cells}"
@@ -864,9 +864,9 @@ def parser() -> cli.Parser:
                         f"{hm.DEFAULT_CELLS}-cell level (the finest study's), as hyper.runs.fidelity's table")
     p.add_argument("--replot", type=Path, metavar="JSON", reads=True,
                    help="no runs: the estimates and chart again from a convergence_NAME.json")
-    p.add_argument("--fibres-method", choices=("stokes", "laplace"), default="stokes",
-                   help="the levels' fibres (hyper mesh --method): the paper's Stokes flow, or the potential flow "
-                        "between the ends (hyper.fem.laplace)")
+    p.add_argument("--fibres-method", choices=("stokes", "laplace"), default=mesh_job.DEFAULT_METHOD,
+                   help="the levels' fibres (hyper mesh --method, whose default this is): the potential flow "
+                        "between the ends (hyper.fem.laplace), or the paper's Stokes flow")
     p.add_argument("--force", action="store_true", help="mesh the levels again")
     p.add_argument("--no-force-at-full-activation", dest="force_at_full_activation", action="store_false",
                    help="skip the end force at α = 1 (the growth only)")

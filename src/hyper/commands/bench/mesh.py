@@ -155,7 +155,7 @@ def run(comm, args) -> int:
         old = shipped(name)
         folder = args.output / "mesh" / name
         start = time.perf_counter()
-        status = mesh_job.main([str(path), "--output", str(folder), "--force",
+        status = mesh_job.main([str(path), "--output", str(folder), "--force", "--method", "stokes",
                                 "--origin-toward", *map(str, old["toward"])], comm=comm)
         seconds = time.perf_counter() - start
         if status != cli.EXIT_OK:
