@@ -22,7 +22,7 @@ from hyper.core.params import InputError
 from hyper.fem import fiberread as fr
 from hyper.fem import fibers, laplace
 from hyper.fem import geometry as geo
-from hyper.runs import runspec
+from hyper.runs import fidelity, runspec
 from test_convergence import SWEEP, sector
 
 STL = Path(__file__).parent / "data" / "TA_VHF_Right_coarse.stl"
@@ -131,6 +131,12 @@ def test_hyper_mesh_makes_laplace_fibres_which_runs_then_record(tmp_path):
     with h5py.File(result, "r") as f:
         assert f.attrs["fibers"] == "laplace"
         assert f.attrs["fibers_method"] == f"{laplace.method()}; read from {path}"
+        spatial = dict(f["spatial"].attrs)
+    # its spatial error: the largest measured with Laplace fibres, not the Stokes fibres' 0.13
+    assert runspec.table_name("TA_LAP", mesh) == ("TA_LAP", True, "laplace")
+    largest = max(e.error for e in fidelity.LAPLACE_ERROR.values())
+    assert spatial["error"] == largest < 0.5 * max(e.error for e in fidelity.SPATIAL_ERROR.values())
+    assert "laplace fibres, no table for TA_LAP" in spatial["reason"] and not spatial["measured"]
 
 
 def test_hyper_mesh_refuses_a_flow_mesh_for_laplace_fibres(tmp_path, capsys):
@@ -152,6 +158,16 @@ def test_hyper_fibers_writes_laplace_fibres_beside_a_mesh_file(tmp_path):
     assert (folder / "fibers.png").is_file()
     # the shipped folders keep their Stokes fibres
     assert fibers_job.main(["--geometries", "ST_VHM_Right", "--method", "laplace", "--quiet"]) == 2
+
+
+def test_the_laplace_table_has_each_studied_muscle_and_its_other_side():
+    for muscle, entry in fidelity.LAPLACE_ERROR.items():
+        got = fidelity.spatial(muscle, fibres="laplace")
+        assert got.error == entry.error < convergence.GROWTH_GOAL and "--fibres-method laplace" in got.reason
+    right = fidelity.spatial("BFLH_VHF_Right", fibres="laplace")  # no surface: the other side's
+    assert right.error == fidelity.LAPLACE_ERROR["BFLH_VHF_Left"].error and "other side's" in right.reason
+    # a shipped geometry keeps its Stokes fibres and their table
+    assert fidelity.spatial("VL_VHM_Left").error == fidelity.SPATIAL_ERROR["VL_VHM_Left"].error
 
 
 def test_a_study_remeshes_a_level_made_with_other_fibres():

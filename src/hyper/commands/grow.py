@@ -120,8 +120,9 @@ def parser(ask: str = "growth") -> cli.Parser:
     p.add_argument("--geometry", help="geometry id (idealized, cylinder, BFLH_VHF_Left, …); idealized by default")
     p.add_argument("--mesh", type=Path, reads=True,
                    help="your own tetrahedral XDMF mesh instead of --geometry (facet tags "
-                   f"'ft_small': 1, 2 the ends, 3 the side); its Stokes fibres: the {fibers.FILE_NAME} beside it "
-                   "(what hyper mesh writes), else computed and kept there if the folder is writable "
+                   f"'ft_small': 1, 2 the ends, 3 the side); its fibres: the {fibers.FILE_NAME} beside it "
+                   "(what hyper mesh writes: Laplace fibres by default), else Stokes fibres computed and kept "
+                   "there if the folder is writable "
                    "(--fibers chooses others)")
     p.add_argument("--mesh-unit", help=f"length unit of --mesh ({' or '.join(runspec.MESH_UNITS)}); m by default")
     cli.refine_option(p)
