@@ -398,6 +398,11 @@ SURFACE_STUDIES = {
 # studies of docs/convergence.md ("Laplace fibres"), `--fibres-method laplace --output
 # results/bench/convergence_laplace`, printed by `--spatial-table results/bench/convergence_laplace`.
 LAPLACE_STUDIES = {
+    "GM_VHF_Right": (0.0033, (4000, 8000, 16000, 32000)),
+    "TA_VHM_Left": (0.0019, (4000, 8000, 16000, 32000)),
+    "VI_VHM_Left": (0.0017, (4000, 8000, 16000, 32000)),
+    "VL_VHM_Left": (0.00031, (4000, 8000, 16000, 32000)),
+    "VL_VHM_Right": (0.0012, (4000, 8000, 16000, 32000)),
 }
 
 
