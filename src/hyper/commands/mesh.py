@@ -227,7 +227,9 @@ def run(comm, args) -> int:
                       **({} if args.flow_cells is None else {"flow_cells_target": args.flow_cells}),
                       "surface_triangles": built["surface_triangles"], "ends": built["rule"],
                       "fibres_method": "data" if source is not None else args.method,
-                      **({"fibers_smoothing_mm": args.fibers_smoothing} if args.method == "stokes" else {}),
+                      # the Stokes flow's, where one was solved (fibres from data are compared with it)
+                      **({"fibers_smoothing_mm": args.fibers_smoothing}
+                         if args.method == "stokes" or source is not None else {}),
                       "end_area_mm2": built["end_area_mm2"], "quality": built["quality"],
                       "statistics": {k: v for k, v in row.items() if k != "geometry"},
                       "fibers": {k: float(v) for k, v in stats.items()},
