@@ -20,17 +20,18 @@ within 30° of the axis 67, 73, 78, 83 %). A free-slip wall makes vorticity wher
 and every finer mesh of a Visible Human surface resolves more of its creases, which turns
 the slow flow in the wide belly. A potential flow has no vorticity; its gradient depends on
 the shape only through a harmonic function, which moves little when the boundary moves a
-little. On the same meshes the Laplace fibres are 4.4°, 2.8°, 2.0° from the 64k field (P2).
+little. On the same meshes the Laplace fibres are 2.4°, 1.7°, 1.3° from the 64k field.
 
-Discretisation: φ in P2 on the mechanics mesh (P1 fibres come from a gradient one order
-lower; with P1, 6.6°, 4.8°, 3.4° on the same meshes), pinned at one dof (its data sum to
-zero, so the other equations hold exactly), one MUMPS LU; ∇φ projected in L2 onto vector
-P1 (conjugate gradients on the mass matrix) and normalised at the nodes. A node where |∇φ|
-falls below ``min_speed`` of the inflow speed has no direction: an error.
+Discretisation: φ in P2 on the mechanics mesh (in P1 its gradient is constant per cell:
+6.6°, 4.8°, 3.4° on the same meshes, L2-projected), pinned at one dof (its data sum to
+zero, so the other equations hold exactly), one MUMPS LU; ∇φ projected onto vector P1 with
+the Stokes fibres' 2 mm smoothing, (w, z) + l²(∇w, ∇z) = (∇φ, z) (``smoothing_m``; 0 is the
+L2 projection: 4.4°, 2.8°, 2.0°), by conjugate gradients, and normalised at the nodes. A
+node where |∇φ| falls below ``min_speed`` of the inflow speed has no direction: an error.
 
 The fibre file is `hyper.fem.fibers`'s (datasets node, a0, x, speed) with ``kind =
-"laplace"``; `hyper mesh --method laplace` and `hyper fibers --mesh F --method laplace`
-write it, and a run on that mesh records ``fibers = laplace``.
+"laplace"``; `hyper mesh` writes it by default and `hyper fibers --mesh F --method laplace`
+beside any mesh file, and a run on that mesh records ``fibers = laplace``.
 """
 
 from __future__ import annotations
