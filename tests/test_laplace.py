@@ -171,6 +171,25 @@ def test_the_laplace_table_has_each_studied_muscle_and_its_other_side():
     assert fidelity.spatial("VL_VHM_Left").error == fidelity.SPATIAL_ERROR["VL_VHM_Left"].error
 
 
+def test_fibers_laplace_makes_them_on_any_geometry_and_carries_them_onto_its_refinements(tmp_path):
+    protocol = tmp_path / "short.toml"
+    protocol.write_text('name = "short"\nend = 24.0\n[[session]]\nstart = 10\nduration = 1\nintensity = 1.0\n')
+    made = {}
+    for refine in (0, 1):
+        out = tmp_path / f"run{refine}.h5"
+        assert grow.main(["--geometry", "ST_VHM_Right", "--fibers", "laplace", "--refine", str(refine),
+                          "--protocol", str(protocol), "--growth-dt", "24", "--output", str(out), "--quiet"]) == 0
+        with h5py.File(out, "r") as f:
+            made[refine] = (f.attrs["fibers"], f.attrs["fibers_method"], dict(f["spatial"].attrs))
+    assert made[0][0] == made[1][0] == "laplace" and made[0][1] == f"{laplace.method()}; made on the mesh run"
+    assert made[1][1] == made[0][1] + fibers.CARRIED_METHOD.format(n=1)
+    assert "laplace fibres" in made[0][2]["reason"]  # the Laplace table's error, not the Stokes fibres'
+    # --ends belongs to the idealized shape's own fibres: one error line, no run
+    assert grow.main(["--geometry", "idealized", "--fibers", "laplace", "--ends", "tags", "--output",
+                      str(tmp_path / "no.h5"), "--quiet"]) == 2
+    assert not (tmp_path / "no.h5").exists()
+
+
 def test_a_study_remeshes_a_level_made_with_other_fibres():
     record = {"cells_target": 8000}  # an older record: Stokes fibres
     assert convergence.made_as(record, 8000, "stokes") and not convergence.made_as(record, 8000, "laplace")

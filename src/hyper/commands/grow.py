@@ -221,7 +221,7 @@ def plan_from(comm, args) -> sequence.Plan:
     params = signaling.load_params(args.params) if args.params else signaling.SignalingParams()
     muscle = mat.load(args.material) if args.material else mat.MaterialParams()
     # hyper grow takes uniform parameters only (per-cell ones are hyper ensemble's)
-    table, mesh_file, fibres = runspec.table_name(name, mesh)
+    table, mesh_file, fibres = runspec.table_name(name, mesh, args.fibers or "auto")
     scene = fidelity.Scene(table, ",".join(p.name for p in runs), heterogeneous=False, ask="growth")
     choice = choose(scene, args, args.growth_dt, mesh_file=mesh_file, fibres=fibres)
     steps = (choice.growth_dt, choice.signaling_dt) if choice is not None else (args.growth_dt, args.signaling_dt)

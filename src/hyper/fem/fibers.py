@@ -455,7 +455,8 @@ def uniform_fiber_field(mesh, direction) -> fem.Function:
     return a0
 
 
-FIBER_KINDS = ("auto", "idealized", "axial", "principal", "stokes", "original")
+# laplace: made by `hyper.fem.laplace` (which builds on this module), in `hyper.runs.driver`
+FIBER_KINDS = ("auto", "idealized", "axial", "principal", "stokes", "original", "laplace")
 # The kinds whose field the mechanics and the growth field must use as it is, not
 # normalised at their points.
 UNNORMALISED_KINDS = ("original",)
@@ -605,6 +606,8 @@ def fiber_field(geometry: geo.Geometry, kind: str = "auto", path: str | Path | N
     axis) and are made there, then `carried` onto the refined mesh.
     """
     kind = resolved(geometry, kind)
+    if kind == "laplace":
+        raise ValueError("the Laplace fibres are hyper.fem.laplace's (hyper.runs.driver.laplace_fibres)")
     if kind in CARRIED and geometry.parent is not None:
         return carried(fiber_field(geometry.base, kind, path), geometry)
     if kind == "stokes":

@@ -118,6 +118,8 @@ def contract(comm, args) -> dict:
     if source is not None:
         a0, record = driver.data_fibres(geometry, source, driver.stokes_file(args.geometry),
                                         f"contraction {args.geometry}")
+    elif args.fibers == "laplace":
+        a0, record = driver.laplace_fibres(geometry)
     else:
         a0 = fibers.fiber_field(geometry, args.fibers)
         kind = fibers.resolved(geometry, args.fibers)

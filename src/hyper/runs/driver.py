@@ -391,6 +391,20 @@ def data_fibres(geometry, source, stokes: Path | None, label: str) -> tuple:
     return a0, {"fibers": presets.DATA, "fibers_method": method, "fibers_sha256": sha}
 
 
+def laplace_fibres(geometry) -> tuple:
+    """The Laplace fibres (`hyper.fem.laplace`) made on ``geometry``'s loaded mesh, carried
+    onto its refinements, and their record. Collective."""
+    from hyper.fem import fibers, laplace  # DOLFINx (see `build`)
+
+    params = laplace.LaplaceParams()
+    a0, _ = laplace.compute(geometry.base, params)
+    method = laplace.method(params) + "; made on the mesh run"
+    if geometry.refinements:
+        a0 = fibers.carried(a0, geometry)
+        method += fibers.CARRIED_METHOD.format(n=geometry.refinements)
+    return a0, {"fibers": laplace.KIND, "fibers_method": method, "fibers_sha256": ""}
+
+
 def fiber_field(spec: RunSpec, geometry) -> tuple:
     """The fibres of ``spec`` on ``geometry`` and their record: ``fibers`` the kind used
     (never auto; "data" for a data file; a mesh file's fibre file may hold another kind
@@ -400,6 +414,8 @@ def fiber_field(spec: RunSpec, geometry) -> tuple:
 
     if spec.fiber_data is not None:
         return data_fibres(geometry, spec.fiber_data, stokes_file(spec.geometry, spec.mesh), spec.label)
+    if spec.fibers == presets.LAPLACE:
+        return laplace_fibres(geometry)
     base = geometry.base
     kind = fibers.resolved(geometry, spec.fibers)
     if spec.mesh is not None and kind == "stokes":

@@ -47,9 +47,11 @@ OPTIONS = {"signaling_method": "--signaling-method", "growth_increment": "--grow
            "stimulus": "--stimulus"}
 SHAPE_DEFAULTS = {"ends": "disks", "fibers": "auto"}  # what every geometry but the idealized one runs
 # --fibers: auto and original for the built-in geometries, these too for a mesh file
-MESH_FIBERS = ("auto", "stokes", "axial", "principal")
-MESH_ONLY_FIBERS = MESH_FIBERS[1:]
-FIBER_CHOICES = ("auto", "original", *MESH_ONLY_FIBERS)
+# and laplace for any geometry (the potential flow between its ends, made on the mesh run)
+LAPLACE = "laplace"
+MESH_ONLY_FIBERS = ("stokes", "axial", "principal")
+MESH_FIBERS = ("auto", *MESH_ONLY_FIBERS, LAPLACE)
+FIBER_CHOICES = ("auto", "original", *MESH_ONLY_FIBERS, LAPLACE)
 DATA = "data"  # the kind of the fibres of a data file (--fibers FILE, hyper.fem.fiberdata)
 # where --fibers FILE stands for one file per geometry (hyper cohort)
 GEOMETRY_FIELD = "{geometry}"
@@ -121,7 +123,9 @@ def add_options(p: argparse.ArgumentParser, *, signaling_method: bool = True, se
                    help="the idealized shape's spring ends: the flat end disks, or the XDMF's end tags with "
                         "their lateral band (the original code); disks unless --settings sets it")
     p.add_argument("--fibers", metavar="KIND|FILE",
-                   help="the geometry's fibres (auto), or on the idealized shape the original code's (P2 used as "
+                   help="the geometry's fibres (auto), laplace (the potential flow between its ends, made on the "
+                        "mesh run: hyper.fem.laplace, converged where the Stokes fibres are not), or on the "
+                        "idealized shape the original code's (P2 used as "
                         "they are, surface integrals at UFL's estimated degree); a --mesh file's: auto or stokes "
                         "(the fibre file beside it, else computed), axial (e_z) or principal (its principal "
                         f"axis); {DATA_HELP}{PER_GEOMETRY_HELP if several else ''}; auto unless --settings sets it")
@@ -142,6 +146,10 @@ def shape(args: argparse.Namespace, geometries, mesh: bool = False) -> dict:
         if args.fibers not in (None, *MESH_FIBERS):
             raise InputError(f"--fibers {args.fibers}: a --mesh file's fibres are one of {', '.join(MESH_FIBERS)}")
         return {**SHAPE_DEFAULTS, **({"fibers": args.fibers} if args.fibers is not None else {})}
+    if args.fibers == LAPLACE:
+        if args.ends not in (None, SHAPE_DEFAULTS["ends"]):
+            raise InputError("--ends applies to the idealized shape with its own fibres, not with --fibers laplace")
+        return {**SHAPE_DEFAULTS, "fibers": LAPLACE}
     if args.fibers in MESH_ONLY_FIBERS:
         raise InputError(f"--fibers {args.fibers} applies to a --mesh file; a built-in geometry has its own "
                          "fibres (auto), and the idealized shape the original's (original)")

@@ -308,18 +308,20 @@ def result_groups(spec: RunSpec, choice: fidelity.Choice | None = None) -> dict:
     return groups
 
 
-def table_name(geometry: str, mesh: MeshFile | None) -> tuple[str, bool, str]:
+def table_name(geometry: str, mesh: MeshFile | None, fibers: str = "auto") -> tuple[str, bool, str]:
     """The name `fidelity`'s tables know a run's mesh by, whether that is a user's mesh
     file, and the kind of its fibres: a shipped mesh given as a file (with the fibres beside
     it, the same run as its --geometry) is its geometry; a mesh file's fibres are what the
-    file beside it holds (Stokes where there is none: a run computes them)."""
+    file beside it holds (Stokes where there is none: a run computes them), and --fibers
+    laplace makes Laplace fibres on any."""
     shipped = mesh.shipped() if mesh is not None else None
+    kind = "laplace" if fibers == "laplace" else None
     if shipped:
-        return shipped, False, "stokes"
-    return geometry, mesh is not None, mesh.fibre_kind() if mesh is not None else "stokes"
+        return shipped, False, kind or "stokes"
+    return geometry, mesh is not None, kind or (mesh.fibre_kind() if mesh is not None else "stokes")
 
 
 def spatial_error(spec: RunSpec) -> fidelity.Spatial:
     """The estimated spatial error of the growth of ``spec`` (`fidelity.spatial`)."""
-    name, mesh_file, fibres = table_name(spec.geometry, spec.mesh)
+    name, mesh_file, fibres = table_name(spec.geometry, spec.mesh, spec.fibers)
     return fidelity.spatial(name, spec.refine, mesh_file=mesh_file, fibres=fibres)
