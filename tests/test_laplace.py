@@ -139,12 +139,14 @@ def test_hyper_mesh_makes_laplace_fibres_which_runs_then_record(tmp_path):
     assert "laplace fibres, no table for TA_LAP" in spatial["reason"] and not spatial["measured"]
 
 
-def test_hyper_mesh_refuses_a_flow_mesh_for_laplace_fibres(tmp_path, capsys):
+def test_hyper_mesh_refuses_the_stokes_options_for_laplace_fibres(tmp_path, capsys):
     out = tmp_path / "TA_LAP"
     assert mesh_job.main([str(STL), "--output", str(out), "--cells", "2000", "--method", "laplace",
                           "--flow-cells", "4000", "--quiet"]) == 2
     assert not out.exists()
     assert "--flow-cells" in capsys.readouterr().err
+    assert mesh_job.main([str(STL), "--output", str(out), "--cells", "2000", "--fibers-smoothing", "4", "--quiet"]) == 2
+    assert not out.exists() and "--method stokes" in capsys.readouterr().err
 
 
 def test_hyper_fibers_writes_laplace_fibres_beside_a_mesh_file(tmp_path):

@@ -166,6 +166,9 @@ def run(comm, args) -> int:
     if args.method == "laplace" and args.flow_cells is not None:
         raise InputError("--flow-cells: a second mesh for the Stokes flow (--method stokes); the Laplace fibres "
                          "converge on the mesh itself (docs/convergence.md)")
+    if args.method == "laplace" and args.fibers is None and args.fibers_smoothing != FIBERS_SMOOTHING_MM:
+        raise InputError("--fibers-smoothing: the Stokes flow's (--method stokes); the Laplace fibres are smoothed "
+                         f"over {laplace.LaplaceParams().smoothing_m * 1e3:g} mm")
     # the patches parsed before any meshing: a bad one writes nothing
     patches = (pennate.parse(args.origin, "--origin"), pennate.parse(args.insertion, "--insertion")) \
         if args.method == "pennate" else None
