@@ -136,7 +136,7 @@ def test_hyper_mesh_makes_laplace_fibres_which_runs_then_record(tmp_path):
     assert runspec.table_name("TA_LAP", mesh) == ("TA_LAP", True, "laplace")
     largest = max(e.error for e in fidelity.LAPLACE_ERROR.values())
     assert spatial["error"] == largest < 0.5 * max(e.error for e in fidelity.SPATIAL_ERROR.values())
-    assert "laplace fibres, no table for TA_LAP" in spatial["reason"] and not spatial["measured"]
+    assert "laplace fibres, no table for a mesh file" in spatial["reason"] and not spatial["measured"]
 
 
 def test_hyper_mesh_refuses_the_stokes_options_for_laplace_fibres(tmp_path, capsys):

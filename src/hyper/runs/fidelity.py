@@ -496,7 +496,7 @@ def _other_side(geometry: str) -> str:
 
 def _table_entry(geometry: str, mesh_file: bool, fibres: str = "stokes") -> tuple[MeshError, bool, str]:
     if fibres != "stokes" and TABLES.get(fibres):
-        return _kind_entry(geometry, TABLES[fibres], fibres)
+        return _kind_entry(geometry, TABLES[fibres], fibres, mesh_file)
     if not mesh_file and geometry in SPATIAL_ERROR:
         entry = SPATIAL_ERROR[geometry]
         return entry, entry.same_mesh, entry.source
@@ -517,15 +517,17 @@ def _table_entry(geometry: str, mesh_file: bool, fibres: str = "stokes") -> tupl
                           f"yours: python -m hyper.bench convergence SURFACE.stl --quick --fibres-method stokes")
 
 
-def _kind_entry(geometry: str, table: dict, fibres: str) -> tuple[MeshError, bool, str]:
-    """A mesh with fibres of a kind that has a table of its own: the muscle's (a mesh of its
-    surface by `hyper mesh`, so for any other mesh an estimate), its other side's, or the
-    largest measured."""
-    for name, whose in ((geometry, ""), (_other_side(geometry), "the other side's, ")):
-        if name in table:
-            return table[name], False, f"{fibres} fibres: {whose}{name}'s ({table[name].source})"
+def _kind_entry(geometry: str, table: dict, fibres: str, mesh_file: bool) -> tuple[MeshError, bool, str]:
+    """A mesh with fibres of a kind that has a table of its own: a built-in geometry's muscle
+    (a mesh of its surface by `hyper mesh`, so for the shipped mesh an estimate) or its other
+    side's; a mesh file, or a geometry without either, the largest measured."""
+    if not mesh_file:
+        for name, whose in ((geometry, ""), (_other_side(geometry), "the other side's, ")):
+            if name in table:
+                return table[name], False, f"{fibres} fibres: {whose}{name}'s ({table[name].source})"
     name, entry = max(table.items(), key=lambda item: item[1].error)
-    return entry, False, (f"{fibres} fibres, no table for {geometry}: the largest measured with them, {name}'s "
+    what = "a mesh file" if mesh_file else geometry
+    return entry, False, (f"{fibres} fibres, no table for {what}: the largest measured with them, {name}'s "
                           f"({entry.source}); measure yours: python -m hyper.bench convergence SURFACE.stl "
                           f"--fibres-method {fibres}")
 
