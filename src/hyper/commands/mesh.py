@@ -195,7 +195,8 @@ def run(comm, args) -> int:
         geometry = geo.load_file(stage / f"{name}.xdmf", comm, name=name, scale=geo.MM)
         a0, speed, method, params = end_to_end_fibres(comm, args, geometry, stage / "flow" / f"{name}.xdmf")
         stats = {**fibers.statistics(geometry, a0, speed), "solve_s": time.perf_counter() - start}
-        data = fibers.gather_nodal(a0, speed)
+        # only the Stokes fibres are written here (the other kinds' store functions gather their own)
+        data = fibers.gather_nodal(a0, speed) if args.method == "stokes" and source is None else None
         row = meshstats.statistics(geometry)
         field = None
         if source is not None:
@@ -256,10 +257,12 @@ def run(comm, args) -> int:
             shutil.rmtree(stage, ignore_errors=True)
         comm.barrier()
     q = built["quality"]
+    # the end-to-end flow's statistics (pennate fibres and fibres from data report their own above)
+    flow = "Laplace" if args.method == "laplace" and source is None else "Stokes"
     info(comm, f"{name}: {row['cells']} cells, {row['vertices']} vertices, min dihedral angle "
                f"{q['min_dihedral_deg']:.1f}°; volume {row['volume_cm3']:.2f} cm³, CSA0 {row['csa0_cm2']:.2f} cm², "
                f"length {row['length_cm']:.2f} cm; ends {built['end_area_mm2'][0]:.0f} and "
-               f"{built['end_area_mm2'][1]:.0f} mm²; fibres within 30° of the axis "
+               f"{built['end_area_mm2'][1]:.0f} mm²; {flow} fibres (--method {args.method}) within 30° of the axis "
                f"{100 * stats['share_within_30deg']:.1f} %; checks {built['check_s']:.1f} s, mesh "
                f"{built['mesh_s']:.1f} s, fibres {stats['solve_s']:.1f} s")
     if field is not None:

@@ -315,10 +315,13 @@ def table_name(geometry: str, mesh: MeshFile | None, fibers: str = "auto") -> tu
     file beside it holds (Stokes where there is none: a run computes them), and --fibers
     laplace makes Laplace fibres on any."""
     shipped = mesh.shipped() if mesh is not None else None
-    kind = "laplace" if fibers == "laplace" else None
-    if shipped:
-        return shipped, False, kind or "stokes"
-    return geometry, mesh is not None, kind or (mesh.fibre_kind() if mesh is not None else "stokes")
+    if fibers == "laplace":
+        kind = "laplace"
+    elif mesh is not None and not shipped:
+        kind = mesh.fibre_kind()
+    else:
+        kind = "stokes"
+    return (shipped, False, kind) if shipped else (geometry, mesh is not None, kind)
 
 
 def spatial_error(spec: RunSpec) -> fidelity.Spatial:

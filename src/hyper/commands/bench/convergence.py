@@ -145,8 +145,13 @@ def level_mesh(comm, name: str, stl: Path, extra: list[str], cells: int, root: P
     return folder
 
 
+def fibres_method(record: dict) -> str:
+    """The fibres of a level's mesh.json or a kept study: one written before --fibres-method is a Stokes one."""
+    return record.get("fibres_method", "stokes")
+
+
 def made_as(record: dict, cells: int, method: str) -> bool:
-    return record.get("cells_target") == cells and record.get("fibres_method", "stokes") == method
+    return record.get("cells_target") == cells and fibres_method(record) == method
 
 
 def load_level(comm, folder: Path) -> geo.Geometry:
@@ -266,7 +271,7 @@ def study(comm, args) -> dict:
     if len(cells) < 3:
         raise InputError(f"{name}: only {len(cells)} of the levels {asked} could be meshed; give finer --cells")
     results = farm.run(comm, level_jobs(cells, args), lambda sub, job: level_job(sub, folders, job),
-                       label=f"convergence {name}")
+                       label=f"convergence {name} ({args.fibres_method} fibres)")
     failed = [r for r in results if r.status != "done"]
     if failed:
         raise InputError(f"{failed[0].key}: {farm.summary_line(results)}: {failed[0].error.strip().splitlines()[-1]}; "
@@ -605,7 +610,7 @@ def studies_all(comm, args) -> int:
         name = source(muscle, args.surfaces)[0]
         path = folder / f"{name}.json"
         result = kept(comm, path, lambda record: kept_cells(record) == cells
-                      and record.get("fibres_method", "stokes") == args.fibres_method, args.force)
+                      and fibres_method(record) == args.fibres_method, args.force)
         if result is None:
             try:
                 result = study(comm, argparse.Namespace(**{**vars(args), "muscle": muscle}))
