@@ -40,16 +40,17 @@ test-mpi: venv
 # The 19 meshes/M_S_side/ of geometry.NEW from the Visible Human surfaces (docs/meshing.md "A mesh from
 # a surface"). The VHM frame's z axis points distally (its TA lies below its thigh), the VHF
 # frame's proximally: the origin (tag 1) is the end toward +z for VHF and toward -z for VHM.
-# --end-rule vertices --fibers-smoothing 0: as the shipped ones were made, before hyper mesh's
-# converging defaults (docs/convergence.md); without them the fibres differ.
+# --end-rule vertices: as the shipped ones were made (docs/convergence.md). Their own fibres
+# (fibers.h5) are hyper mesh's Laplace fibres; the paper's Stokes fibres, unsmoothed, go
+# beside them (fibers_stokes.h5, for --settings original), as for the 12 paper meshes.
 SURFACES ?= ../shared/surfaces
 NEW_MUSCLES := RectusFemoris:RF VastusLateralis:VL VastusMedialis:VM VastusIntermedius:VI GastrocnemiusMedial:GM
 new-meshes: venv
 	@for pair in $(NEW_MUSCLES); do for stl in $(SURFACES)/VH?_*_Muscle_$${pair%%:*}_smooth.stl; do \
 	  base=$$(basename $$stl); subject=$${base%%_*}; rest=$${base#*_}; side=$${rest%%_*}; \
-	  toward="0 0 1"; [ $$subject = VHM ] && toward="0 0 -1"; \
-	  $(PY) -m hyper.mesh $$stl --output meshes/$${pair##*:}_$${subject}_$$side --origin-toward $$toward --force \
-	    --end-rule vertices --fibers-smoothing 0 --method stokes \
+	  toward="0 0 1"; [ $$subject = VHM ] && toward="0 0 -1"; name=$${pair##*:}_$${subject}_$$side; \
+	  $(PY) -m hyper.mesh $$stl --output meshes/$$name --origin-toward $$toward --force --end-rule vertices \
+	    && $(PY) -m hyper.fibers --geometries $$name --method stokes --force --output results/fibers \
 	    || exit 1; done; done
 
 lint: venv

@@ -97,18 +97,23 @@ def test_load_refuses_another_mesh(cylinder_fibers, tmp_path):
 
 
 def test_stored_anatomical_fibres_are_unit_and_complete():
-    """The committed file of one anatomical mesh: complete, its provenance, unit fibres."""
-    path = fibers.fiber_path(STORED)
-    assert is_complete(path)
+    """The committed files of one anatomical mesh: complete, their provenance, unit fibres;
+    its own (fibers.h5) the Laplace fibres, the paper's Stokes fibres beside them."""
+    path = fibers.fiber_path(STORED, kind="stokes")
+    assert path.name == fibers.STOKES_FILE_NAME and is_complete(path)
+    assert fibers.stored_kind(fibers.fiber_path(STORED)) == "laplace" and fibers.stored_kind(path) == "stokes"
     with h5py.File(path, "r") as f:
         assert f.attrs["geometry"] == STORED and "Stokes" in f.attrs["method"]
         assert f["parameters"].attrs["penalty"] == fibers.StokesParams().penalty
         stored = f["a0"][()]
     assert np.abs(np.linalg.norm(stored, axis=1) - 1.0).max() < 1e-12
     geometry = geo.load(STORED, MPI.COMM_WORLD)
-    a0 = fibers.load(geometry)
+    a0 = fibers.load(geometry)  # the Stokes fibres by default
+    assert np.array_equal(a0.x.array, fibers.fiber_field(geometry, "stokes").x.array)
     assert fibers.max_norm_error(a0) < 1e-12
     assert fibers.aligned_share(geometry, a0, fibers.principal_axis(geometry)) > 0.95
+    with pytest.raises(InputError, match="holds stokes fibres, not laplace"):
+        fibers.fiber_field(geometry, "laplace", path)
 
 
 @pytest.mark.mpi

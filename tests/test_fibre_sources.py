@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from hyper.commands import grow
 from hyper.commands import inspect as inspect_job
 from hyper.core import io
-from hyper.fem import fibers
+from hyper.fem import fibers, laplace
 from hyper.fem import geometry as geo
 from hyper.model import protocols
 from hyper.runs import checkpoint as ckpt
@@ -57,9 +57,10 @@ def test_refined_fibres_are_the_formula_or_the_unrefined_ones_at_shared_nodes():
     assert "2 uniform refinement(s)" in fibers.method(twice, "principal")
 
     muscle = geo.load(SMALLEST, comm)
-    xc, ac = nodal(fibers.load(muscle))
+    xc, ac = nodal(fibers.fiber_field(muscle))
+    assert fibers.resolved(muscle, "auto") == "laplace"  # what the shipped fibre file holds
     fine = geo.refine(muscle)
-    xf, af = nodal(fibers.fiber_field(fine))  # auto: the stored Stokes fibres, carried over
+    xf, af = nodal(fibers.fiber_field(fine))  # auto: the stored fibres, carried over
     where = shared(xc, xf)
     assert np.abs(af[where] - ac).max() < 1e-12
     assert np.abs(np.linalg.norm(af, axis=1) - 1).max() < 1e-12  # unit at every node, midpoints too
@@ -101,12 +102,12 @@ def test_a_mesh_file_with_its_fibres_beside_it_runs_as_its_geometry_bit_for_bit(
     mine, mesh_attrs = run(tmp_path, "mesh", "--mesh", str(MESH), "--mesh-unit", "mm")
     same_series(built_in, mine)
     stored = fibers.fiber_path(SMALLEST)
-    for a in (attrs, mesh_attrs):
-        assert a["fibers"] == "stokes" and a["fibers_sha256"] == ckpt.file_digest(stored)
-        assert a["fibers_method"].startswith(fibers.METHOD) and f"read from {stored}" in a["fibers_method"]
+    for a in (attrs, mesh_attrs):  # the shipped meshes' own fibres: Laplace
+        assert a["fibers"] == "laplace" and a["fibers_sha256"] == ckpt.file_digest(stored)
+        assert a["fibers_method"] == f"{laplace.method()}; read from {stored}"
         assert a["refine"] == 0
     lines = inspect_job.describe(tmp_path / "mesh.h5")
-    assert f"fibres: stokes, {fibers.METHOD}; read from {stored}; file SHA-256 {attrs['fibers_sha256']}" in lines
+    assert f"fibres: laplace, {laplace.method()}; read from {stored}; file SHA-256 {attrs['fibers_sha256']}" in lines
 
 
 def test_a_mesh_without_fibres_gets_its_stokes_fibres_kept_beside_it(tmp_path):
@@ -121,8 +122,8 @@ def test_a_mesh_without_fibres_gets_its_stokes_fibres_kept_beside_it(tmp_path):
     # the digest names the kept file: the same command again finds its result current
     again = grow.plan(MPI.COMM_WORLD, argv(tmp_path, "mine", "--mesh", str(mesh.path), "--mesh-unit", "mm"))
     assert again.outputs[0].is_current(again.specs[0].digest())
-    # the same method as the shipped file's: the same fibres, to round-off
-    with h5py.File(mesh.fibres, "r") as mine, h5py.File(fibers.fiber_path(SMALLEST), "r") as shipped:
+    # the same method as the shipped Stokes file's: the same fibres, to round-off
+    with h5py.File(mesh.fibres, "r") as mine, h5py.File(fibers.fiber_path(SMALLEST, kind="stokes"), "r") as shipped:
         assert np.array_equal(mine["node"][()], shipped["node"][()])
         assert np.abs(mine["a0"][()] - shipped["a0"][()]).max() < 1e-6
 

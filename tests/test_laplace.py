@@ -18,10 +18,12 @@ from hyper.commands import fibers as fibers_job
 from hyper.commands import grow
 from hyper.commands import mesh as mesh_job
 from hyper.commands.bench import convergence
+from hyper.core import io
 from hyper.core.params import InputError
 from hyper.fem import fiberread as fr
 from hyper.fem import fibers, laplace
 from hyper.fem import geometry as geo
+from hyper.runs import checkpoint as ckpt
 from hyper.runs import fidelity, runspec
 from test_convergence import SWEEP, sector
 
@@ -158,34 +160,61 @@ def test_hyper_fibers_writes_laplace_fibres_beside_a_mesh_file(tmp_path):
     assert fibers_job.main(["--mesh", str(folder / source.name), "--method", "laplace", "--quiet"]) == 0
     assert fr.stored_fibres(folder / fibers.FILE_NAME)[0] == "laplace"
     assert (folder / "fibers.png").is_file()
-    # the shipped folders keep their Stokes fibres
-    assert fibers_job.main(["--geometries", "ST_VHM_Right", "--method", "laplace", "--quiet"]) == 2
+    # pennate fibres need their aponeuroses: a mesh file's, not a shipped geometry's
+    assert fibers_job.main(["--geometries", "ST_VHM_Right", "--method", "pennate", "--quiet"]) == 2
 
 
-def test_the_laplace_table_has_each_studied_muscle_and_its_other_side():
-    for muscle, entry in fidelity.LAPLACE_ERROR.items():
-        got = fidelity.spatial(muscle, fibres="laplace")
-        assert got.error == entry.error < convergence.GROWTH_GOAL and "--fibres-method laplace" in got.reason
+def test_the_laplace_table_has_each_studied_muscle_and_each_shipped_mesh():
+    for entry in fidelity.LAPLACE_ERROR.values():
+        assert entry.error < convergence.GROWTH_GOAL and "--fibres-method laplace" in entry.source
     assert set(fidelity.LAPLACE_STUDIES) == set(fidelity.SURFACE_STUDIES)  # every muscle with a surface
-    right = fidelity.spatial("BFLH_VHF_Right", fibres="laplace")  # no surface: the other side's
-    assert right.error == fidelity.LAPLACE_ERROR["BFLH_VHF_Left"].error and "other side's" in right.reason
-    # a shipped geometry keeps its Stokes fibres and their table
-    assert fidelity.spatial("VL_VHM_Left").error == fidelity.SPATIAL_ERROR["VL_VHM_Left"].error
+    shipped = set(geo.ANATOMICAL + geo.MESHED)
+    for kind in ("laplace", "stokes"):
+        assert set(fidelity.SHIPPED_STUDIES[kind]) == shipped
+        for name in shipped:  # measured on the shipped mesh, never below its surface's entry
+            got = fidelity.spatial(name, fibres=kind)
+            surface = fidelity.TABLES[kind].get(name) or fidelity.TABLES[kind][fidelity.other_side(name)]
+            assert got.measured and got.error == max(fidelity.SHIPPED_STUDIES[kind][name], surface.error)
+            assert f"--shipped {name} --fibres-method {kind}" in got.reason
+    right = fidelity.spatial("BFLH_VHF_Right", fibres="laplace")  # no surface: the other side's study
+    assert "BFLH_VHF_Left's surface" in right.reason
+    # the shipped meshes with their (Laplace) fibres: all but TA_VHF_Left's vertices' plane within the goal
+    missed = [n for n in shipped if fidelity.spatial(n, fibres="laplace").error > convergence.GROWTH_GOAL]
+    assert missed == ["TA_VHF_Left"] and fidelity.spatial("TA_VHF_Left", fibres="laplace").error < 0.006
+    # with the paper's Stokes fibres 19 of the 31 miss it
+    assert sum(fidelity.spatial(n).error > convergence.GROWTH_GOAL for n in shipped) == 19
+    # a mesh file with Laplace fibres takes the largest of their table
+    assert fidelity.spatial("mine", mesh_file=True, fibres="laplace").error == max(
+        e.error for e in fidelity.LAPLACE_ERROR.values())
 
 
 def test_fibers_laplace_makes_them_on_any_geometry_and_carries_them_onto_its_refinements(tmp_path):
     protocol = tmp_path / "short.toml"
     protocol.write_text('name = "short"\nend = 24.0\n[[session]]\nstart = 10\nduration = 1\nintensity = 1.0\n')
     made = {}
-    for refine in (0, 1):
-        out = tmp_path / f"run{refine}.h5"
-        assert grow.main(["--geometry", "ST_VHM_Right", "--fibers", "laplace", "--refine", str(refine),
-                          "--protocol", str(protocol), "--growth-dt", "24", "--output", str(out), "--quiet"]) == 0
+    for refine, fibres in ((0, "laplace"), (1, "laplace"), (0, "auto"), (0, "stokes"), (0, "cylinder")):
+        out = tmp_path / f"run{refine}_{fibres}.h5"
+        where = ["--geometry", "ST_VHM_Right", "--fibers", fibres] if fibres != "cylinder" else [
+            "--geometry", "cylinder", "--fibers", "laplace"]
+        assert grow.main([*where, "--refine", str(refine), "--protocol", str(protocol), "--growth-dt", "24",
+                          "--output", str(out), "--quiet"]) == 0
         with h5py.File(out, "r") as f:
-            made[refine] = (f.attrs["fibers"], f.attrs["fibers_method"], dict(f["spatial"].attrs))
-    assert made[0][0] == made[1][0] == "laplace" and made[0][1] == f"{laplace.method()}; made on the mesh run"
-    assert made[1][1] == made[0][1] + fibers.CARRIED_METHOD.format(n=1)
-    assert "laplace fibres" in made[0][2]["reason"]  # the Laplace table's error, not the Stokes fibres'
+            made[refine, fibres] = (f.attrs["fibers"], f.attrs["fibers_method"], dict(f["spatial"].attrs),
+                                    f.attrs["fibers_sha256"], io.read_series(out)["csa_ratio"][-1])
+    # the shipped mesh's fibre file holds them: read, as auto reads them, the same run bit for bit
+    stored = fibers.fiber_path("ST_VHM_Right")
+    assert made[0, "laplace"][:4] == made[0, "auto"][:4] and made[0, "laplace"][4] == made[0, "auto"][4]
+    assert made[0, "laplace"][0] == made[1, "laplace"][0] == "laplace"
+    assert made[0, "laplace"][1] == f"{laplace.method()}; read from {stored}"
+    assert made[0, "laplace"][3] == ckpt.file_digest(stored)
+    assert made[1, "laplace"][1] == f"{laplace.method()}{fibers.CARRIED_METHOD.format(n=1)}; read from {stored}"
+    assert "--fibres-method laplace" in made[0, "laplace"][2]["reason"]  # the Laplace table's error
+    # the paper's Stokes fibres on request, with their own table's error and another answer
+    assert made[0, "stokes"][0] == "stokes" and made[0, "stokes"][3] == ckpt.file_digest(
+        fibers.fiber_path("ST_VHM_Right", kind="stokes"))
+    assert "--fibres-method stokes" in made[0, "stokes"][2]["reason"] and made[0, "stokes"][4] != made[0, "auto"][4]
+    # a geometry without a Laplace fibre file: made on the mesh run
+    assert made[0, "cylinder"][:2] == ("laplace", f"{laplace.method()}; made on the mesh run")
     # --ends belongs to the idealized shape's own fibres: one error line, no run
     assert grow.main(["--geometry", "idealized", "--fibers", "laplace", "--ends", "tags", "--output",
                       str(tmp_path / "no.h5"), "--quiet"]) == 2

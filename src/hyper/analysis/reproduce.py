@@ -71,7 +71,7 @@ SWITCHES = (
     Switch("--growth-fields dg1", {"growth_fields": "dg1"}),
     Switch("--csa-method box", {"csa_method": "box"}, where="anatomical"),
     Switch("--ends tags", spec={"ends": "tags"}, where="idealized"),
-    Switch("--fibers original", spec={"fibers": "original"}, where="idealized"),
+    Switch("--fibers original", spec={"fibers": "original"}),  # on an anatomical mesh: its Stokes fibres
 )
 
 

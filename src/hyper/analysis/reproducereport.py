@@ -267,16 +267,17 @@ def cohort_section(data: dict, quick: bool) -> list[str]:
         ]
     )
     settings = (
-        "the original's switches (`--settings original`, box feedback) at one step "
+        "the original's switches (`--settings original`, box feedback, the Stokes fibres) at one step "
         "per period (168 h) with the exact increment (--quick: the left-point rule needs short steps)"
         if quick
-        else "`--settings original` (box feedback, Δtg = 1 h)"
+        else "`--settings original` (box feedback, the Stokes fibres, Δtg = 1 h)"
     )
     out = [
         "## The anatomical cohort under mwf",
         "",
-        f"hyper original: {settings}; default: the exact cut feeds back, "
-        "one step per period. Both runs record both CSA measures.",
+        f"hyper original: {settings}; default: the exact cut feeds back, the Laplace fibres "
+        "(hyper.fem.laplace, converged on every muscle: docs/convergence.md), one step per period. "
+        "Both runs record both CSA measures.",
         "",
     ]
     out += table(["quantity", "paper / original", "hyper, original", "hyper, default"], rows)

@@ -62,8 +62,11 @@ def parser() -> cli.Parser:
                         f"lateral surface), whose fibres go beside it as {fibers.FILE_NAME} with fibers.png")
     p.add_argument("--mesh-unit", choices=tuple(runspec.MESH_UNITS), default="mm", help="length unit of --mesh")
     p.add_argument("--method", choices=METHODS, default="stokes",
-                   help="with --mesh: Stokes flow (hyper.fem.fibers), the potential flow between the ends "
-                        "(hyper.fem.laplace) or pennate fibres between --origin and --insertion (hyper.fem.pennate)")
+                   help="Stokes flow (hyper.fem.fibers; for --geometries their Stokes fibres, "
+                        f"{fibers.STOKES_FILE_NAME} where the own fibres are another kind), the potential flow "
+                        f"between the ends (hyper.fem.laplace; for --geometries their own fibres, {fibers.FILE_NAME}, "
+                        "as shipped) or, with --mesh, pennate fibres between --origin and --insertion "
+                        "(hyper.fem.pennate)")
     p.add_argument("--origin", default=pennate.DEFAULT_ORIGIN, metavar="PATCH",
                    help="pennate: the origin aponeurosis (patch syntax above)")
     p.add_argument("--insertion", default=pennate.DEFAULT_INSERTION, metavar="PATCH",
@@ -90,10 +93,14 @@ def _work(args, params: fibers.StokesParams):
     def work(comm, job):
         name = job.key
         geometry = geo.load(name, comm, meshes_dir=args.meshes_dir)
-        path = fibers.fiber_path(name, args.meshes_dir)
+        path = target(name, args)
         start = time.perf_counter()
         computed = args.force or not is_complete(path)
-        if computed:
+        if computed and args.method == "laplace":
+            a0, speed = laplace.compute(geometry)
+            stats = {**fibers.statistics(geometry, a0, speed), "solve_s": time.perf_counter() - start}
+            laplace.store(path, geometry, a0, speed, mesh=geo.GEOMETRIES[name], solve_s=stats["solve_s"])
+        elif computed:
             a0, speed = fibers.compute(geometry, params)
             solve_s = time.perf_counter() - start
             stats = {**fibers.statistics(geometry, a0, speed), "solve_s": solve_s}
@@ -101,7 +108,7 @@ def _work(args, params: fibers.StokesParams):
             a0 = fibers.load(geometry, path)
             stored = comm.bcast(_stored_stats(path) if comm.rank == 0 else None, root=0)
             stats = {**stored, **fibers.statistics(geometry, a0)}
-        if computed:
+        if computed and args.method == "stokes":
             data = fibers.gather_nodal(a0, speed)
             if comm.rank == 0:
                 write_series(
@@ -122,6 +129,12 @@ def _work(args, params: fibers.StokesParams):
         return {k: float(v) if isinstance(v, np.floating) else v for k, v in stats.items()}
 
     return work
+
+
+def target(name: str, args) -> Path:
+    """The fibre file ``hyper fibers --geometries`` writes: a geometry's own (Laplace, as
+    shipped) or its Stokes fibres (`fibers.fiber_path`)."""
+    return fibers.fiber_path(name, args.meshes_dir, kind=args.method)
 
 
 def _stored_stats(path: Path) -> dict:
@@ -158,7 +171,7 @@ def from_data(comm, args) -> int:
     sources = {name: presets.data_source(args, (), name) for name in args.geometries}
     for name, source in sources.items():
         geometry = geo.load(name, comm, meshes_dir=args.meshes_dir)
-        stokes = fiberdata.stokes_beside(geometry, fibers.fiber_path(name, args.meshes_dir))
+        stokes = fiberdata.stokes_beside(geometry, fibers.fiber_path(name, args.meshes_dir, kind="stokes"))
         a0, field = fiberdata.make(geometry, source, *stokes)
         path = args.output / f"{name}_fibers.h5"
         sha = on_rank0(comm, lambda s=source: hashlib.sha256(s.path.read_bytes()).hexdigest())
@@ -188,9 +201,9 @@ def run(comm, args) -> int:
         if args.geometries != list(geo.ANATOMICAL):
             raise InputError("--mesh and --geometries: one or the other")
         return run_mesh(comm, args)
-    if args.method != "stokes":
-        raise InputError(f"--method {args.method}: give the --mesh file whose fibres to make (the shipped mesh "
-                         "folders keep their Stokes fibres; copy one to make other fibres beside it)")
+    if args.method == "pennate":
+        raise InputError("--method pennate: give the --mesh file whose fibres to make (its aponeuroses are that "
+                         "muscle's; copy a shipped mesh folder to make them beside it)")
     unknown = [g for g in args.geometries if g not in geo.GEOMETRIES]
     if unknown:
         raise InputError(f"--geometries: unknown {', '.join(unknown)}; known: {', '.join(geo.GEOMETRIES)}")
@@ -204,14 +217,14 @@ def run(comm, args) -> int:
     jobs = [farm.Job(name, cost=1.0) for name in args.geometries]
 
     def is_done(job):
-        return (not args.force and is_complete(fibers.fiber_path(job.key, args.meshes_dir))
+        return (not args.force and is_complete(target(job.key, args))
                 and (args.output / f"{job.key}.png").is_file())
 
     results = farm.run(comm, jobs, _work(args, params), ranks_per_job=args.ranks_per_job,
                        is_done=is_done, label="fibres")
     status = 0
     if comm.rank == 0:
-        paths = [fibers.fiber_path(name, args.meshes_dir) for name in args.geometries]
+        paths = [target(name, args) for name in args.geometries]
         rows = _write_summary(args.output / "summary.csv", args.geometries, paths, results)
         info(comm, f"{'geometry':<16} {'cells':>6} {'within 30°':>10} {'max||a0|-1|':>12} "
                    f"{'speed min..max':>15} {'solve s':>8}  status")

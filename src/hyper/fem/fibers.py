@@ -5,8 +5,11 @@ Stokes-flow fibres of the anatomical meshes (after Varvik et al. 2021), computed
 A slow viscous flow enters the muscle through one end (tag ``ends[0]``), leaves it
 through the other (``ends[1]``) and slides along the lateral surface; its normalized
 velocity is the fibre direction a0. ``python -m hyper.fibers`` computes it once per
-mesh and stores it next to the mesh (``meshes/<folder>/fibers.h5``); ``load`` reads
-it back on any number of ranks.
+mesh and stores it next to the mesh (``meshes/<folder>/fibers_stokes.h5`` for the shipped
+meshes, whose own fibres, ``fibers.h5``, are the Laplace fibres of `hyper.fem.laplace`,
+which converge with the mesh where these do not: docs/convergence.md); ``load`` reads it
+back on any number of ranks. They are the paper's fibres: ``--settings original`` (and
+``--fibers stokes``) runs them.
 
 Method (μ = 1 and unit inflow speed: both scale out of the normalized velocity)
 
@@ -87,6 +90,9 @@ from hyper.core.params import InputError, as_attributes, check_positive
 from hyper.fem import geometry as geo
 
 FILE_NAME = "fibers.h5"
+# the paper's Stokes fibres beside a mesh whose own fibres (FILE_NAME) are of another kind:
+# the shipped anatomical meshes carry Laplace fibres (hyper.fem.laplace) and these
+STOKES_FILE_NAME = "fibers_stokes.h5"
 METHOD = ("Stokes flow, Taylor-Hood P2-P1; inflow u.N = -1 on ends[0] and free slip u.N = 0 "
           "on the lateral surface, both with zero tangential traction by symmetric Nitsche "
           "(N the area-weighted vertex normal); zero traction on ends[1]; MUMPS LU; "
@@ -369,12 +375,27 @@ def gather_nodal(a0: fem.Function, speed: fem.Function, root: int = 0) -> dict[s
     return {"node": keys[order], "a0": values[order], "x": x[order], "speed": s[order]}
 
 
-def fiber_path(name: str, meshes_dir: str | Path | None = None) -> Path:
-    """Where the fibres of geometry ``name`` live: next to its mesh file."""
+def fiber_path(name: str, meshes_dir: str | Path | None = None, kind: str = "auto") -> Path:
+    """Where the fibres of geometry ``name`` live: next to its mesh file, ``FILE_NAME`` its
+    own (whatever kind it holds: `stored_kind`); with ``kind`` "stokes" its Stokes fibres,
+    ``STOKES_FILE_NAME`` where its own are another kind (the shipped meshes: Laplace)."""
     if name not in geo.GEOMETRIES:
         raise InputError(f"unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
     root = Path(meshes_dir) if meshes_dir is not None else geo.MESHES_DIR
-    return root / Path(geo.GEOMETRIES[name]).parent / FILE_NAME
+    folder = root / Path(geo.GEOMETRIES[name]).parent
+    if kind == "stokes" and ((folder / STOKES_FILE_NAME).exists() or stored_kind(folder / FILE_NAME) != "stokes"):
+        return folder / STOKES_FILE_NAME
+    return folder / FILE_NAME
+
+
+def stored_kind(path: Path) -> str:
+    """The kind of the fibres a complete fibre file holds (a file without a ``kind``, the
+    Stokes fibres' `store`, holds Stokes fibres); "stokes" where there is no complete file
+    (they are computed or `load` says how)."""
+    if not is_complete(path):
+        return "stokes"
+    with reading_h5(path, "fibre file") as f:
+        return str(f.attrs.get("kind", "stokes"))
 
 
 def load(geometry: geo.Geometry, path: str | Path | None = None) -> fem.Function:
@@ -385,7 +406,7 @@ def load(geometry: geo.Geometry, path: str | Path | None = None) -> fem.Function
     be complete and belong to this very mesh (same nodes, same coordinates), else
     InputError. Collective over the geometry's communicator.
     """
-    path = Path(path) if path is not None else fiber_path(geometry.name)
+    path = Path(path) if path is not None else fiber_path(geometry.name, kind="stokes")
     comm = geometry.comm
     data: dict | str | None = None
     if comm.rank == 0:
@@ -455,7 +476,7 @@ def uniform_fiber_field(mesh, direction) -> fem.Function:
     return a0
 
 
-# laplace: made by `hyper.fem.laplace` (which builds on this module), in `hyper.runs.driver`
+# laplace: made by `hyper.fem.laplace` (which builds on this module); here read from a fibre file
 FIBER_KINDS = ("auto", "idealized", "axial", "principal", "stokes", "original", "laplace")
 # The kinds whose field the mechanics and the growth field must use as it is, not
 # normalised at their points.
@@ -468,9 +489,10 @@ METHODS = {
                  "to ends[1] (P1)",
     "stokes": METHOD,
     "original": "the original code's analytic field interpolated into P2, used as it is (MODEL.md §9)",
+    "laplace": "the potential flow between the ends (hyper.fem.laplace), as the fibre file records it",
 }
 # what a refined mesh takes from the mesh it refines, by kind (the others are evaluated on it)
-CARRIED = ("principal", "stokes")
+CARRIED = ("principal", "stokes", "laplace")
 CARRIED_METHOD = "; made on the loaded mesh and interpolated onto its {n} uniform refinement(s), unit at the nodes"
 
 
@@ -479,7 +501,14 @@ def resolved(geometry: geo.Geometry, kind: str) -> str:
     if kind not in FIBER_KINDS:
         raise InputError(f"unknown fibre kind {kind!r}; expected one of {', '.join(FIBER_KINDS)}")
     if kind == "auto":
-        return {"idealized": "idealized", "cylinder": "axial"}.get(geometry.name, "stokes")
+        if geometry.name in ("idealized", "cylinder"):
+            return {"idealized": "idealized", "cylinder": "axial"}[geometry.name]
+        if geometry.name in geo.GEOMETRIES:  # the kind its fibre file holds (rank 0 reads it)
+            return geometry.comm.bcast(stored_kind(fiber_path(geometry.name)) if geometry.comm.rank == 0 else None,
+                                       root=0)
+        return "stokes"
+    if kind == "original" and geometry.name not in ("idealized", "cylinder"):
+        return "stokes"  # the paper's fibres of an anatomical mesh
     return kind
 
 
@@ -590,10 +619,12 @@ def fiber_field(geometry: geo.Geometry, kind: str = "auto", path: str | Path | N
     the cylinder and the idealized shape); "principal" the first principal axis of the
     vertex coordinates, oriented from end Γ1 to Γ2 (a stand-in for tests); "stokes" the
     Stokes-flow fibres stored next to an anatomical mesh (`load`, MODEL.md §5), or in
-    ``path``; "auto" picks the first for `idealized`, the second for `cylinder` and "stokes"
-    otherwise. "original" (idealized shape only): the original code's field
-    (`original_idealized_fiber`) interpolated into vector P2, which the original used as
-    it is, unit at the nodes only (MODEL.md §9; see `UNNORMALISED_KINDS`).
+    ``path``; "laplace" the Laplace fibres stored there (`hyper.fem.laplace`); "auto" picks
+    the first for `idealized`, the second for `cylinder` and for the others the kind their
+    fibre file holds (the shipped meshes': Laplace). "original": the original code's fibres,
+    on the idealized shape its field (`original_idealized_fiber`) interpolated into vector
+    P2, which the original used as it is, unit at the nodes only (MODEL.md §9; see
+    `UNNORMALISED_KINDS`), on an anatomical mesh the paper's Stokes fibres.
 
     Why P1: every fibre source (analytic, Stokes flow) can be written at vertices, XDMF
     stores and ParaView shows it as is, and any quadrature or DG space the forms or the
@@ -606,11 +637,13 @@ def fiber_field(geometry: geo.Geometry, kind: str = "auto", path: str | Path | N
     axis) and are made there, then `carried` onto the refined mesh.
     """
     kind = resolved(geometry, kind)
-    if kind == "laplace":
-        raise ValueError("the Laplace fibres are hyper.fem.laplace's (hyper.runs.driver.laplace_fibres)")
     if kind in CARRIED and geometry.parent is not None:
         return carried(fiber_field(geometry.base, kind, path), geometry)
-    if kind == "stokes":
+    if kind in ("stokes", "laplace"):
+        path = Path(path) if path is not None else fiber_path(geometry.name, kind=kind)
+        held = geometry.comm.bcast(stored_kind(path) if geometry.comm.rank == 0 else None, root=0)
+        if held != kind:  # a Laplace field is made by hyper.fem.laplace (hyper.runs.driver.laplace_fibres)
+            raise InputError(f"{path}: holds {held} fibres, not {kind}")
         return load(geometry, path)
     if kind == "original":
         if geometry.name != "idealized":

@@ -118,17 +118,10 @@ def contract(comm, args) -> dict:
     if source is not None:
         a0, record = driver.data_fibres(geometry, source, driver.stokes_file(args.geometry),
                                         f"contraction {args.geometry}")
-    elif args.fibers == "laplace":
+    elif args.fibers == "laplace" and not driver.stored_laplace(geometry):
         a0, record = driver.laplace_fibres(geometry)
     else:
-        a0 = fibers.fiber_field(geometry, args.fibers)
-        kind = fibers.resolved(geometry, args.fibers)
-        fibre_file = fibers.fiber_path(args.geometry) if kind == "stokes" else None
-        record = {
-            "fibers": kind,  # the kind used (auto resolved); settings/fibers the one asked
-            "fibers_method": fibers.method(geometry, kind) + (f"; read from {fibre_file}" if fibre_file else ""),
-            "fibers_sha256": on_rank0(comm, lambda: ckpt.file_digest(fibre_file)) if fibre_file else "",
-        }
+        a0, record = driver.built_in_fibres(geometry, args.geometry, fibers.resolved(geometry, args.fibers))
     material = args.material
     solver = getattr(args, "linear_solver", "lu")
     problem = MechanicsProblem(geometry, a0, material, normalize_fibres=not original, linear_solver=solver)

@@ -371,7 +371,7 @@ def stokes_file(geometry: str, mesh: MeshFile | None = None) -> Path | None:
 
     if mesh is not None:
         return mesh.fibres
-    return fibers.fiber_path(geometry) if geometry in geo.ANATOMICAL + geo.MESHED else None
+    return fibers.fiber_path(geometry, kind="stokes") if geometry in geo.ANATOMICAL + geo.MESHED else None
 
 
 def data_fibres(geometry, source, stokes: Path | None, label: str) -> tuple:
@@ -405,6 +405,17 @@ def laplace_fibres(geometry) -> tuple:
     return a0, {"fibers": laplace.KIND, "fibers_method": method, "fibers_sha256": ""}
 
 
+def stored_laplace(geometry) -> bool:
+    """Whether a built-in ``geometry`` keeps Laplace fibres in its fibre file (the shipped
+    meshes do), read there rather than made on the run. Collective."""
+    from hyper.fem import fibers  # DOLFINx (see `build`)
+    from hyper.fem import geometry as geo
+
+    if geometry.name not in geo.ANATOMICAL + geo.MESHED:
+        return False
+    return on_rank0(geometry.comm, lambda: fibers.stored_kind(fibers.fiber_path(geometry.name))) == presets.LAPLACE
+
+
 def fiber_field(spec: RunSpec, geometry) -> tuple:
     """The fibres of ``spec`` on ``geometry`` and their record: ``fibers`` the kind used
     (never auto; "data" for a data file; a mesh file's fibre file may hold another kind
@@ -414,10 +425,11 @@ def fiber_field(spec: RunSpec, geometry) -> tuple:
 
     if spec.fiber_data is not None:
         return data_fibres(geometry, spec.fiber_data, stokes_file(spec.geometry, spec.mesh), spec.label)
-    if spec.fibers == presets.LAPLACE:
+    # a mesh file's own fibres: the file beside it (of whatever kind), else computed Stokes
+    kind = "stokes" if spec.mesh is not None and spec.fibers == "auto" else fibers.resolved(geometry, spec.fibers)
+    if kind == presets.LAPLACE and not (spec.mesh is None and stored_laplace(geometry)):
         return laplace_fibres(geometry)
     base = geometry.base
-    kind = fibers.resolved(geometry, spec.fibers)
     if spec.mesh is not None and kind == "stokes":
         a0, path, how = mesh_stokes_fibres(geometry.comm, spec.mesh, base)
         if geometry.refinements:
@@ -428,11 +440,27 @@ def fiber_field(spec: RunSpec, geometry) -> tuple:
             carried_over = fibers.CARRIED_METHOD.format(n=geometry.refinements) if geometry.refinements else ""
             kind, method = stored, f"{made}{carried_over}; {how}"
     else:
-        path = fibers.fiber_path(spec.geometry) if kind == "stokes" else None
-        a0 = fibers.fiber_field(geometry, kind)
-        method = fibers.method(geometry, kind) + (f"; read from {path}" if path is not None else "")
+        return built_in_fibres(geometry, spec.geometry, kind)
     sha = on_rank0(geometry.comm, lambda: ckpt.file_digest(path)) if path is not None else ""
     return a0, {"fibers": kind, "fibers_method": method, "fibers_sha256": sha}
+
+
+def built_in_fibres(geometry, name: str, kind: str) -> tuple:
+    """The fibres of ``kind`` (resolved: not auto) of the built-in geometry ``name`` on
+    ``geometry`` (it or a refinement of it) and their record; a fibre file's (Stokes, the
+    shipped Laplace) as the file says it made them. Collective."""
+    from hyper.fem import fibers  # DOLFINx (see `build`)
+
+    a0 = fibers.fiber_field(geometry, kind)
+    if kind not in ("stokes", presets.LAPLACE):
+        return a0, {"fibers": kind, "fibers_method": fibers.method(geometry, kind), "fibers_sha256": ""}
+    path = fibers.fiber_path(name, kind=kind)
+    made = fibers.method(geometry, kind)
+    if kind == presets.LAPLACE:  # its parameters are the file's
+        carried_over = fibers.CARRIED_METHOD.format(n=geometry.refinements) if geometry.refinements else ""
+        made = on_rank0(geometry.comm, lambda: fr.stored_fibres(path)[1]) + carried_over
+    return a0, {"fibers": kind, "fibers_method": f"{made}; read from {path}",
+                "fibers_sha256": on_rank0(geometry.comm, lambda: ckpt.file_digest(path))}
 
 
 def cell_params(spec: RunSpec, geometry):

@@ -32,7 +32,8 @@ PRESETS: dict[str, dict] = {
         "consistent_stress": False,
         "csa_method": "box",
         "growth_fields": "dg1",
-        # the idealized shape's (RunSpec fields, see `shape`): its XDMF end tags and P2 fibres
+        # RunSpec fields (see `shape`): the idealized shape's XDMF end tags; the original's
+        # fibres (the idealized shape's P2 field, the anatomical meshes' Stokes fibres)
         "ends": "tags",
         "fibers": "original",
     },
@@ -46,8 +47,8 @@ OPTIONS = {"signaling_method": "--signaling-method", "growth_increment": "--grow
            "detraining": "--detraining", "fiber_growth": "--fiber-growth",
            "stimulus": "--stimulus"}
 SHAPE_DEFAULTS = {"ends": "disks", "fibers": "auto"}  # what every geometry but the idealized one runs
-# --fibers: auto and original for the built-in geometries, these too for a mesh file
-# and laplace for any geometry (the potential flow between its ends, made on the mesh run)
+# --fibers: auto and original for the built-in geometries, stokes for the anatomical ones,
+# axial and principal too for a mesh file, and laplace for any geometry
 LAPLACE = "laplace"
 MESH_ONLY_FIBERS = ("stokes", "axial", "principal")
 MESH_FIBERS = ("auto", *MESH_ONLY_FIBERS, LAPLACE)
@@ -99,8 +100,9 @@ def add_options(p: argparse.ArgumentParser, *, signaling_method: bool = True, se
     p.add_argument("--settings", choices=NAMES, default="default",
                    help="a named preset: original turns on every switch of the original code at once "
                         "(--signaling-method rk45-original, --growth-increment left-point, --skip-sessions, "
-                        "--fe-stress, --csa-method box, --growth-fields dg1, --growth-dt 1, and on the idealized "
-                        "shape --ends tags --fibers original); an explicit option wins over it")
+                        "--fe-stress, --csa-method box, --growth-fields dg1, --growth-dt 1, --fibers original: the "
+                        "anatomical meshes' Stokes fibres, and on the idealized shape --ends tags); an explicit "
+                        "option wins over it")
     if signaling_method:
         method_option(p, default=None)
     p.add_argument("--growth-increment", choices=INCREMENTS,
@@ -123,11 +125,13 @@ def add_options(p: argparse.ArgumentParser, *, signaling_method: bool = True, se
                    help="the idealized shape's spring ends: the flat end disks, or the XDMF's end tags with "
                         "their lateral band (the original code); disks unless --settings sets it")
     p.add_argument("--fibers", metavar="KIND|FILE",
-                   help="the geometry's fibres (auto), laplace (the potential flow between its ends, made on the "
-                        "mesh run: hyper.fem.laplace, converged where the Stokes fibres are not), or on the "
-                        "idealized shape the original code's (P2 used as "
-                        "they are, surface integrals at UFL's estimated degree); a --mesh file's: auto or stokes "
-                        "(the fibre file beside it, else computed), axial (e_z) or principal (its principal "
+                   help="the geometry's fibres (auto: the anatomical meshes' Laplace fibres, the potential flow "
+                        "between the ends that the shipped fibre files hold, converged where the Stokes fibres are "
+                        "not), laplace (made on the mesh run where no file holds them: hyper.fem.laplace), stokes "
+                        "(an anatomical mesh's Stokes fibres, the paper's), original (the original code's: on the "
+                        "idealized shape its P2 field used as it is, surface integrals at UFL's estimated degree; on "
+                        "an anatomical mesh its Stokes fibres); a --mesh file's: auto (the fibre file beside it, "
+                        "else Stokes fibres computed), stokes, laplace, axial (e_z) or principal (its principal "
                         f"axis); {DATA_HELP}{PER_GEOMETRY_HELP if several else ''}; auto unless --settings sets it")
 
 
@@ -150,14 +154,22 @@ def shape(args: argparse.Namespace, geometries, mesh: bool = False) -> dict:
         if args.ends not in (None, SHAPE_DEFAULTS["ends"]):
             raise InputError("--ends applies to the idealized shape with its own fibres, not with --fibers laplace")
         return {**SHAPE_DEFAULTS, "fibers": LAPLACE}
-    if args.fibers in MESH_ONLY_FIBERS:
-        raise InputError(f"--fibers {args.fibers} applies to a --mesh file; a built-in geometry has its own "
-                         "fibres (auto), and the idealized shape the original's (original)")
-    if any(v not in (None, SHAPE_DEFAULTS[k]) for k, v in explicit.items()) and set(geometries) != {"idealized"}:
-        raise InputError("--ends and --fibers original apply to the idealized shape only")
+    own_fibres = [g for g in geometries if g in ("idealized", "cylinder")]
+    if args.fibers in ("axial", "principal") or (args.fibers == "stokes" and own_fibres):
+        where = "a --mesh file and the anatomical meshes" if args.fibers == "stokes" else "a --mesh file"
+        raise InputError(f"--fibers {args.fibers} applies to {where}; the idealized shape and the cylinder "
+                         "have their own fibres (auto), and the idealized shape the original's (original)")
+    if args.ends not in (None, SHAPE_DEFAULTS["ends"]) and set(geometries) != {"idealized"}:
+        raise InputError("--ends applies to the idealized shape only")
+    if args.fibers == "original" and "cylinder" in geometries:
+        raise InputError("--fibers original: the original code's fibres are the idealized shape's and the anatomical "
+                         "meshes' (their Stokes fibres), not the cylinder's")
     out = dict(SHAPE_DEFAULTS)
+    preset = PRESETS[args.settings]
     if set(geometries) == {"idealized"}:
-        out.update({k: v for k, v in PRESETS[args.settings].items() if k in out})
+        out.update({k: v for k, v in preset.items() if k in out})
+    elif "cylinder" not in geometries and "fibers" in preset:  # on an anatomical mesh, its Stokes fibres
+        out["fibers"] = preset["fibers"]
     out.update({k: v for k, v in explicit.items() if v is not None})
     return out
 

@@ -85,7 +85,7 @@ from hyper.fem.coupled import GrowthSettings, build_model
 from hyper.fem.mechanics import MechanicsProblem, SolverError
 from hyper.model import protocols
 from hyper.model.failure import GrowthFailure
-from hyper.runs import contraction, farm, plot
+from hyper.runs import contraction, farm, fidelity, plot
 
 PROTOCOL = "mwf"
 CELLS = (4000, 8000, 16000, 32000)
@@ -837,6 +837,135 @@ def spatial_table(comm, args) -> int:
     return cli.EXIT_OK
 
 
+# -------------------------------------------------------------------------- --shipped
+
+
+def study_of(folders: list[Path], muscle: str, method: str) -> dict | None:
+    """The kept `--all` study of ``muscle`` with ``method`` fibres under the folders with the
+    finest levels (as `spatial_rows` takes it), or None."""
+    best = None
+    for folder in folders:
+        path = folder / "convergence_all" / f"{muscle}.json"
+        if not path.is_file():
+            continue
+        result = json.loads(path.read_text())
+        if fibres_method(result) != method:
+            continue
+        rank = (result["levels"][-1]["cells_target"], len(result["levels"]))
+        if best is None or rank > best[0]:
+            best = (rank, result)
+    return None if best is None else best[1]
+
+
+def shipped_job(comm, job: farm.Job) -> dict:
+    """One shipped geometry's 9-week growth with ``method`` fibres made on its own mesh."""
+    from hyper.fem import laplace
+
+    name, method = job.payload
+    geometry = geo.load(name, comm)
+    if method == "laplace":
+        a0, _ = laplace.compute(geometry, laplace.LaplaceParams())
+    else:
+        a0 = fibers.fiber_field(geometry, "stokes")
+    return {"cells": geometry.num_cells(), **growth(geometry, a0)}
+
+
+def shipped(comm, args) -> int:
+    """Each shipped geometry's 9-week gains with its fibres made on the shipped mesh, against
+    the limit of the kept `--all` study of its surface (--studies): the error a `--geometry`
+    run carries, measured on the mesh it runs on (the 12 paper muscles' fTetWild meshes are
+    not the study's levels; the 19 others are its 8000-cell level)."""
+    names = args.shipped or list(geo.ANATOMICAL + geo.MESHED)
+    for name in names:
+        if name not in (*geo.ANATOMICAL, *geo.MESHED):
+            raise InputError(f"--shipped: {name!r} is not a shipped anatomical or meshed geometry")
+    studies = {}
+    for name in names:
+        muscle = _muscle_with_study(name, args.studies, args.fibres_method)
+        studies[name] = (muscle, study_of(args.studies, muscle, args.fibres_method) if muscle else None)
+    jobs = [farm.Job(name, cost=1.0, payload=(name, args.fibres_method)) for name in names]
+    start = time.perf_counter()
+    results = farm.run(comm, jobs, shipped_job, label=f"convergence --shipped ({args.fibres_method} fibres)")
+    rows = []
+    for r in results:
+        muscle, study = studies[r.key]
+        if r.status != "done":
+            rows.append({"geometry": r.key, "failed": r.error.strip().splitlines()[-1]})
+            continue
+        row = {"geometry": r.key, **r.result, "study_muscle": muscle}
+        if study is not None:
+            est = study["estimates"]
+            row.update({"study_levels": [lv["cells_target"] for lv in study["levels"]],
+                        "csa_limit_pct": est["csa_gain_pct"]["own"]["limit"],
+                        "volume_limit_pct": est["volume_gain_pct"]["own"]["limit"],
+                        "csa_error": error_to(est["csa_gain_pct"]["own"], row["csa_gain_pct"]),
+                        "volume_error": error_to(est["volume_gain_pct"]["own"], row["volume_gain_pct"]),
+                        # the older Stokes studies did not measure it
+                        "csa_solid_error": (error_to(est["csa_solid_gain_pct"]["own"], row["csa_solid_gain_pct"])
+                                            if "csa_solid_gain_pct" in est else None),
+                        # the study's level of this very mesh (the meshed geometries' 8k level)
+                        "same_mesh": any(lv["cells"] == row["cells"] for lv in study["levels"])})
+            row["goal_met"] = max(row["csa_error"], row["volume_error"]) <= GROWTH_GOAL
+        rows.append(row)
+        info(comm, shipped_line(row))
+    result = {"benchmark": "convergence --shipped", "fibres_method": args.fibres_method, "goal": GROWTH_GOAL,
+              "studies": [str(f) for f in args.studies], "rows": rows, "ranks": comm.size,
+              "wall_s": comm.allreduce(time.perf_counter() - start, op=MPI.MAX), "machine": common.machine(),
+              "versions": io.versions()}
+    stem = args.output / f"shipped_{args.fibres_method}"
+    if comm.rank == 0:
+        args.output.mkdir(parents=True, exist_ok=True)
+        io.write_json(stem.with_suffix(".json"), result)
+        print("\n".join(shipped_markdown(result)))
+        print("\n".join(f'    "{r["geometry"]}": {rounded_up(max(r["csa_error"], r["volume_error"])):.2g},'
+                        for r in rows if "csa_error" in r))
+    measured = [r for r in rows if "goal_met" in r]
+    info(comm, f"{sum(r['goal_met'] for r in measured)} of {len(measured)} shipped meshes within {GROWTH_GOAL:g} of "
+               f"the growth with {args.fibres_method} fibres ({result['wall_s']:.0f} s); wrote {stem}.json")
+    return cli.EXIT_OK if all("failed" not in r for r in rows) else cli.EXIT_SOME_FAILED
+
+
+def _muscle_with_study(name: str, folders: list[Path], method: str) -> str | None:
+    """The muscle whose study stands for ``name``: its own, else the other side's (the right
+    BFLH of the female has no surface)."""
+    return next((m for m in (name, fidelity.other_side(name)) if study_of(folders, m, method) is not None), None)
+
+
+def shipped_line(row: dict) -> str:
+    if "failed" in row:
+        return f"{row['geometry']}: FAILED {row['failed']}"
+    head = (f"{row['geometry']}: {row['cells']} cells, CSA {row['csa_gain_pct']:+.4f} %, "
+            f"V {row['volume_gain_pct']:+.4f} % ({row['growth_s']:.0f} s)")
+    if "csa_error" not in row:
+        return head + ": no study of its surface"
+    whose = "" if row["study_muscle"] == row["geometry"] else f", the study of {row['study_muscle']}"
+    return (head + f"; to the limit {row['csa_limit_pct']:.4f} / {row['volume_limit_pct']:.4f} %{whose}: "
+            f"{row['csa_error']:.1e} / {row['volume_error']:.1e} of the growth, "
+            f"{'meets' if row['goal_met'] else 'misses'} {GROWTH_GOAL:g}")
+
+
+def solid(row: dict) -> str:
+    return "–" if row.get("csa_solid_error") is None else f"{row['csa_solid_error']:.1e}"
+
+
+def shipped_markdown(result: dict) -> list[str]:
+    lines = ["| geometry | cells | CSA gain (%) | the surface's limit | error (of the growth) | on the solid's plane "
+             "| volume gain (%) | limit | error | goal |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in result["rows"]:
+        if "csa_error" not in r:
+            lines.append(f"| {r['geometry']} | {r.get('failed', 'no study of its surface')} | | | | | | | | |")
+            continue
+        name = r["geometry"] + ("" if r["study_muscle"] == r["geometry"] else f" ({r['study_muscle']}'s study)")
+        lines.append(f"| {name} | {r['cells']} | {r['csa_gain_pct']:.4f} | {r['csa_limit_pct']:.4f} | "
+                     f"{r['csa_error']:.1e} | {solid(r)} | {r['volume_gain_pct']:.4f} | "
+                     f"{r['volume_limit_pct']:.4f} | {r['volume_error']:.1e} | "
+                     f"{'met' if r['goal_met'] else 'missed'} |")
+    measured = [r for r in result["rows"] if "goal_met" in r]
+    lines.append(f"| within {result['goal']:g} of the growth | {sum(r['goal_met'] for r in measured)} of "
+                 f"{len(measured)} | | | | | | | | |")
+    return lines
+
+
 # ------------------------------------------------------------------------------ job
 
 
@@ -867,6 +996,12 @@ def parser() -> cli.Parser:
     p.add_argument("--spatial-table", nargs="+", type=Path, metavar="DIR", reads=True,
                    help="no runs: from the kept --all studies under each DIR, every muscle's error at the "
                         f"{hm.DEFAULT_CELLS}-cell level (the finest study's), as hyper.runs.fidelity's table")
+    p.add_argument("--shipped", nargs="*", metavar="ID",
+                   help="each shipped geometry (all by default) with --fibres-method fibres made on its own mesh: "
+                        "the 9-week gains against the limit of its surface's kept --all study under --studies "
+                        "(shipped_METHOD.json)")
+    p.add_argument("--studies", nargs="+", type=Path, default=[Path("results/bench/convergence_laplace")],
+                   metavar="DIR", reads=True, help="--shipped: folders of kept --all studies")
     p.add_argument("--replot", type=Path, metavar="JSON", reads=True,
                    help="no runs: the estimates and chart again from a convergence_NAME.json")
     p.add_argument("--fibres-method", choices=("stokes", "laplace"), default=mesh_job.DEFAULT_METHOD,
@@ -882,6 +1017,8 @@ def parser() -> cli.Parser:
 def run(comm, args) -> int:
     if args.spatial_table:
         return spatial_table(comm, args)
+    if args.shipped is not None:
+        return shipped(comm, args)
     if args.all is not None:
         return studies_all(comm, args)
     if args.fibres_all is not None:
