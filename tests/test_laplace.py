@@ -226,3 +226,24 @@ def test_a_study_remeshes_a_level_made_with_other_fibres():
     assert convergence.made_as(record, 8000, "stokes") and not convergence.made_as(record, 8000, "laplace")
     assert convergence.made_as({**record, "fibres_method": "laplace"}, 8000, "laplace")
     assert not convergence.made_as(record, 4000, "stokes")
+
+
+def test_the_original_preset_runs_an_anatomical_mesh_s_stokes_fibres():
+    from argparse import Namespace
+
+    from hyper.runs import presets
+
+    def shape(settings="default", fibers=None, geometries=("BFLH_VHF_Left",)):
+        return presets.shape(Namespace(settings=settings, fibers=fibers, ends=None), list(geometries))
+
+    assert shape() == {"ends": "disks", "fibers": "auto"}
+    assert shape("original") == {"ends": "disks", "fibers": "original"}
+    assert shape("original", geometries=("idealized",)) == {"ends": "tags", "fibers": "original"}
+    assert shape("original", geometries=("cylinder",)) == {"ends": "disks", "fibers": "auto"}
+    assert shape("original", fibers="laplace") == {"ends": "disks", "fibers": "laplace"}  # an explicit option wins
+    assert shape(fibers="stokes") == {"ends": "disks", "fibers": "stokes"}
+    with pytest.raises(InputError, match="--fibers stokes applies to a --mesh file and the anatomical meshes"):
+        shape(fibers="stokes", geometries=("idealized",))
+    muscle = geo.load("ST_VHM_Right", MPI.COMM_SELF)
+    assert [fibers.resolved(muscle, k) for k in ("auto", "original", "stokes")] == ["laplace", "stokes", "stokes"]
+    assert fibers.resolved(geo.load("idealized", MPI.COMM_SELF), "original") == "original"

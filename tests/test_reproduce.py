@@ -33,7 +33,9 @@ def test_switches_make_the_original():
     assert settings["growth_increment"] == "left-point" and settings["growth_dt"] == 1.0
     assert "csa_method" not in settings
     settings, spec = (dict(p) for p in reproduce.original_fields("BFLH_VHF_Left", 168.0, exact=True))
-    assert spec == {} and settings["csa_method"] == "box" and settings["growth_increment"] == "exact"
+    # the paper's fibres of an anatomical mesh: its Stokes fibres (the default runs its Laplace fibres)
+    assert spec == {"fibers": "original"}
+    assert settings["csa_method"] == "box" and settings["growth_increment"] == "exact"
     built = reproduce.Case("k", "BFLH_VHF_Left", "mwf", tuple(settings.items())).run_spec().settings
     assert (built.signaling_method, built.grow_during_sessions, built.consistent_stress, built.growth_fields) == \
         ("rk45-original", False, False, "dg1")
