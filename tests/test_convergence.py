@@ -117,13 +117,14 @@ def test_an_accuracy_below_the_mesh_refines_it():
 
 
 def test_an_accuracy_below_what_the_fibres_allow_is_refused(monkeypatch):
-    monkeypatch.setitem(fidelity.SPATIAL_ERROR, "TA_VHF_Left", fidelity.MeshError(4e-3, 3e-3, 2.0, "a test"))
+    monkeypatch.setitem(fidelity.SHIPPED_ERROR["laplace"], "TA_VHF_Left",
+                        fidelity.MeshError(4e-3, 3e-3, 2.0, "a test"))
     scene = Scene("TA_VHF_Left", "mwf", heterogeneous=False, ask="growth")
-    assert fidelity.choose_on_mesh(scene, 1e-2).refine == 0  # 4e-3 within half of 1e-2
+    assert fidelity.choose_on_mesh(scene, 1e-2, fibres="laplace").refine == 0  # 4e-3 within half of 1e-2
     with pytest.raises(InputError, match=r"accuracy 0.001 is tighter than the mesh of TA_VHF_Left can give: its "
                        r"spatial error is 0.003 of the growth even refined 3 time\(s\), 0.003 of it from the "
                        r"fibres and the surface's facets.*accuracy is 0.006"):
-        fidelity.choose_on_mesh(scene, 1e-3)
+        fidelity.choose_on_mesh(scene, 1e-3, fibres="laplace")
 
 
 def test_grow_refines_for_the_accuracy_and_refuses_below_the_mesh(tmp_path):
@@ -132,12 +133,16 @@ def test_grow_refines_for_the_accuracy_and_refuses_below_the_mesh(tmp_path):
     with pytest.raises(InputError, match=r"--accuracy 1e-05: accuracy 1e-05 is tighter than the mesh of idealized"):
         grow.plan(MPI.COMM_SELF, ["--geometry", "idealized", "--accuracy", "1e-5", "--output", str(tmp_path)])
     # an anatomical mesh: most of its error is its surface's and fibres', which refining keeps
-    entry = fidelity.SPATIAL_ERROR["TA_VHF_Left"]
+    entry = fidelity.SHIPPED_ERROR["laplace"]["TA_VHF_Left"]  # its own (Laplace) fibres, measured on its mesh
     least = (entry.kept + (entry.error - entry.kept) / 8) / fidelity.SPATIAL_SHARE
     with pytest.raises(InputError, match=rf"--accuracy 0.001: .* the smallest supported accuracy is {least:.2g}$"):
         grow.plan(MPI.COMM_SELF, ["--geometry", "TA_VHF_Left", "--accuracy", "1e-3", "--output", str(tmp_path)])
-    assert grow.plan(MPI.COMM_SELF, ["--geometry", "TA_VHF_Left", "--accuracy", "1e-2", "--output",
+    assert grow.plan(MPI.COMM_SELF, ["--geometry", "TA_VHF_Left", "--accuracy", "2e-2", "--output",
                                      str(tmp_path)]).specs[0].refine == 0
+    # its Stokes fibres' error is three times larger: 2e-2 is beyond them
+    with pytest.raises(InputError, match=r"--accuracy 0.02: .*--fibres-method stokes"):
+        grow.plan(MPI.COMM_SELF, ["--geometry", "TA_VHF_Left", "--fibers", "stokes", "--accuracy", "2e-2",
+                                  "--output", str(tmp_path)])
 
 
 def test_every_result_records_its_spatial_error():
@@ -151,11 +156,13 @@ def test_every_result_records_its_spatial_error():
 def test_every_muscle_has_its_spatial_error_or_its_other_side_s():
     muscles = set(geo.ANATOMICAL) | {m for m in geo.MESHED if m.count("_") == 2}
     assert set(fidelity.SURFACE_STUDIES) == muscles - {"BFLH_VHF_Right"}  # the one without a surface
+    # the shipped mesh measured against its other side's surface, never below that study's entry
     right = fidelity.spatial("BFLH_VHF_Right")
-    assert right.error == fidelity.SPATIAL_ERROR["BFLH_VHF_Left"].error and not right.measured
-    assert "the other side's, BFLH_VHF_Left's" in right.reason
-    # a surface study measures another mesh of the shipped mesh's surface: an estimate
-    assert not any(fidelity.spatial(m).measured for m in fidelity.SURFACE_STUDIES)
+    assert right.error == max(fidelity.SHIPPED_STUDIES["stokes"]["BFLH_VHF_Right"],
+                              fidelity.SPATIAL_ERROR["BFLH_VHF_Left"].error) and right.measured
+    assert "BFLH_VHF_Left's surface's limit" in right.reason
+    # every shipped mesh is measured on itself (`bench convergence --shipped`)
+    assert all(fidelity.spatial(m).measured for m in fidelity.SURFACE_STUDIES)
     assert fidelity.spatial("idealized").measured
     for muscle, (error, levels) in fidelity.SURFACE_STUDIES.items():
         assert 0 < error < 1 and 8000 in levels, muscle
@@ -165,10 +172,13 @@ def test_a_shipped_mesh_given_as_a_file_has_its_geometry_s_spatial_error(tmp_pat
     from hyper.runs import runspec
 
     shipped = Path(geo.MESHES_DIR) / geo.GEOMETRIES["VL_VHM_Left"]
-    assert runspec.table_name(shipped.stem, runspec.MeshFile(shipped, "mm")) == ("VL_VHM_Left", False, "stokes")
-    mine = tmp_path / "VL_VHM_Left.xdmf"  # the same name elsewhere is a user's mesh
+    assert runspec.table_name(shipped.stem, runspec.MeshFile(shipped, "mm")) == ("VL_VHM_Left", False, "laplace")
+    mine = tmp_path / "VL_VHM_Left.xdmf"  # the same name elsewhere is a user's mesh (its fibres computed: Stokes)
     assert runspec.table_name(mine.stem, runspec.MeshFile(mine, "mm")) == ("VL_VHM_Left", True, "stokes")
     assert runspec.table_name("idealized", None) == ("idealized", False, "stokes")
+    assert runspec.table_name("VL_VHM_Left", None) == ("VL_VHM_Left", False, "laplace")  # what its file holds
+    for asked in ("stokes", "original"):  # the paper's fibres
+        assert runspec.table_name("VL_VHM_Left", None, asked) == ("VL_VHM_Left", False, "stokes")
 
 
 def test_the_spatial_table_takes_each_muscle_from_its_finest_study(tmp_path):

@@ -289,7 +289,7 @@ def test_a_fibre_file_is_stored_and_read_back(ta, tmp_path):
 
 def test_the_angle_against_the_stokes_fibres_is_reported(ta):
     pytest.importorskip("nibabel")
-    stokes, note = fiberdata.stokes_beside(ta, fibers.fiber_path(NAME))
+    stokes, note = fiberdata.stokes_beside(ta, fibers.fiber_path(NAME, kind="stokes"))
     assert note == ""
     a0, field = fiberdata.make(ta, fr.Source(IMAGE), stokes)
     exact = fiberdata.angles(nodal(a0)[1], nodal(stokes)[1])

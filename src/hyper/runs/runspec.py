@@ -314,7 +314,6 @@ def table_name(geometry: str, mesh: MeshFile | None, fibers: str = "auto") -> tu
     it, the same run as its --geometry) is its geometry; a mesh file's fibres are what the
     file beside it holds (Stokes where there is none: a run computes them), and --fibers
     laplace makes Laplace fibres on any."""
-    from hyper.fem import fibers as fibre_fields
     from hyper.fem import geometry as geo
 
     shipped = mesh.shipped() if mesh is not None else None
@@ -324,7 +323,7 @@ def table_name(geometry: str, mesh: MeshFile | None, fibers: str = "auto") -> tu
     elif mesh is not None and not shipped:
         kind = mesh.fibre_kind()
     elif fibers == "auto" and name in geo.ANATOMICAL + geo.MESHED:  # what its fibre file holds
-        kind = fibre_fields.stored_kind(fibre_fields.fiber_path(name))
+        kind = MeshFile(geo.MESHES_DIR / geo.GEOMETRIES[name], "mm").fibre_kind()
     else:
         kind = "stokes"
     return (shipped, False, kind) if shipped else (geometry, mesh is not None, kind)
