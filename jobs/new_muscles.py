@@ -12,6 +12,8 @@ import numpy as np
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
+from hyper.runs import measured
+
 
 def series(path):
     with h5py.File(path) as f:
@@ -49,8 +51,8 @@ for p in sorted(glob.glob("results/cohort-damas/runs/*_damas.h5")):
     n = p.split("/")[-1][:-9]
     a.plot(t / 168, c, label=n)
     print(n, round(at(t, c, 3), 4), round(at(t, c, 10), 4))
-d = np.loadtxt("data/damas.csv", delimiter=",", skiprows=1)
-a.plot(d[:, 0], d[:, 1], "ko", label="Damas 2016 (VL)")
+d = measured.read("data/damas.csv")  # its CSA / CSA0 after time 0
+a.plot(d.t / 168, d.csa_ratio, "ko", label="Damas 2016 (VL)")
 a.set(xlabel="week", ylabel="CSA / CSA0", title="vastus lateralis, damas.toml (2/week, 10 weeks)")
 a.legend(fontsize=8)
 quad = defaultdict(dict)
@@ -68,9 +70,9 @@ for k, ms in sorted(quad.items()):
     q = sum(s[1] * s[3] for s in ms.values()) / tot0
     b.plot(t / 168, q, label=f"quadriceps {k} ({tot0 * 1e4:.0f} cm²)")
     print(k, round(at(t, q, 3), 4), round(at(t, q, 5), 4), "CSA0 sum", round(tot0 * 1e4, 1))
-s = np.loadtxt("data/seynnes.csv", delimiter=",", skiprows=1)
-b.plot(s[:, 0], s[:, 1] / s[0, 1], "ko", label="Seynnes 2007 (quadriceps)")
+s = measured.read("data/seynnes.csv")
+b.plot(s.t / 168, s.csa_ratio, "ko", label="Seynnes 2007 (quadriceps)")
 b.set(xlabel="week", ylabel="CSA / CSA0", title="RF+VL+VM+VI, seynnes.toml (3/week, 5 weeks)")
 b.legend(fontsize=8)
 fig.savefig("docs/new-muscles.png", dpi=100)
-print("data damas", d[:, 1], "seynnes", s[:, 1] / s[0, 1])
+print("data damas", d.csa_ratio, "seynnes", s.csa_ratio)

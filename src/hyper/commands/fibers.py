@@ -1,5 +1,7 @@
 """``hyper fibers``: the Stokes-flow fibres (`hyper.fem.fibers`) of the anatomical meshes,
-stored next to each mesh, with a picture and a summary per mesh; with ``--fibers FILE``,
+stored next to each mesh (``fibers_stokes.h5`` beside the shipped meshes' own fibres), or
+with ``--method laplace`` their own, the Laplace fibres (`hyper.fem.laplace`, ``fibers.h5``,
+what runs use), with a picture and a summary per mesh; with ``--fibers FILE``,
 fibres from data (`hyper.fem.fiberdata`) of the geometries given; or the fibres of one
 mesh file, Stokes, Laplace (`hyper.fem.laplace`: the potential flow between the ends) or
 pennate (`hyper.fem.pennate`), beside it:
@@ -53,8 +55,9 @@ METHODS = ("stokes", "laplace", "pennate")
 
 def parser() -> cli.Parser:
     p = cli.Parser("fibers", description="Stokes-flow fibre fields for the anatomical meshes (MODEL.md §5), stored "
-                   f"next to each mesh\nas {fibers.FILE_NAME}, with a picture and a summary per mesh; or, with "
-                   f"--mesh, the Stokes or pennate fibres\nof one mesh file beside it.\n\n{pennate.SYNTAX}")
+                   f"next to each mesh\nas {fibers.STOKES_FILE_NAME} (--method laplace: their own fibres, "
+                   f"{fibers.FILE_NAME}), with a picture and a summary\nper mesh; or, with --mesh, the Stokes, "
+                   f"Laplace or pennate fibres of one mesh file beside it.\n\n{pennate.SYNTAX}")
     p.add_argument("--geometries", nargs="+", metavar="ID", default=list(geo.ANATOMICAL),
                    help="geometries to do (the 12 anatomical meshes)")
     p.add_argument("--mesh", type=Path, reads=True,

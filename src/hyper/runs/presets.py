@@ -50,9 +50,8 @@ SHAPE_DEFAULTS = {"ends": "disks", "fibers": "auto"}  # what every geometry but 
 # --fibers: auto and original for the built-in geometries, stokes for the anatomical ones,
 # axial and principal too for a mesh file, and laplace for any geometry
 LAPLACE = "laplace"
-MESH_ONLY_FIBERS = ("stokes", "axial", "principal")
-MESH_FIBERS = ("auto", *MESH_ONLY_FIBERS, LAPLACE)
-FIBER_CHOICES = ("auto", "original", *MESH_ONLY_FIBERS, LAPLACE)
+MESH_FIBERS = ("auto", "stokes", "axial", "principal", LAPLACE)
+FIBER_CHOICES = ("auto", "original", *MESH_FIBERS[1:])
 DATA = "data"  # the kind of the fibres of a data file (--fibers FILE, hyper.fem.fiberdata)
 # where --fibers FILE stands for one file per geometry (hyper cohort)
 GEOMETRY_FIELD = "{geometry}"

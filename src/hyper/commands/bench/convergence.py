@@ -367,9 +367,9 @@ def estimates_of(rows: list[dict]) -> dict:
 
 
 def fibre_check(comm, name: str) -> dict:
-    """The stored (or computed) P2 fibres of ``name`` against P3-P2 on the same mesh."""
+    """The stored (or computed) P2 Stokes fibres of ``name`` against P3-P2 on the same mesh."""
     geometry = geo.load(name, comm)
-    path = fibers.fiber_path(name)
+    path = fibers.fiber_path(name, kind="stokes")
     p2 = fibers.load(geometry, path) if io.is_complete(path) else fibers.compute(geometry)[0]
     start = time.perf_counter()
     p3, speed = fibers.compute(geometry, fibers.StokesParams(degree=3))
