@@ -917,11 +917,12 @@ def shipped(comm, args) -> int:
         args.output.mkdir(parents=True, exist_ok=True)
         io.write_json(stem.with_suffix(".json"), result)
         print("\n".join(shipped_markdown(result)))
+        shipped_chart(stem.with_suffix(".png"), result)
         print("\n".join(f'    "{r["geometry"]}": {rounded_up(max(r["csa_error"], r["volume_error"])):.2g},'
                         for r in rows if "csa_error" in r))
     measured = [r for r in rows if "goal_met" in r]
     info(comm, f"{sum(r['goal_met'] for r in measured)} of {len(measured)} shipped meshes within {GROWTH_GOAL:g} of "
-               f"the growth with {args.fibres_method} fibres ({result['wall_s']:.0f} s); wrote {stem}.json")
+               f"the growth with {args.fibres_method} fibres ({result['wall_s']:.0f} s); wrote {stem}.json and .png")
     return cli.EXIT_OK if all("failed" not in r for r in rows) else cli.EXIT_SOME_FAILED
 
 
@@ -942,6 +943,28 @@ def shipped_line(row: dict) -> str:
     return (head + f"; to the limit {row['csa_limit_pct']:.4f} / {row['volume_limit_pct']:.4f} %{whose}: "
             f"{row['csa_error']:.1e} / {row['volume_error']:.1e} of the growth, "
             f"{'meets' if row['goal_met'] else 'misses'} {GROWTH_GOAL:g}")
+
+
+def shipped_chart(path: Path, result: dict) -> None:
+    """Each shipped mesh's errors of the CSA (cut and solid's plane) and volume gains against the goal."""
+    rows = [r for r in result["rows"] if "csa_error" in r]
+    plt = plot.pyplot()
+    fig, ax = plt.subplots(figsize=(9, 0.28 * len(rows) + 1.6))
+    y = np.arange(len(rows))
+    ax.barh(y - 0.27, [r["csa_error"] for r in rows], 0.27, label="CSA gain (the vertices' plane, fed back)")
+    ax.barh(y, [r["csa_solid_error"] or np.nan for r in rows], 0.27, label="CSA gain on the solid's plane")
+    ax.barh(y + 0.27, [r["volume_error"] for r in rows], 0.27, label="volume gain")
+    ax.axvline(result["goal"], color="k", ls="--", lw=1, label=f"goal {result['goal']:g} of the growth")
+    ax.set_yticks(y, [f"{r['geometry']} ({r['cells']})" for r in rows], fontsize=7)
+    ax.set_xscale("log")
+    ax.invert_yaxis()
+    ax.set_xlabel("error of the 9-week gain against its surface's limit, fraction of the growth")
+    met = sum(r["goal_met"] for r in rows)
+    ax.set_title(f"the shipped meshes with {result['fibres_method']} fibres made on them: {met} of {len(rows)} "
+                 "meet the goal", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    plot.save(fig, path, dpi=120)
 
 
 def solid(row: dict) -> str:
