@@ -271,3 +271,39 @@ def test_the_all_muscles_table_reuses_kept_studies_and_judges_the_goal(tmp_path,
     assert not st["goal_met"]
     assert ta["fibre_p95_deg_below"] == 8.0 and ta["cells"] == cells[-1]
     assert (tmp_path / "convergence_all.png").stat().st_size > 0
+
+
+def test_shipped_measures_a_shipped_mesh_against_its_surface_s_limit(tmp_path):
+    """--shipped: the 9-week gains on the shipped mesh with fibres made on it, and their
+    errors against the kept study's limits (the study here a made-up one: its numbers are
+    what the errors must be computed from)."""
+    import json
+
+    def series(limit, order, spread):
+        return {"own": {"values": [limit], "order": order, "limit": limit, "errors": [spread]}}
+
+    study = {"benchmark": "convergence", "muscle": "ST_VHM_Right", "fibres_method": "laplace",
+             "levels": [{"cells_target": 8000, "cells": 1}, {"cells_target": 16000, "cells": 2}],
+             "estimates": {"csa_gain_pct": series(8.4, None, 1e-4), "volume_gain_pct": series(8.39, 2.0, 0.0),
+                           "csa_solid_gain_pct": series(8.41, 2.0, 0.0)}}
+    (tmp_path / "studies" / "convergence_all").mkdir(parents=True)
+    (tmp_path / "studies" / "convergence_all" / "ST_VHM_Right.json").write_text(json.dumps(study))
+    assert convergence.main(["--shipped", "ST_VHM_Right", "--studies", str(tmp_path / "studies"),
+                             "--output", str(tmp_path), "--quiet"]) == 0
+    result = json.loads((tmp_path / "shipped_laplace.json").read_text())
+    assert (tmp_path / "shipped_laplace.png").is_file()
+    (row,) = result["rows"]
+    assert row["cells"] == 6707 and not row["same_mesh"] and row["study_muscle"] == "ST_VHM_Right"
+    # no order: the distance to the finest level plus its spread; an order: to the limit
+    assert row["csa_error"] == pytest.approx(abs(row["csa_gain_pct"] - 8.4) / 8.4 + 1e-4, rel=1e-12)
+    assert row["volume_error"] == pytest.approx(abs(row["volume_gain_pct"] - 8.39) / 8.39, rel=1e-12)
+    assert row["goal_met"] == (max(row["csa_error"], row["volume_error"]) <= convergence.GROWTH_GOAL)
+    # the same gains as the kept measurement of fidelity's table (its fibres made as the shipped file's)
+    kept = json.loads((Path(__file__).parents[1] / "results/bench/shipped/shipped_laplace.json").read_text())
+    (was,) = [r for r in kept["rows"] if r["geometry"] == "ST_VHM_Right"]
+    assert row["csa_gain_pct"] == pytest.approx(was["csa_gain_pct"], rel=1e-9)
+    # a geometry without a study of its surface (or its other side's) is a row that says so
+    assert convergence.main(["--shipped", "TA_VHF_Left", "--studies", str(tmp_path / "studies"), "--output",
+                             str(tmp_path / "none"), "--quiet"]) == 0
+    (row,) = json.loads((tmp_path / "none" / "shipped_laplace.json").read_text())["rows"]
+    assert "csa_error" not in row and row["study_muscle"] is None
