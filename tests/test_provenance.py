@@ -168,3 +168,25 @@ def test_a_remade_mesh_or_fibre_file_is_another_run(tmp_path, monkeypatch):
         assert spec.digest() != before, changed.name
         changed.write_bytes(original)
     assert spec.digest() == before
+
+
+def test_a_run_of_the_stokes_fibres_counts_their_file_not_the_laplace_one(tmp_path, monkeypatch):
+    import shutil
+
+    from hyper.fem import fibers
+    from hyper.model import protocols
+
+    name = "TA_VHF_Left"
+    own = runspec.RunSpec(name, protocols.named("mwf"))
+    stokes = runspec.RunSpec(name, protocols.named("mwf"), fibers="stokes")
+    assert own.input_files()[-1].name == fibers.FILE_NAME
+    assert stokes.input_files()[-1].name == fibers.STOKES_FILE_NAME
+    assert runspec.RunSpec(name, protocols.named("mwf"), fibers="original").input_files() == stokes.input_files()
+    folder = own.input_files()[0].parent
+    shutil.copytree(folder, tmp_path / folder.name)
+    monkeypatch.setattr(geo, "MESHES_DIR", tmp_path)
+    before = {"own": own.digest(), "stokes": stokes.digest()}
+    assert before["own"] != before["stokes"]
+    laplace_file = tmp_path / folder.name / fibers.FILE_NAME
+    laplace_file.write_bytes(laplace_file.read_bytes() + b"\0")
+    assert own.digest() != before["own"] and stokes.digest() == before["stokes"]

@@ -242,12 +242,14 @@ class RunSpec:
         return mesh_files(geo.MESHES_DIR / geo.GEOMETRIES[self.geometry])
 
     def input_files(self) -> list[Path]:
-        """The files a built-in geometry's run reads: its mesh and, beside it, its Stokes fibres."""
+        """The files a built-in geometry's run reads: its mesh and, beside it, the fibre file of
+        the fibres it runs (its own, or with --fibers stokes or original its Stokes fibres)."""
         from hyper.fem import fibers
 
         files = self.mesh_files()
-        stored = files[0].parent / fibers.FILE_NAME
-        return files + ([stored] if self.mesh is None and stored.is_file() else [])
+        kind = "stokes" if self.fibers in ("stokes", "original") else "auto"
+        stored = fibers.fiber_path(self.geometry, kind=kind) if self.mesh is None else None
+        return files + ([stored] if stored is not None and stored.is_file() else [])
 
     @property
     def unit_fibres(self) -> bool:
@@ -311,9 +313,10 @@ def result_groups(spec: RunSpec, choice: fidelity.Choice | None = None) -> dict:
 def table_name(geometry: str, mesh: MeshFile | None, fibers: str = "auto") -> tuple[str, bool, str]:
     """The name `fidelity`'s tables know a run's mesh by, whether that is a user's mesh
     file, and the kind of its fibres: a shipped mesh given as a file (with the fibres beside
-    it, the same run as its --geometry) is its geometry; a mesh file's fibres are what the
-    file beside it holds (Stokes where there is none: a run computes them), and --fibers
-    laplace makes Laplace fibres on any."""
+    it, the same run as its --geometry) is its geometry; a mesh file's fibres, and a built-in
+    geometry's own, are what the file beside it holds (Stokes where there is none: a run
+    computes them; the shipped meshes' are Laplace), --fibers laplace makes Laplace fibres on
+    any, and --fibers stokes or original takes an anatomical mesh's Stokes fibres."""
     from hyper.fem import geometry as geo
 
     shipped = mesh.shipped() if mesh is not None else None
