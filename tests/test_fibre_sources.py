@@ -199,3 +199,23 @@ def test_study_cohort_and_contraction_take_refine_alike(tmp_path):
     with h5py.File(c, "r") as f:
         assert f.attrs["refine"] == 1 and f.attrs["fibers"] == "axial" and f.attrs["fibers_sha256"] == ""
         assert f.attrs["cells"] == 8 * geo.load("cylinder", MPI.COMM_SELF).num_cells()
+
+
+def test_fibers_stokes_on_a_mesh_file_reads_or_makes_its_stokes_fibres_not_its_own(tmp_path):
+    """A shipped mesh given as a file runs its Stokes fibres as its geometry does; a mesh
+    whose own fibres are Laplace fibres gets Stokes fibres computed and kept beside them."""
+    built_in, attrs = run(tmp_path, "geometry", "--geometry", SMALLEST, "--fibers", "stokes")
+    mine, mesh_attrs = run(tmp_path, "mesh", "--mesh", str(MESH), "--mesh-unit", "mm", "--fibers", "stokes")
+    same_series(built_in, mine)
+    stokes = fibers.fiber_path(SMALLEST, kind="stokes")
+    for a in (attrs, mesh_attrs):
+        assert a["fibers"] == "stokes" and a["fibers_sha256"] == ckpt.file_digest(stokes)
+    mesh = copied(tmp_path)  # no fibre file: give it Laplace fibres as its own
+    shutil.copy(fibers.fiber_path(SMALLEST), mesh.fibres)
+    own = mesh.fibres.read_bytes()
+    _, attrs = run(tmp_path, "mine", "--mesh", str(mesh.path), "--mesh-unit", "mm", "--fibers", "stokes")
+    kept = mesh.fibres.parent / fibers.STOKES_FILE_NAME
+    assert attrs["fibers"] == "stokes" and attrs["fibers_sha256"] == ckpt.file_digest(kept)
+    assert mesh.fibres.read_bytes() == own  # its own fibres stay as they were
+    _, attrs = run(tmp_path, "mine_auto", "--mesh", str(mesh.path), "--mesh-unit", "mm")
+    assert attrs["fibers"] == "laplace" and attrs["fibers_sha256"] == ckpt.file_digest(mesh.fibres)

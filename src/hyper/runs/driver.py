@@ -329,20 +329,23 @@ def load_geometry(comm, spec: RunSpec):
     return geometry
 
 
-def mesh_stokes_fibres(comm, mesh: MeshFile, geometry=None) -> tuple:
-    """The Stokes fibres of a mesh file on its loaded (unrefined) ``geometry`` (loaded
-    here if None): (a0, the fibre file read or written or None, how they were had).
+def mesh_stokes_fibres(comm, mesh: MeshFile, geometry=None, asked: str = "auto") -> tuple:
+    """The fibres of a mesh file on its loaded (unrefined) ``geometry`` (loaded here if
+    None): (a0, the fibre file read or written or None, how they were had).
 
-    The fibre file beside the mesh if it has one; else computed, and kept beside the
-    mesh where `MeshFile.fibre_cache` allows it (else computed by every run). Collective."""
+    The fibre file beside the mesh (`MeshFile.fibre_file`: its own, whatever kind; with
+    ``asked`` stokes its Stokes fibres) if it has one; else Stokes fibres computed, and kept
+    beside the mesh where `MeshFile.fibre_cache` allows it (else computed by every run).
+    Collective."""
     from hyper.fem import fibers  # DOLFINx (see `build`)
 
     geometry = mesh.load(comm) if geometry is None else geometry
-    if on_rank0(comm, lambda: io.is_complete(mesh.fibres)):
-        kind, _ = on_rank0(comm, lambda: fr.stored_fibres(mesh.fibres))
-        info(comm, f"{mesh.path}: its {'Stokes' if kind == 'stokes' else kind} fibres read from {mesh.fibres}")
-        return fibers.load(geometry, mesh.fibres), mesh.fibres, f"read from {mesh.fibres}"
-    cache, why = mesh.fibre_cache()
+    path = on_rank0(comm, lambda: mesh.fibre_file(asked))
+    if on_rank0(comm, lambda: io.is_complete(path)):
+        kind, _ = on_rank0(comm, lambda: fr.stored_fibres(path))
+        info(comm, f"{mesh.path}: its {'Stokes' if kind == 'stokes' else kind} fibres read from {path}")
+        return fibers.load(geometry, path), path, f"read from {path}"
+    cache, why = mesh.fibre_cache(asked)
     info(comm, f"{mesh.path}: no fibre file beside it; computing its Stokes fibres"
                + (f", kept in {cache}" if cache is not None else f" (not kept: {why})"))
     a0, speed = fibers.compute(geometry)
@@ -352,15 +355,16 @@ def mesh_stokes_fibres(comm, mesh: MeshFile, geometry=None) -> tuple:
     return a0, cache, f"computed and kept in {cache}"
 
 
-def prepare_fibres(comm, meshes) -> None:
-    """Before runs on the mesh files ``meshes`` with their Stokes fibres: compute (once)
-    and keep the fibres of those without a fibre file where `MeshFile.fibre_cache` allows,
-    so that the runs read them and their digests name the file (a rerun finds its result
-    current). `execute` does it for its run, a farm's caller for all its runs at once.
-    Collective."""
+def prepare_fibres(comm, meshes, asked: str = "auto") -> None:
+    """Before runs on the mesh files ``meshes`` with their fibres (``asked``: auto or stokes,
+    `MeshFile.fibre_file`): compute (once) and keep the Stokes fibres of those without that
+    fibre file where `MeshFile.fibre_cache` allows, so that the runs read them and their
+    digests name the file (a rerun finds its result current). `execute` does it for its
+    run, a farm's caller for all its runs at once. Collective."""
     for mesh in meshes:
-        if not on_rank0(comm, lambda m=mesh: io.is_complete(m.fibres)) and mesh.fibre_cache()[0] is not None:
-            mesh_stokes_fibres(comm, mesh)
+        if (not on_rank0(comm, lambda m=mesh: io.is_complete(m.fibre_file(asked)))
+                and mesh.fibre_cache(asked)[0] is not None):
+            mesh_stokes_fibres(comm, mesh, asked=asked)
 
 
 def stokes_file(geometry: str, mesh: MeshFile | None = None) -> Path | None:
@@ -370,7 +374,7 @@ def stokes_file(geometry: str, mesh: MeshFile | None = None) -> Path | None:
     from hyper.fem import geometry as geo
 
     if mesh is not None:
-        return mesh.fibres
+        return mesh.fibre_file("stokes")
     return fibers.fiber_path(geometry, kind="stokes") if geometry in geo.ANATOMICAL + geo.MESHED else None
 
 
@@ -431,7 +435,7 @@ def fiber_field(spec: RunSpec, geometry) -> tuple:
         return laplace_fibres(geometry)
     base = geometry.base
     if spec.mesh is not None and kind == "stokes":
-        a0, path, how = mesh_stokes_fibres(geometry.comm, spec.mesh, base)
+        a0, path, how = mesh_stokes_fibres(geometry.comm, spec.mesh, base, spec.fibers)
         if geometry.refinements:
             a0 = fibers.carried(a0, geometry)
         method = fibers.method(geometry, kind) + f"; {how}"
@@ -519,7 +523,7 @@ def execute(comm, spec: RunSpec, outputs: Outputs, *, snapshot_every: float = SN
     Collective over ``comm``.
     """
     if spec.mesh is not None and spec.fibers in MESH_FIBERS_STOKES:
-        prepare_fibres(comm, [spec.mesh])  # before the digest, which names the fibre file
+        prepare_fibres(comm, [spec.mesh], spec.fibers)  # before the digest, which names the fibre file
     run_digest = spec.digest()
     model, a0, solver, choice = build(comm, spec, monitor=monitor)
     snaps = Snapshots(model, a0)

@@ -96,11 +96,22 @@ class MeshFile:
 
         return Path(self.path).parent / fibers.FILE_NAME
 
+    def fibre_file(self, asked: str = "auto") -> Path:
+        """The fibre file a run with --fibers ``asked`` reads beside this mesh: its own
+        (`fibres`), or for stokes its Stokes fibres, ``fibers_stokes.h5`` where its own are of
+        another kind (a Laplace mesh of `hyper mesh`, a shipped one) or that file exists."""
+        from hyper.fem import fibers
+
+        stokes = self.fibres.parent / fibers.STOKES_FILE_NAME
+        if asked == "stokes" and (stokes.exists() or (io.is_complete(self.fibres) and self.fibre_kind() != "stokes")):
+            return stokes
+        return self.fibres
+
     def fibre_kind(self) -> str:
         """The kind of fibres the file beside this mesh holds ("stokes" where there is none)."""
         return fr.stored_fibres(self.fibres)[0] if self.fibres.is_file() else "stokes"
 
-    def fibre_cache(self) -> tuple[Path | None, str]:
+    def fibre_cache(self, asked: str = "auto") -> tuple[Path | None, str]:
         """(where Stokes fibres computed for this mesh are kept, or None; why not there).
 
         Beside the mesh, where `hyper mesh` puts them and every later run (any job, any
@@ -115,7 +126,7 @@ class MeshFile:
             return None, "a shipped mesh folder, which runs never write"
         if not os.access(folder, os.W_OK):
             return None, "its folder is not writable"
-        return self.fibres, ""
+        return self.fibre_file(asked), ""
 
 
 def check_geometry(comm, name: str, option: str = "--geometry") -> None:
@@ -231,7 +242,8 @@ class RunSpec:
         file beside it, or "computed" (each run computes them); "" for another kind."""
         if self.fibers not in MESH_FIBERS_STOKES:
             return ""
-        return ckpt.file_digest(self.mesh.fibres) if io.is_complete(self.mesh.fibres) else "computed"
+        path = self.mesh.fibre_file(self.fibers)
+        return ckpt.file_digest(path) if io.is_complete(path) else "computed"
 
     def mesh_files(self) -> list[Path]:
         """The files of this run's mesh (`mesh_files`)."""
