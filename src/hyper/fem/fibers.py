@@ -383,7 +383,14 @@ def fiber_path(name: str, meshes_dir: str | Path | None = None, kind: str = "aut
         raise InputError(f"unknown geometry {name!r}; known: {', '.join(geo.GEOMETRIES)}")
     root = Path(meshes_dir) if meshes_dir is not None else geo.MESHES_DIR
     folder = root / Path(geo.GEOMETRIES[name]).parent
-    if kind == "stokes" and ((folder / STOKES_FILE_NAME).exists() or stored_kind(folder / FILE_NAME) != "stokes"):
+    return stokes_path(folder) if kind == "stokes" else folder / FILE_NAME
+
+
+def stokes_path(folder: Path) -> Path:
+    """The Stokes fibres' file in a mesh's ``folder``: ``STOKES_FILE_NAME`` where it exists
+    or the mesh's own fibres (``FILE_NAME``) are of another kind, else ``FILE_NAME``."""
+    folder = Path(folder)
+    if (folder / STOKES_FILE_NAME).exists() or stored_kind(folder / FILE_NAME) != "stokes":
         return folder / STOKES_FILE_NAME
     return folder / FILE_NAME
 

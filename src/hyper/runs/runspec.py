@@ -102,10 +102,7 @@ class MeshFile:
         another kind (a Laplace mesh of `hyper mesh`, a shipped one) or that file exists."""
         from hyper.fem import fibers
 
-        stokes = self.fibres.parent / fibers.STOKES_FILE_NAME
-        if asked == "stokes" and (stokes.exists() or (io.is_complete(self.fibres) and self.fibre_kind() != "stokes")):
-            return stokes
-        return self.fibres
+        return fibers.stokes_path(self.fibres.parent) if asked == "stokes" else self.fibres
 
     def fibre_kind(self) -> str:
         """The kind of fibres the file beside this mesh holds ("stokes" where there is none)."""
