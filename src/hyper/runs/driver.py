@@ -403,6 +403,7 @@ def laplace_fibres(geometry) -> tuple:
     params = laplace.LaplaceParams()
     a0, _ = laplace.compute(geometry.base, params)
     method = laplace.method(params) + "; made on the mesh run"
+    info(geometry.comm, f"{geometry.name}: Laplace fibres made on the mesh run")
     if geometry.refinements:
         a0 = fibers.carried(a0, geometry)
         method += fibers.CARRIED_METHOD.format(n=geometry.refinements)
@@ -463,6 +464,7 @@ def built_in_fibres(geometry, name: str, kind: str) -> tuple:
     if kind == presets.LAPLACE:  # its parameters are the file's
         carried_over = fibers.CARRIED_METHOD.format(n=geometry.refinements) if geometry.refinements else ""
         made = on_rank0(geometry.comm, lambda: fr.stored_fibres(path)[1]) + carried_over
+    info(geometry.comm, f"{name}: its {'Stokes' if kind == 'stokes' else 'Laplace'} fibres read from {path}")
     return a0, {"fibers": kind, "fibers_method": f"{made}; read from {path}",
                 "fibers_sha256": on_rank0(geometry.comm, lambda: ckpt.file_digest(path))}
 
