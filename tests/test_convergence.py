@@ -307,3 +307,38 @@ def test_shipped_measures_a_shipped_mesh_against_its_surface_s_limit(tmp_path):
                              str(tmp_path / "none"), "--quiet"]) == 0
     (row,) = json.loads((tmp_path / "none" / "shipped_laplace.json").read_text())["rows"]
     assert "csa_error" not in row and row["study_muscle"] is None
+
+
+def test_fibres_limit_measures_a_mesh_s_fibres_against_its_shape_s_finer_fields(tmp_path):
+    """--fibres-limit's row (`limit_row`): a 1000-cell mesh of `hyper mesh`, whose Laplace flow
+    was solved on the surface's 4000-cell mesh, against the surface meshed at 2000 and 4000
+    cells: the finest level is that flow's mesh (made by the same steps), so the fibres lie
+    on it to interpolation, and the flow on the mesh itself does not. As a paper mesh (no
+    surface): its mesh refined once and twice, whose fields approach each other."""
+    import re
+
+    from hyper.commands import mesh as mesh_job
+    from hyper.fem import laplace
+    from hyper.runs import runspec
+
+    stl = Path(__file__).parent / "data" / "TA_VHF_Right_coarse.stl"
+    out = tmp_path / "TA_T"
+    assert mesh_job.main([str(stl), "--output", str(out), "--cells", "1000", "--quiet"]) == 0
+    geometry = runspec.MeshFile(out / "TA_T.xdmf", "mm").load(MPI.COMM_SELF)
+    fibre_file = out / fibers.FILE_NAME
+    row = convergence.limit_row(MPI.COMM_SELF, geometry, fibre_file, (stl, ["--end-rule", "surface"]),
+                                [2000, 4000], tmp_path / "scratch")
+    flow_cells = int(re.search(r"at (\d+) cells", row["fibres_method"]).group(1))
+    assert row["reference"] == "meshes of its surface" and row["reference_cells"][-1] == flow_cells
+    assert row["fibres"]["p95_deg"] < 0.05 and row["own_mesh"]["p95_deg"] > 0.5
+    assert row["bound_p95_deg"] == row["fibres"]["p95_deg"] + row["spread"]["p95_deg"]
+    assert row["goal_met"] == (row["bound_p95_deg"] <= convergence.FIBRES_GOAL_DEG)
+    assert not (tmp_path / "scratch").exists()
+
+    own = tmp_path / "own.h5"
+    laplace.store(own, geometry, *laplace.compute(geometry))
+    paper = convergence.limit_row(MPI.COMM_SELF, geometry, own, None, [], tmp_path / "unused")
+    assert paper["reference"] == "its mesh refined uniformly" and "own_mesh" not in paper
+    assert paper["reference_cells"] == [8 * geometry.num_cells(), 64 * geometry.num_cells()]
+    # P2 potentials on nested meshes: once refined is nearer the twice refined than the mesh itself
+    assert 0.0 < paper["spread"]["p95_deg"] < 0.7 * paper["fibres"]["p95_deg"]

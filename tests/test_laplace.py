@@ -111,11 +111,13 @@ def test_laplace_fibres_on_two_ranks_equal_serial():
 
 
 def test_hyper_mesh_makes_laplace_fibres_which_runs_then_record(tmp_path):
+    """--flow-cells 0: the Laplace flow on the mesh itself (the default's flow mesh: the next test)."""
     out = tmp_path / "TA_LAP"
-    assert mesh_job.main([str(STL), "--output", str(out), "--cells", "2000", "--method", "laplace", "--quiet"]) == 0
+    assert mesh_job.main([str(STL), "--output", str(out), "--cells", "2000", "--method", "laplace",
+                          "--flow-cells", "0", "--quiet"]) == 0
     record = json.loads((out / "mesh.json").read_text())
     assert record["fibres_method"] == "laplace" and "fibers_smoothing_mm" not in record
-    assert record["fibers"]["share_within_30deg"] > 0.99
+    assert "flow_cells_target" not in record and record["fibers"]["share_within_30deg"] > 0.99
     path = out / fibers.FILE_NAME
     assert fr.stored_fibres(path) == ("laplace", laplace.method())
     with h5py.File(path, "r") as f:
@@ -141,12 +143,36 @@ def test_hyper_mesh_makes_laplace_fibres_which_runs_then_record(tmp_path):
     assert "laplace fibres, no table for a mesh file" in spatial["reason"] and not spatial["measured"]
 
 
+def test_hyper_mesh_solves_the_laplace_flow_on_a_mesh_four_times_finer_by_default(tmp_path):
+    """The default: the surface meshed again at 4 x --cells, its Laplace fibres carried onto
+    the mesh's nodes (`fibers.carried_over`), as --flow-cells 8000 asks explicitly."""
+    out, asked = tmp_path / "TA_LAP", tmp_path / "TA_ASK"
+    assert mesh_job.main([str(STL), "--output", str(out), "--cells", "2000", "--quiet"]) == 0
+    assert mesh_job.main([str(STL), "--output", str(asked), "--cells", "2000", "--flow-cells", "8000",
+                          "--quiet"]) == 0
+    record = json.loads((out / "mesh.json").read_text())
+    assert record["flow_cells_target"] == mesh_job.FLOW_CELLS_FACTOR * 2000 == 8000
+    assert sorted(p.name for p in out.iterdir()) == ["TA_LAP.h5", "TA_LAP.png", "TA_LAP.xdmf", "fibers.h5",
+                                                     "mesh.json"]
+    kind, method = fr.stored_fibres(out / fibers.FILE_NAME)
+    assert kind == "laplace" and method.startswith(laplace.method())
+    flow_mesh = tmp_path / "flow" / "flow.xdmf"
+    options = mesh_job.parser().parse_args([str(STL), "--output", str(tmp_path / "unused"), "--cells", "2000"])
+    fine = mesh_job.flow_mesh(MPI.COMM_SELF, options, flow_mesh, 8000)
+    assert method == laplace.method() + fibers.TRANSFERRED_METHOD.format(cells=fine.num_cells())
+    geometry = runspec.MeshFile(out / "TA_LAP.xdmf", "mm").load(MPI.COMM_SELF)
+    expected, _ = fibers.carried_over(*laplace.compute(fine), geometry, laplace.LaplaceParams().min_speed)
+    mine = fibers.load(geometry, out / fibers.FILE_NAME)
+    assert np.abs(mine.x.array - expected.x.array).max() < 1e-12
+    with h5py.File(asked / fibers.FILE_NAME) as f:
+        assert np.array_equal(f["a0"][...], h5py.File(out / fibers.FILE_NAME)["a0"][...])
+    # and not the field of the mesh itself (its coarse end patches: docs/convergence.md)
+    own, _ = laplace.compute(geometry)
+    assert convergence.angles(mine, own)["max_deg"] > 1.0
+
+
 def test_hyper_mesh_refuses_the_stokes_options_for_laplace_fibres(tmp_path, capsys):
     out = tmp_path / "TA_LAP"
-    assert mesh_job.main([str(STL), "--output", str(out), "--cells", "2000", "--method", "laplace",
-                          "--flow-cells", "4000", "--quiet"]) == 2
-    assert not out.exists()
-    assert "--flow-cells" in capsys.readouterr().err
     assert mesh_job.main([str(STL), "--output", str(out), "--cells", "2000", "--fibers-smoothing", "4", "--quiet"]) == 2
     assert not out.exists() and "--method stokes" in capsys.readouterr().err
 
@@ -247,3 +273,15 @@ def test_the_original_preset_runs_an_anatomical_mesh_s_stokes_fibres():
     muscle = geo.load("ST_VHM_Right", MPI.COMM_SELF)
     assert [fibers.resolved(muscle, k) for k in ("auto", "original", "stokes")] == ["laplace", "stokes", "stokes"]
     assert fibers.resolved(geo.load("idealized", MPI.COMM_SELF), "original") == "original"
+
+
+def test_hyper_fibers_refuses_to_remake_fibres_hyper_mesh_solved_on_a_finer_mesh(tmp_path, capsys):
+    """The 19 new meshes' Laplace fibres come from a 32k-cell mesh of their surface: solved on
+    the 8k mesh itself they would be another field, so `hyper fibers` refuses to replace them
+    (a paper mesh's, solved on itself, it remakes)."""
+    before = (geo.MESHES_DIR / "VM_VHM_Left" / fibers.FILE_NAME).read_bytes()
+    assert json.loads((geo.MESHES_DIR / "VM_VHM_Left" / "mesh.json").read_text())["flow_cells_target"] == 32000
+    assert fibers_job.main(["--geometries", "VM_VHM_Left", "--method", "laplace", "--force", "--output",
+                            str(tmp_path), "--quiet"]) == 2
+    assert "VM_VHM_Left: its Laplace fibres were solved by hyper mesh on a 32000-cell mesh" in capsys.readouterr().err
+    assert (geo.MESHES_DIR / "VM_VHM_Left" / fibers.FILE_NAME).read_bytes() == before

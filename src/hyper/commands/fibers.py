@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import json
 import sys
 import time
 from pathlib import Path
@@ -140,6 +141,12 @@ def target(name: str, args) -> Path:
     return fibers.fiber_path(name, args.meshes_dir, kind=args.method)
 
 
+def _flow_cells(folder: Path) -> int | None:
+    """The cells of the mesh `hyper mesh` solved a mesh folder's fibre flow on, where it did."""
+    record = folder / "mesh.json"
+    return json.loads(record.read_text()).get("flow_cells_target") if record.is_file() else None
+
+
 def _stored_stats(path: Path) -> dict:
     import h5py
 
@@ -217,6 +224,12 @@ def run(comm, args) -> int:
         mesh_file = fibers.fiber_path(name, args.meshes_dir).parent / Path(geo.GEOMETRIES[name]).name
         if not mesh_file.is_file():
             raise InputError(f"{mesh_file}: no such mesh file")
+        if args.method == "laplace" and (args.force or not is_complete(target(name, args))):
+            flow = _flow_cells(mesh_file.parent)
+            if flow:  # solved on the mesh itself they would be another, coarser field (docs/convergence.md)
+                raise InputError(f"{name}: its Laplace fibres were solved by hyper mesh on a {flow}-cell mesh of its "
+                                 f"surface ({mesh_file.parent / 'mesh.json'}); remake them with hyper mesh (the "
+                                 "shipped ones: make new-meshes)")
     jobs = [farm.Job(name, cost=1.0) for name in args.geometries]
 
     def is_done(job):

@@ -145,14 +145,15 @@ def _solved(problem: LinearProblem, name: str, what: str) -> fem.Function:
 
 
 def store(path: str | Path, geometry: geo.Geometry, a0: fem.Function, speed: fem.Function,
-          params: LaplaceParams = LaplaceParams(), **attrs) -> None:
+          params: LaplaceParams = LaplaceParams(), described: str | None = None, **attrs) -> None:
     """Write the fibres as a fibre file (`hyper.fem.fibers`'s format) with ``kind =
-    "laplace"``, the method, the statistics and ``attrs``; atomic, on rank 0. Collective."""
+    "laplace"``, the method (``described``, where the flow was solved on another mesh), the
+    statistics and ``attrs``; atomic, on rank 0. Collective."""
     stats = fibers.statistics(geometry, a0, speed)
     data = fibers.gather_nodal(a0, speed)
     if geometry.comm.rank == 0:
         write_series(path, data,
-                     attrs={"geometry": geometry.name, "kind": KIND, "method": method(params),
+                     attrs={"geometry": geometry.name, "kind": KIND, "method": described or method(params),
                             "element": fibers.ELEMENT, "reference": REFERENCE, "inflow_tag": geometry.ends[0],
                             "outflow_tag": geometry.ends[1], "lateral_tag": geometry.lateral, "coordinates": "m",
                             "ranks": geometry.comm.size, **stats, **attrs},

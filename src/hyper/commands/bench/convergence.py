@@ -4,6 +4,7 @@ resolutions, and which of fibres and mechanics carries the error.
     python -m hyper.bench convergence [MUSCLE] [--cells 4000 8000 16000 32000] [--quick]
     python -m hyper.bench convergence --all [ID …] [--quick] (every muscle, one table)
     python -m hyper.bench convergence --fibres-only ID … (the fixed-geometry fibre check)
+    python -m hyper.bench convergence --fibres-limit [ID …] (the shipped fibres to the converged field)
     python -m hyper.bench convergence --spatial-table DIR … (fidelity's table, no runs)
 
 MUSCLE: a shipped or meshed geometry id whose surface is known (the 12 paper muscles:
@@ -47,6 +48,18 @@ muscle's estimated error at the default resolution (8000 cells) taken from its s
 the finest levels, printed as a table and as the lines of `hyper.runs.fidelity.SURFACE_STUDIES`
 (OUTPUT/spatial_table.json, and .png: the error with the own and with the finest fibres).
 
+--fibres-limit [ID …]: each shipped geometry's fibres (its fibre file: what a `--geometry`
+run reads) against the converged field of its shape at its nodes. A mesh made from a
+surface (the 19 of `make new-meshes`): the surface meshed as `hyper mesh` does (its end
+rule) at --reference-cells (64000 and 128000), each level's Laplace fibres solved on it. A
+paper fTetWild mesh, whose end patches are the paper's tags and no rule on a surface's:
+its own polyhedron, refined uniformly once and twice. The finest field is the reference;
+the change between the two finest levels stands for the finest's own distance to the limit,
+and the sum with the fibres' angle bounds theirs (the 95th percentile, °; the goal
+FIBRES_GOAL_DEG). For the meshed ones also the flow on the mesh itself (hyper mesh before
+--flow-cells became its default). Each geometry a job on one rank, kept under
+OUTPUT/fibres_limit/ and reused (fibres_limit.json, .png).
+
 --fibres-only ID …: the Stokes fibres of each geometry at the default Taylor–Hood P2-P1
 against P3-P2 on the same mesh (the same polyhedron, one order higher): mean, 95th
 percentile and largest angle at the nodes, and the seconds and peak memory of the P3
@@ -58,6 +71,7 @@ Writes OUTPUT/convergence_NAME.json and .png (or convergence_fibres.json).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import resource
@@ -78,7 +92,8 @@ from hyper.commands.bench import mesh as mesh_bench
 from hyper.core import io
 from hyper.core.log import info
 from hyper.core.params import InputError
-from hyper.fem import fibers
+from hyper.fem import fiberread as fr
+from hyper.fem import fibers, laplace
 from hyper.fem import geometry as geo
 from hyper.fem import meshing as hm
 from hyper.fem.coupled import GrowthSettings, build_model
@@ -138,8 +153,9 @@ def level_mesh(comm, name: str, stl: Path, extra: list[str], cells: int, root: P
                       if comm.rank == 0 else None, root=0)
     if done and not force:
         return folder
+    # each level's fibres solved on the level itself (the "finest" variant carries the finest's)
     status = mesh_job.main([str(stl), "--output", str(folder), "--force", "--cells", str(cells),
-                            "--method", method, *extra], comm=comm)
+                            "--method", method, "--flow-cells", "0", *extra], comm=comm)
     if status != cli.EXIT_OK:
         raise InputError(f"{name}: hyper mesh --cells {cells} failed (exit {status})")
     return folder
@@ -595,6 +611,158 @@ def fibres_all(comm, args) -> int:
     return cli.EXIT_OK
 
 
+# ---------------------------------------------------------------------- --fibres-limit
+
+LIMIT_CELLS = (64000, 128000)  # the meshes of a surface the converged field is taken from
+
+
+def limit_settings(args) -> dict:
+    return {"reference_cells": sorted(args.reference_cells or LIMIT_CELLS), "surfaces": str(args.surfaces),
+            "laplace": dataclasses.asdict(laplace.LaplaceParams())}
+
+
+def limit_job(comm, job: farm.Job) -> dict:
+    """One shipped geometry's row of --fibres-limit, written to the job's path."""
+    name, settings, path = job.payload
+    surface = None
+    if name in geo.MESHED:
+        _, stl, extra = source(name, Path(settings["surfaces"]))
+        rule = json.loads((geo.MESHES_DIR / name / "mesh.json").read_text())["ends"].get("rule", "vertices")
+        surface = (stl, ["--end-rule", rule, *extra])
+    row = limit_row(comm, geo.load(name, comm), fibers.fiber_path(name), surface, settings["reference_cells"],
+                    path.with_suffix(".scratch"))
+    row["settings"] = settings
+    if comm.rank == 0:
+        io.write_json(path, row)
+    return row
+
+
+def limit_row(comm, geometry: geo.Geometry, fibre_file: Path, surface: tuple[Path, list[str]] | None,
+              reference_cells: list[int], scratch: Path) -> dict:
+    """The fibres of ``fibre_file`` on ``geometry`` against the converged field of its shape
+    at its nodes. ``surface`` (STL, `hyper mesh` options): the geometry is a mesh of it, and
+    its shape the surface with the ends its rule tags, whose limit is that of ever finer
+    meshes of it (``reference_cells``; the flow of `hyper mesh` is one of them). None: a
+    paper fTetWild mesh, whose ends are the paper's tags and no rule's, so its shape is its
+    own polyhedron, refined uniformly once and twice."""
+    start = time.perf_counter()
+    levels = []
+    if surface is not None:
+        stl, options = surface
+        shutil.rmtree(scratch, ignore_errors=True)
+        scratch.mkdir(parents=True)
+        for cells in reference_cells:
+            args = mesh_job.parser().parse_args([str(stl), "--output", str(scratch / "unused"), "--cells", str(cells),
+                                                *options])
+            level = mesh_job.flow_mesh(comm, args, scratch / f"c{cells}" / f"c{cells}.xdmf", cells)
+            levels.append((level.num_cells(), unit(fibers.transferred(laplace.compute(level)[0], geometry))))
+            del level
+        shutil.rmtree(scratch, ignore_errors=True)
+        reference, own = "meshes of its surface", laplace.compute(geometry)[0]
+    else:
+        fine = geometry
+        for _ in range(2):
+            fine = geo.refine(fine)
+            levels.append((fine.num_cells(), unit(fibers.transferred(laplace.compute(fine)[0], geometry))))
+        del fine
+        reference, own = "its mesh refined uniformly", None
+    finest, shipped = levels[-1][1], fibers.load(geometry, fibre_file)
+    row = {"geometry": geometry.name, "cells": geometry.num_cells(), "reference": reference,
+           "reference_cells": [n for n, _ in levels], "fibre_file": str(fibre_file),
+           "fibres_method": fr.stored_fibres(fibre_file)[1], "fibres": angles(shipped, finest),
+           "spread": angles(levels[-2][1], finest), **({} if own is None else {"own_mesh": angles(own, finest)}),
+           "wall_s": comm.allreduce(time.perf_counter() - start, op=MPI.MAX)}
+    # the finest field's own distance to the limit is taken to be at most its change from the level before
+    row["bound_p95_deg"] = row["fibres"]["p95_deg"] + row["spread"]["p95_deg"]
+    row["goal_met"] = row["bound_p95_deg"] <= FIBRES_GOAL_DEG
+    return row
+
+
+def limit_line(row: dict) -> str:
+    own = f"; its own mesh's flow {row['own_mesh']['p95_deg']:.2f}°" if "own_mesh" in row else ""
+    return (f"{row['geometry']}: fibres {row['fibres']['mean_deg']:.2f}° mean, {row['fibres']['p95_deg']:.2f}° p95 "
+            f"from {row['reference']} at {row['reference_cells'][-1]} cells, which moved "
+            f"{row['spread']['p95_deg']:.2f}° (p95) from {row['reference_cells'][0]}: within "
+            f"{row['bound_p95_deg']:.2f}° of the converged field{own}")
+
+
+def limit_markdown(rows: list[dict]) -> list[str]:
+    lines = ["| geometry | cells | converged field from | its cells | fibres to it: mean / p95 (°) | "
+             "the finest's change, p95 (°) | bound, p95 (°) | flow on the mesh itself, p95 (°) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        bound = f"{r['bound_p95_deg']:.2f}" if r["goal_met"] else f"**{r['bound_p95_deg']:.2f}**"
+        own = f"{r['own_mesh']['p95_deg']:.2f}" if "own_mesh" in r else "(the same)"
+        lines.append(f"| {r['geometry']} | {r['cells']} | {r['reference']} | "
+                     f"{' / '.join(map(str, r['reference_cells']))} | {r['fibres']['mean_deg']:.2f} / "
+                     f"{r['fibres']['p95_deg']:.2f} | {r['spread']['p95_deg']:.2f} | {bound} | {own} |")
+    lines.append(f"| within {FIBRES_GOAL_DEG:g}° | | | | | | {sum(r['goal_met'] for r in rows)} of {len(rows)} | |")
+    return lines
+
+
+def limit_chart(path: Path, rows: list[dict]) -> None:
+    """Per geometry: the fibres' p95 angle to the converged field's estimate, the finest
+    level's own change stacked on it, the flow on the mesh itself as a marker; the goal."""
+    plt = plot.pyplot()
+    x = np.arange(len(rows))
+    fibres = np.array([r["fibres"]["p95_deg"] for r in rows])
+    spread = np.array([r["spread"]["p95_deg"] for r in rows])
+    fig, ax = plt.subplots(figsize=(max(8.0, 0.42 * len(rows) + 2), 4.8), layout="constrained")
+    ax.bar(x, fibres, 0.7, label="the shipped fibres to the finest field")
+    ax.bar(x, spread, 0.7, bottom=fibres, hatch="//", alpha=0.5, label="+ the finest field's last change (bound)")
+    own = [(k, r["own_mesh"]["p95_deg"]) for k, r in enumerate(rows) if "own_mesh" in r]
+    if own:
+        ax.plot(*zip(*own), "kv", ms=5, label="the flow on the 8k mesh itself (before)")
+    ax.axhline(FIBRES_GOAL_DEG, color="k", ls="--", lw=1, label=f"goal {FIBRES_GOAL_DEG:g}°")
+    ax.set_xticks(x, [r["geometry"] for r in rows], rotation=70, fontsize=8)
+    ax.set_ylabel("angle to the converged field, 95th percentile (°)")
+    ax.set_title("Each shipped mesh's Laplace fibres against the converged field of its shape "
+                 "(meshed: finer meshes of its surface; paper: its mesh refined)")
+    ax.legend(fontsize=8)
+    plot.save(fig, path, dpi=120)
+
+
+def fibres_limit(comm, args) -> int:
+    """Each shipped geometry's fibres against the converged field of its shape (--fibres-limit)."""
+    names = args.fibres_limit or list(geo.ANATOMICAL + geo.MESHED)
+    for name in names:
+        if name not in (*geo.ANATOMICAL, *geo.MESHED):
+            raise InputError(f"--fibres-limit: {name!r} is not a shipped anatomical or meshed geometry")
+        if fibers.stored_kind(fibers.fiber_path(name)) != laplace.KIND:
+            raise InputError(f"--fibres-limit: {name}'s fibres are not Laplace fibres: remake them "
+                             f"(hyper fibers --method laplace --geometries {name})")
+    settings = limit_settings(args)
+    folder = args.output / "fibres_limit"
+    if comm.rank == 0:
+        folder.mkdir(parents=True, exist_ok=True)
+    paths = {name: folder / f"{name}.json" for name in names}
+
+    def is_done(job: farm.Job) -> bool:
+        return not args.force and paths[job.key].is_file() and \
+            json.loads(paths[job.key].read_text()).get("settings") == settings
+
+    # the paper meshes' twice refined solve costs about what a surface's two fine meshes do
+    jobs = [farm.Job(name, cost=1.0, payload=(name, settings, paths[name])) for name in names]
+    start = time.perf_counter()
+    results = farm.run(comm, jobs, limit_job, is_done=is_done, label="convergence --fibres-limit")
+    failed = [r for r in results if r.status == "failed"]
+    rows = [json.loads(paths[r.key].read_text()) for r in results if r.status != "failed"] if comm.rank == 0 else []
+    if comm.rank == 0:
+        for r in rows:
+            info(comm, limit_line(r))
+        result = {"benchmark": "convergence --fibres-limit", "goal_p95_deg": FIBRES_GOAL_DEG, "settings": settings,
+                  "rows": rows, "failed": {r.key: r.error.strip().splitlines()[-1] for r in failed},
+                  "ranks": comm.size, "wall_s": time.perf_counter() - start, "machine": common.machine(),
+                  "versions": io.versions()}
+        io.write_json(args.output / "fibres_limit.json", result)
+        limit_chart(args.output / "fibres_limit.png", rows)
+        print("\n".join(limit_markdown(rows)))
+        info(comm, f"{sum(r['goal_met'] for r in rows)} of {len(rows)} shipped meshes' fibres within "
+                   f"{FIBRES_GOAL_DEG:g}° (p95) of the converged field ({result['wall_s']:.0f} s); wrote "
+                   f"{args.output / 'fibres_limit'}.json and .png")
+    return cli.EXIT_SOME_FAILED if failed else cli.EXIT_OK
+
+
 # ------------------------------------------------------------------------------ --all
 
 
@@ -858,16 +1026,10 @@ def study_of(folders: list[Path], muscle: str, method: str) -> dict | None:
 
 
 def shipped_job(comm, job: farm.Job) -> dict:
-    """One shipped geometry's 9-week growth with ``method`` fibres made on its own mesh."""
-    from hyper.fem import laplace
-
+    """One shipped geometry's 9-week growth with its ``method`` fibres (the files a run reads)."""
     name, method = job.payload
     geometry = geo.load(name, comm)
-    if method == "laplace":
-        a0, _ = laplace.compute(geometry, laplace.LaplaceParams())
-    else:
-        a0 = fibers.fiber_field(geometry, "stokes")
-    return {"cells": geometry.num_cells(), **growth(geometry, a0)}
+    return {"cells": geometry.num_cells(), **growth(geometry, fibers.fiber_field(geometry, method))}
 
 
 def shipped(comm, args) -> int:
@@ -1012,8 +1174,14 @@ def parser() -> cli.Parser:
     p.add_argument("--flow-cells", type=cli.integer(200, 200000), nargs="*", default=[16000], metavar="N",
                    help="--fibres-all: also the flow solved at N cells and carried onto that mesh (hyper mesh "
                         "--flow-cells)")
-    p.add_argument("--reference-cells", type=cli.integer(200, 200000), nargs="+", default=[32000], metavar="N",
-                   help="--fibres-all: the finest is the reference; coarser ones are compared with it too")
+    p.add_argument("--fibres-limit", nargs="*", metavar="ID", help="only the fibres: each shipped geometry's (all "
+                   "by default) against the converged field of its shape at its nodes, from finer meshes of its "
+                   f"surface (--reference-cells, {' '.join(map(str, LIMIT_CELLS))} by default) or, for the paper's "
+                   "meshes, its mesh refined once and twice (fibres_limit.json, .png; per geometry under "
+                   "fibres_limit/, reused)")
+    p.add_argument("--reference-cells", type=cli.integer(200, 400000), nargs="+", metavar="N",
+                   help="--fibres-all: the finest is the reference; coarser ones are compared with it too (32000 "
+                        "by default); --fibres-limit: the meshes of a surface the converged field is taken from")
     p.add_argument("--fibres-smoothing", type=cli.number(0, 50), nargs="+", default=[2.0, 4.0], metavar="MM",
                    help="--fibres-all: the smoothing lengths (each level's flow smoothed over each)")
     p.add_argument("--spatial-table", nargs="+", type=Path, metavar="DIR", reads=True,
@@ -1045,7 +1213,10 @@ def run(comm, args) -> int:
     if args.all is not None:
         return studies_all(comm, args)
     if args.fibres_all is not None:
+        args.reference_cells = args.reference_cells or [32000]
         return fibres_all(comm, args)
+    if args.fibres_limit is not None:
+        return fibres_limit(comm, args)
     if args.fibres_only:
         for name in args.fibres_only:
             if name not in geo.GEOMETRIES or name in ("idealized", "cylinder"):
