@@ -7,7 +7,7 @@ runs it once the folder is in the project's meshes/:
 
     NAME.xdmf, NAME.h5   the tetrahedra (millimetres, mesh "Grid") and the facet tags
                          "ft_small": 1 the origin, 2 the insertion, 3 the lateral surface
-    fibers.h5            the Stokes-flow fibres (hyper.fibers), as `hyper fibers` writes them
+    fibers.h5            the fibres (step 5), in `hyper fibers`'s format
     mesh.json            source, unit, end rule, quality and the mesh statistics (hyper.meshstats)
     NAME.png             the surface with its ends coloured, and fibre glyphs on a mid-slice
 
@@ -53,8 +53,13 @@ Steps, each of which stops the job with one ``error:`` line (exit 2) and nothing
    to 40 % of an end's area has normals that point inward along the axis, so a rule on
    normals would not reproduce them). Refused: an end without facets, no lateral surface
    left, a band of half the length or more (the ends would touch; below it they cannot).
-5. Fibres: the Stokes flow of hyper.fibers (inflow at tag 1), smoothed over
-   ``--fibers-smoothing`` (`hyper.fem.fibers.smoothed`); statistics of hyper.meshstats.
+5. Fibres: the potential (Laplace) flow from tag 1 to tag 2 (hyper.fem.laplace), solved
+   on the surface meshed again by these steps at 4 times the cells and carried onto this
+   mesh's nodes (``--flow-cells``; a coarse mesh's end patches are coarse: the fibres of
+   the mesh itself are up to 4° (95th percentile) from the converged field, docs/
+   convergence.md); ``--method stokes`` the paper's Stokes flow of hyper.fibers, smoothed
+   over ``--fibers-smoothing`` (`hyper.fem.fibers.smoothed`); ``--method pennate`` between
+   two aponeuroses (hyper.fem.pennate). Statistics of hyper.meshstats.
 """
 
 from __future__ import annotations
