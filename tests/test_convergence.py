@@ -342,3 +342,10 @@ def test_fibres_limit_measures_a_mesh_s_fibres_against_its_shape_s_finer_fields(
     assert paper["reference_cells"] == [8 * geometry.num_cells(), 64 * geometry.num_cells()]
     # P2 potentials on nested meshes: once refined is nearer the twice refined than the mesh itself
     assert 0.0 < paper["spread"]["p95_deg"] < 0.7 * paper["fibres"]["p95_deg"]
+
+
+def test_fibres_limit_refuses_what_it_cannot_measure(capsys):
+    assert convergence.main(["--fibres-limit", "VM_VHM_Left", "--reference-cells", "64000", "--quiet"]) == 2
+    assert "needs two or more levels" in capsys.readouterr().err
+    assert convergence.main(["--fibres-limit", "idealized", "--quiet"]) == 2
+    assert "not a shipped anatomical or meshed geometry" in capsys.readouterr().err

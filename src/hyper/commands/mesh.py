@@ -34,7 +34,7 @@ ARRAYS = ("x", "tets", "facets", "tags")  # what `build` returns besides numbers
 FIBERS_SMOOTHING_MM = 2.0
 METHODS = ("stokes", "laplace", "pennate")
 # The Laplace fibres converge with the mesh where the paper's Stokes fibres do not (the wide
-# muscles: docs/convergence.md, "Laplace fibres"); the shipped meshes keep their Stokes fibres.
+# muscles: docs/convergence.md, "Laplace fibres"); `--method stokes` gives the paper's flow.
 DEFAULT_METHOD = "laplace"
 # The Laplace flow is solved on a mesh of the surface with this many times --cells and carried
 # onto the mesh's nodes: a coarse mesh's end patches are coarse, and on VM_VHM_Left the 8k

@@ -682,7 +682,7 @@ def limit_line(row: dict) -> str:
     own = f"; its own mesh's flow {row['own_mesh']['p95_deg']:.2f}°" if "own_mesh" in row else ""
     return (f"{row['geometry']}: fibres {row['fibres']['mean_deg']:.2f}° mean, {row['fibres']['p95_deg']:.2f}° p95 "
             f"from {row['reference']} at {row['reference_cells'][-1]} cells, which moved "
-            f"{row['spread']['p95_deg']:.2f}° (p95) from {row['reference_cells'][0]}: within "
+            f"{row['spread']['p95_deg']:.2f}° (p95) from {row['reference_cells'][-2]}: within "
             f"{row['bound_p95_deg']:.2f}° of the converged field{own}")
 
 
@@ -732,6 +732,9 @@ def fibres_limit(comm, args) -> int:
             raise InputError(f"--fibres-limit: {name}'s fibres are not Laplace fibres: remake them "
                              f"(hyper fibers --method laplace --geometries {name})")
     settings = limit_settings(args)
+    if len(set(settings["reference_cells"])) < 2:
+        raise InputError("--reference-cells: --fibres-limit needs two or more levels (the finest's change bounds "
+                         "its distance to the limit)")
     folder = args.output / "fibres_limit"
     if comm.rank == 0:
         folder.mkdir(parents=True, exist_ok=True)
