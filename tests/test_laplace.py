@@ -285,3 +285,10 @@ def test_hyper_fibers_refuses_to_remake_fibres_hyper_mesh_solved_on_a_finer_mesh
                             str(tmp_path), "--quiet"]) == 2
     assert "VM_VHM_Left: its Laplace fibres were solved by hyper mesh on a 32000-cell mesh" in capsys.readouterr().err
     assert (geo.MESHES_DIR / "VM_VHM_Left" / fibers.FILE_NAME).read_bytes() == before
+    # nor beside a copy of its folder, given as a mesh file
+    folder = tmp_path / "mine"
+    shutil.copytree(geo.MESHES_DIR / "VM_VHM_Left", folder)
+    assert fibers_job.main(["--mesh", str(folder / "VM_VHM_Left.xdmf"), "--method", "laplace", "--force",
+                            "--quiet"]) == 2
+    assert "hyper mesh --flow-cells 0 gives the mesh's own" in capsys.readouterr().err
+    assert (folder / fibers.FILE_NAME).read_bytes() == before

@@ -147,6 +147,12 @@ def _flow_cells(folder: Path) -> int | None:
     return json.loads(record.read_text()).get("flow_cells_target") if record.is_file() else None
 
 
+def _remade_elsewhere(what: str, flow: int, folder: Path, how: str) -> str:
+    # solved on the mesh itself they would be another, coarser field (docs/convergence.md)
+    return (f"{what}: its Laplace fibres were solved by hyper mesh on a {flow}-cell mesh of its surface "
+            f"({folder / 'mesh.json'}); remake them with hyper mesh ({how})")
+
+
 def _stored_stats(path: Path) -> dict:
     import h5py
 
@@ -226,10 +232,8 @@ def run(comm, args) -> int:
             raise InputError(f"{mesh_file}: no such mesh file")
         if args.method == "laplace" and (args.force or not is_complete(target(name, args))):
             flow = _flow_cells(mesh_file.parent)
-            if flow:  # solved on the mesh itself they would be another, coarser field (docs/convergence.md)
-                raise InputError(f"{name}: its Laplace fibres were solved by hyper mesh on a {flow}-cell mesh of its "
-                                 f"surface ({mesh_file.parent / 'mesh.json'}); remake them with hyper mesh (the "
-                                 "shipped ones: make new-meshes)")
+            if flow:
+                raise InputError(_remade_elsewhere(name, flow, mesh_file.parent, "the shipped ones: make new-meshes"))
     jobs = [farm.Job(name, cost=1.0) for name in args.geometries]
 
     def is_done(job):
@@ -270,6 +274,10 @@ def run_mesh(comm, args) -> int:
         raise InputError(f"--mesh {mesh.path}: its fibres cannot go beside it ({why}); copy the mesh folder")
     if not args.force and on_rank0(comm, path.exists):
         raise InputError(f"{path}: exists; give --force to replace it")
+    flow = on_rank0(comm, lambda: _flow_cells(mesh.path.parent)) if args.method == "laplace" else None
+    if flow:
+        raise InputError(_remade_elsewhere(str(mesh.path), flow, mesh.path.parent, "hyper mesh --flow-cells 0 gives "
+                                           "the mesh's own"))
     if args.method == "pennate":  # the patches parsed before any work: a bad one writes nothing
         origin = pennate.parse(args.origin, "--origin")
         insertion = pennate.parse(args.insertion, "--insertion")
