@@ -240,11 +240,12 @@ def run(comm, args) -> int:
                                 "inflow_tag": 1, "outflow_tag": 2, "lateral_tag": 3, "coordinates": "m",
                                 "ranks": comm.size, **stats},
                          groups={"parameters": as_attributes(params)})
+        flow_target = flow_cells(args)
         if comm.rank == 0:
             shutil.rmtree(stage / "flow", ignore_errors=True)
             record = {"source": str(args.surface), "source_sha256": built["sha256"], "unit": args.unit,
                       "mesher": f"gmsh {hm.gmsh_version()}", "cells_target": args.cells,
-                      **({"flow_cells_target": flow_cells(args)} if flow_cells(args) else {}),
+                      **({"flow_cells_target": flow_target} if flow_target else {}),
                       "surface_triangles": built["surface_triangles"], "ends": built["rule"],
                       "fibres_method": "data" if source is not None else args.method,
                       # the Stokes flow's, where one was solved (fibres from data are compared with it)
@@ -278,7 +279,9 @@ def run(comm, args) -> int:
     info(comm, f"{name}: {row['cells']} cells, {row['vertices']} vertices, min dihedral angle "
                f"{q['min_dihedral_deg']:.1f}°; volume {row['volume_cm3']:.2f} cm³, CSA0 {row['csa0_cm2']:.2f} cm², "
                f"length {row['length_cm']:.2f} cm; ends {built['end_area_mm2'][0]:.0f} and "
-               f"{built['end_area_mm2'][1]:.0f} mm²; {flow} fibres (--method {args.method}) within 30° of the axis "
+               f"{built['end_area_mm2'][1]:.0f} mm²; {flow} fibres (--method {args.method}"
+               f"{f', the flow on a {flow_target}-cell mesh of the surface: --flow-cells' if flow_target else ''}) "
+               f"within 30° of the axis "
                f"{100 * stats['share_within_30deg']:.1f} %; checks {built['check_s']:.1f} s, mesh "
                f"{built['mesh_s']:.1f} s, fibres {stats['solve_s']:.1f} s")
     if field is not None:

@@ -405,13 +405,18 @@ def fibre_muscles(surfaces: Path) -> list[str]:
             ] + list(geo.NEW)
 
 
+def surface_mesh(comm, stl: Path, extra: list[str], cells: int, scratch: Path) -> geo.Geometry:
+    """The surface meshed as `hyper mesh STL --cells CELLS EXTRA` does, written under ``scratch``."""
+    options = mesh_job.parser().parse_args([str(stl), "--output", str(scratch / "unused"), "--cells", str(cells),
+                                           *extra])
+    return mesh_job.flow_mesh(comm, options, scratch / f"c{cells}" / f"c{cells}.xdmf", cells)
+
+
 def fibre_level(comm, stl: Path, extra: list[str], cells: int, scratch: Path, smoothings: tuple[float, ...]):
     """The surface meshed as `hyper mesh --cells CELLS` does, its Stokes flow solved once and
     smoothed over each length of ``smoothings`` (mm): (geometry, {l: (a0, speed)}, timings)."""
-    options = mesh_job.parser().parse_args([str(stl), "--output", str(scratch / "unused"), "--cells", str(cells),
-                                           *extra])
     start = time.perf_counter()
-    geometry = mesh_job.flow_mesh(comm, options, scratch / f"c{cells}" / f"c{cells}.xdmf", cells)
+    geometry = surface_mesh(comm, stl, extra, cells, scratch)
     meshed = time.perf_counter()
     stokes = fibers.StokesFibers(geometry)
     u = stokes.solve()
@@ -617,7 +622,7 @@ LIMIT_CELLS = (64000, 128000)  # the meshes of a surface the converged field is 
 
 
 def limit_settings(args) -> dict:
-    return {"reference_cells": sorted(args.reference_cells or LIMIT_CELLS), "surfaces": str(args.surfaces),
+    return {"reference_cells": sorted(args.reference_cells), "surfaces": str(args.surfaces),
             "laplace": dataclasses.asdict(laplace.LaplaceParams())}
 
 
@@ -652,9 +657,7 @@ def limit_row(comm, geometry: geo.Geometry, fibre_file: Path, surface: tuple[Pat
         shutil.rmtree(scratch, ignore_errors=True)
         scratch.mkdir(parents=True)
         for cells in reference_cells:
-            args = mesh_job.parser().parse_args([str(stl), "--output", str(scratch / "unused"), "--cells", str(cells),
-                                                *options])
-            level = mesh_job.flow_mesh(comm, args, scratch / f"c{cells}" / f"c{cells}.xdmf", cells)
+            level = surface_mesh(comm, stl, options, cells, scratch)
             levels.append((level.num_cells(), unit(fibers.transferred(laplace.compute(level)[0], geometry))))
             del level
         shutil.rmtree(scratch, ignore_errors=True)
@@ -1221,6 +1224,7 @@ def run(comm, args) -> int:
         args.reference_cells = args.reference_cells or [32000]
         return fibres_all(comm, args)
     if args.fibres_limit is not None:
+        args.reference_cells = args.reference_cells or list(LIMIT_CELLS)
         return fibres_limit(comm, args)
     if args.fibres_only:
         for name in args.fibres_only:
